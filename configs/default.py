@@ -1,0 +1,84 @@
+"""The default job: the built-in procedural scene, sized to train, evaluate and render in minutes on a CPU.
+
+Every other config starts from this one. Argument: `smoke` shrinks everything to seconds (tests, CI).
+"""
+import ml_collections
+
+from nerfpod import config_util
+
+
+def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
+  args = config_util.parse_arg(arg, smoke=False)
+  c = ml_collections.ConfigDict()
+
+  c.data = ml_collections.ConfigDict()
+  c.data.kind = "procedural"      # scene format: 'procedural' (built in), 'tiny' (npz) or 'blender' (folder)
+  c.data.path = ""                # the npz file or scene folder; unused by the procedural scene
+  c.data.downscale = 1            # integer factor the images are shrunk by on loading (Blender data)
+  c.data.image_size = 100         # procedural scene: width and height of its images, pixels
+  c.data.pixel_center = 0.5       # where in its pixel a ray passes: 0.5 centre, 0.0 corner (original code)
+
+  c.model = ml_collections.ConfigDict()
+  c.model.field = "hashgrid"      # 'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)
+  c.model.num_frequencies = 6     # mlp: positional-encoding frequencies L of points; 0 switches it off
+  c.model.depth = 8               # mlp: number of hidden layers
+  c.model.width = 256             # mlp: units per hidden layer
+  c.model.skips = (4,)            # mlp: after these (0-based) layers the encoded input is concatenated again
+  c.model.use_viewdirs = False    # feed the view direction to the colour head (view-dependent effects)
+  c.model.viewdir_frequencies = 4  # mlp: positional-encoding frequencies of view directions
+  c.model.density_activation = "relu"  # mlp: 'relu' (paper), 'softplus' or 'exp'
+  c.model.compute_dtype = "float32"    # matmul dtype: 'bfloat16' for mixed precision on TPU/GPU
+  c.model.hashgrid = ml_collections.ConfigDict()
+  c.model.hashgrid.bound = 1.5            # the field lives in the box [-bound, bound]^3, world units
+  c.model.hashgrid.num_levels = 8         # resolution levels of the grid
+  c.model.hashgrid.features_per_level = 2  # features stored per grid vertex and level
+  c.model.hashgrid.log2_table_size = 16   # rows per level's table, log2; finer levels share them by hashing
+  c.model.hashgrid.base_resolution = 16   # cells per side of the coarsest level
+  c.model.hashgrid.max_resolution = 256   # cells per side of the finest level
+  c.model.hashgrid.hidden_width = 32      # units of the density and colour MLPs' hidden layers
+  c.model.hashgrid.geo_features = 7       # features passed from the density MLP to the colour MLP
+
+  c.render = ml_collections.ConfigDict()
+  c.render.num_samples = 64       # stratified (coarse) samples per ray
+  c.render.num_importance = 0     # extra importance samples per ray for a fine network; 0: no fine network
+  c.render.last_delta = 1e10      # length of the last sample's interval, world units (1e10: infinite)
+  c.render.near = -1.0            # ray start, world units; negative: the scene's own bound
+  c.render.far = -1.0             # ray end, world units; negative: the scene's own bound
+
+  c.train = ml_collections.ConfigDict()
+  c.train.num_steps = 3000        # optimiser steps
+  c.train.batch_size = 1024       # rays per step, over all devices of all hosts
+  c.train.lr_init = 1e-2          # learning rate at the start (after warm-up)
+  c.train.lr_final = 5e-4         # learning rate at the last step (log-linear decay in between)
+  c.train.lr_warmup_steps = 50    # linear warm-up from 0, steps
+  c.train.adam_eps = 1e-15        # Adam's epsilon (1e-15 for hash grids, 1e-8 for MLPs)
+  c.train.grad_clip = 0.0         # clip the global gradient norm to this; 0: no clipping
+  c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
+  c.train.log_every = 100         # steps between TensorBoard scalars and console lines
+  c.train.image_every = 1000      # steps between rendered held-out views in TensorBoard; 0: never
+
+  c.checkpoint = ml_collections.ConfigDict()
+  c.checkpoint.every_steps = 1000  # steps between (asynchronous) checkpoints; one is always saved at the end
+  c.checkpoint.max_to_keep = 3    # newest checkpoints kept on disk
+
+  c.eval = ml_collections.ConfigDict()
+  c.eval.split = "test"           # held-out split the final metrics are computed on
+  c.eval.max_views = 0            # evaluate at most this many views of the split; 0: all
+  c.eval.chunk = 4096             # rays rendered per device call, over all devices (bounds memory)
+
+  if args["smoke"]:
+    c.data.image_size = 32
+    c.model.hashgrid.num_levels = 4
+    c.model.hashgrid.log2_table_size = 12
+    c.model.hashgrid.max_resolution = 64
+    c.model.hashgrid.hidden_width = 16
+    c.render.num_samples = 16
+    c.train.num_steps = 20
+    c.train.batch_size = 256
+    c.train.lr_warmup_steps = 2
+    c.train.log_every = 5
+    c.train.image_every = 10
+    c.checkpoint.every_steps = 10
+    c.eval.max_views = 2
+    c.eval.chunk = 1024
+  return c

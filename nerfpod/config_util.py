@@ -1,0 +1,25 @@
+"""Helpers for config files: derive from a sibling config file, parse `key=value,flag` arguments."""
+import importlib.util
+import os
+
+import ml_collections
+
+
+def sibling_config(this_file: str, name: str, arg: str | None = None) -> ml_collections.ConfigDict:
+  """get_config(arg) of configs/<name>.py, found next to `this_file` (works wherever the repo is)."""
+  path = os.path.join(os.path.dirname(os.path.abspath(this_file)), f"{name}.py")
+  spec = importlib.util.spec_from_file_location(f"nerfpod_config_{name}", path)
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module.get_config(arg)
+
+
+def parse_arg(arg: str | None, **defaults) -> dict:
+  """'scene=lego,smoke' -> {'scene': 'lego', 'smoke': True} on top of defaults; unknown keys are refused."""
+  out = dict(defaults)
+  for item in filter(None, (arg or "").split(",")):
+    key, _, value = item.partition("=")
+    if key not in defaults:
+      raise ValueError(f"unknown config argument {key!r}; known: {sorted(defaults)}")
+    out[key] = value if value else True
+  return out

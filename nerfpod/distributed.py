@@ -1,0 +1,80 @@
+"""Multi-host start-up (jax.distributed), the device mesh, and host-local <-> global arrays."""
+import os
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from nerfpod.errors import UserError
+
+DATA_AXIS = "data"
+
+
+def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
+               process_id: int | None = None, heartbeat_timeout_seconds: int = 100,
+               initialization_timeout: int = 300) -> None:
+  """Starts jax.distributed when this is one process of several; must run before any other JAX call.
+
+  Flags win over the standard variables JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID. With
+  none of them: on a TPU VM pod JAX finds its peers itself; anywhere else this is a single process.
+  """
+  coordinator_address = coordinator_address or os.environ.get("JAX_COORDINATOR_ADDRESS") or None
+  if num_processes is None and os.environ.get("JAX_NUM_PROCESSES"):
+    num_processes = int(os.environ["JAX_NUM_PROCESSES"])
+  if process_id is None and os.environ.get("JAX_PROCESS_ID"):
+    process_id = int(os.environ["JAX_PROCESS_ID"])
+  timeouts = dict(heartbeat_timeout_seconds=heartbeat_timeout_seconds,
+                  initialization_timeout=initialization_timeout)
+  if coordinator_address or (num_processes or 1) > 1:
+    if not coordinator_address or num_processes is None or process_id is None:
+      raise UserError("a multi-process run needs all of --coordinator_address, --num_processes and "
+                      "--process_id (or JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID).")
+    if not 0 <= process_id < num_processes:
+      raise UserError(f"--process_id={process_id} is outside [0, {num_processes}).")
+    jax.distributed.initialize(coordinator_address=coordinator_address, num_processes=num_processes,
+                               process_id=process_id, **timeouts)
+  elif _on_tpu_pod():
+    jax.distributed.initialize(**timeouts)
+
+
+def _on_tpu_pod() -> bool:
+  """True on a TPU VM that is one worker of several (the metadata TPU runtimes export)."""
+  hosts = os.environ.get("TPU_WORKER_HOSTNAMES", "")
+  return "," in hosts
+
+
+def make_mesh() -> Mesh:
+  """A 1-D mesh over every device of every host; batches are split along its one axis."""
+  return jax.make_mesh((jax.device_count(),), (DATA_AXIS,))
+
+
+def batch_sharding(mesh: Mesh) -> NamedSharding:
+  return NamedSharding(mesh, P(DATA_AXIS))
+
+
+def replicated(mesh: Mesh) -> NamedSharding:
+  return NamedSharding(mesh, P())
+
+
+def local_slice(global_size: int) -> slice:
+  """This process's contiguous share of a global batch of `global_size` rows (process order = mesh order)."""
+  count, index = jax.process_count(), jax.process_index()
+  if global_size % (jax.device_count()) != 0:
+    raise UserError(f"a global batch of {global_size} rays does not split evenly over "
+                    f"{jax.device_count()} devices; make train.batch_size a multiple of the device count.")
+  per_process = global_size // count
+  return slice(index * per_process, (index + 1) * per_process)
+
+
+def to_global(mesh: Mesh, local_tree):
+  """Host-local batch slices (leading axis) -> global arrays sharded over the mesh's data axis."""
+  sharding = batch_sharding(mesh)
+  return jax.tree.map(lambda x: jax.make_array_from_process_local_data(sharding, np.asarray(x)), local_tree)
+
+
+def to_host(tree):
+  """Global arrays -> full NumPy arrays on every process (an all-gather across hosts where needed)."""
+  if jax.process_count() == 1:
+    return jax.tree.map(np.asarray, tree)
+  return multihost_utils.process_allgather(tree, tiled=True)

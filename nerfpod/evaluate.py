@@ -1,0 +1,51 @@
+"""Held-out evaluation: render the views of a split, PSNR and SSIM per view and on average."""
+import json
+import os
+
+import jax
+import numpy as np
+
+from nerfpod import metrics, render
+
+
+def depth_image(depth_HxW, near: float, far: float) -> np.ndarray:
+  """Depth mapped to [0, 1] between the ray bounds (near white, far black), for viewing."""
+  return np.clip((far - np.asarray(depth_HxW)) / (far - near), 0.0, 1.0)
+
+
+def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer=None) -> dict:
+  """Renders config.eval.split, writes workdir/eval/metrics.json (process 0) and returns the metrics."""
+  from nerfpod.train import ray_bounds  # the trainer imports this module
+  near, far = ray_bounds(config, scene)
+  split = scene.split(config.eval.split)
+  count = len(split) if config.eval.max_views <= 0 else min(len(split), config.eval.max_views)
+  render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+  views = []
+  for index in range(count):
+    out = render.render_image(render_fn, params, mesh, split.poses[index], split.intrinsics,
+                              config.data.pixel_center, config.eval.chunk)
+    rgb = np.clip(out["rgb"], 0.0, 1.0)
+    views.append({"index": index, "name": split.names[index],
+                  "psnr": metrics.psnr(rgb, split.images[index]),
+                  "ssim": metrics.ssim(rgb, split.images[index])})
+    if writer is not None and index < 3:
+      writer.add_image(f"eval/{index}/rgb", np.concatenate([rgb, split.images[index]], 1), step,
+                       dataformats="HWC")
+      writer.add_image(f"eval/{index}/depth", depth_image(out["depth"], near, far)[..., None], step,
+                       dataformats="HWC")
+  result = {"step": int(step), "scene": scene.name, "split": config.eval.split, "views": views,
+            "mean": {"psnr": float(np.mean([v["psnr"] for v in views])),
+                     "ssim": float(np.mean([v["ssim"] for v in views]))}}
+  if jax.process_index() == 0:
+    os.makedirs(os.path.join(workdir, "eval"), exist_ok=True)
+    path = os.path.join(workdir, "eval", "metrics.json")
+    with open(path + ".tmp", "w") as f:
+      json.dump(result, f, indent=2)
+    os.replace(path + ".tmp", path)
+    if writer is not None:
+      writer.add_scalar(f"eval/{config.eval.split}/psnr", result["mean"]["psnr"], step)
+      writer.add_scalar(f"eval/{config.eval.split}/ssim", result["mean"]["ssim"], step)
+      writer.flush()
+    print(f"eval {config.eval.split}: {count} views, mean PSNR {result['mean']['psnr']:.2f} dB, "
+          f"SSIM {result['mean']['ssim']:.4f}", flush=True)
+  return result

@@ -1,0 +1,1 @@
+"""Pure NeRF math: cameras and rays, sampling, encodings, fields, volume rendering."""

@@ -1,0 +1,117 @@
+"""Input encodings: NeRF's positional (Fourier) encoding and a multiresolution hash grid (Instant-NGP)."""
+import math
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def positional_encoding(x_Nx3, num_frequencies: int, include_input: bool = True):
+  """[x, sin(2^0 x), cos(2^0 x), ..., sin(2^(L-1) x), cos(2^(L-1) x)], the Tiny NeRF tutorial's layout.
+
+  num_frequencies = 0 switches the encoding off (the raw coordinates, the tutorial's comparison).
+  Output width: 3 * (include_input + 2 L).
+  """
+  parts = [x_Nx3] if include_input or num_frequencies == 0 else []
+  for k in range(num_frequencies):
+    parts += [jnp.sin(2.0**k * x_Nx3), jnp.cos(2.0**k * x_Nx3)]
+  return jnp.concatenate(parts, axis=-1)
+
+
+# Instant-NGP's spatial hash primes; the first is 1 so that level-0 neighbours stay coherent in memory.
+_PRIMES = (1, 2654435761, 805459861)
+
+
+def hash_indices(corners_Nx3, table_size: int):
+  """Instant-NGP's spatial hash of integer grid corners: XOR of coordinate * prime, modulo the table size.
+
+  uint32 arithmetic wraps around, as in the reference implementation. Returns int32 indices in
+  [0, table_size).
+  """
+  c = corners_Nx3.astype(jnp.uint32)
+  h = c[..., 0] * jnp.uint32(_PRIMES[0])
+  h = h ^ (c[..., 1] * jnp.uint32(_PRIMES[1]))
+  h = h ^ (c[..., 2] * jnp.uint32(_PRIMES[2]))
+  return (h % jnp.uint32(table_size)).astype(jnp.int32)
+
+
+def level_resolutions(num_levels: int, base_resolution: int, max_resolution: int) -> list[int]:
+  """Grid resolution of each level, growing geometrically from base to max (Instant-NGP eq. 2-3)."""
+  if num_levels == 1:
+    return [base_resolution]
+  growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / (num_levels - 1))
+  return [int(math.floor(base_resolution * growth**level)) for level in range(num_levels)]
+
+
+def trilinear_corners_and_weights(x_Nx3, resolution: int):
+  """The 8 grid corners around points x in [0, 1]^3 on a grid of `resolution` cells, and their weights.
+
+  Returns corners (N, 8, 3) int32 and weights (N, 8) that sum to 1. At a grid vertex all weight falls on
+  that vertex.
+  """
+  scaled = x_Nx3 * resolution
+  base = jnp.clip(jnp.floor(scaled), 0, resolution - 1)
+  frac = scaled - base
+  offsets = jnp.asarray(np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]), jnp.int32)
+  corners = base.astype(jnp.int32)[..., None, :] + offsets
+  w = jnp.where(offsets == 1, frac[..., None, :], 1.0 - frac[..., None, :])
+  return corners, jnp.prod(w, axis=-1)
+
+
+def grid_indices(corners_Nx8x3, resolution: int, table_size: int):
+  """Table rows of grid corners: dense (one row per vertex) where the level fits, else the spatial hash."""
+  side = resolution + 1
+  if side**3 <= table_size:
+    return corners_Nx8x3[..., 0] * side * side + corners_Nx8x3[..., 1] * side + corners_Nx8x3[..., 2]
+  return hash_indices(corners_Nx8x3, table_size)
+
+
+def _symmetric_uniform(scale):
+  """Initialiser drawing from U(-scale, scale), Instant-NGP's table initialisation."""
+  return lambda key, shape, dtype=jnp.float32: jax.random.uniform(key, shape, dtype, -scale, scale)
+
+
+class HashGridEncoding(nn.Module):
+  """A multiresolution hash encoding of points in [0, 1]^3 (Mueller et al. 2022).
+
+  Each level is a table of `2**log2_table_size` rows of `features_per_level` features, indexed densely while
+  the level's grid fits and by the spatial hash beyond; features are trilinearly interpolated and the levels
+  concatenated: output width num_levels * features_per_level.
+  """
+  num_levels: int = 16
+  features_per_level: int = 2
+  log2_table_size: int = 19
+  base_resolution: int = 16
+  max_resolution: int = 2048
+
+  @nn.compact
+  def __call__(self, x_Nx3):
+    table_size = 2**self.log2_table_size
+    outputs = []
+    for level, res in enumerate(level_resolutions(self.num_levels, self.base_resolution,
+                                                  self.max_resolution)):
+      rows = min(table_size, (res + 1)**3)
+      table = self.param(f"level_{level}", _symmetric_uniform(1e-4), (rows, self.features_per_level))
+      corners, weights = trilinear_corners_and_weights(x_Nx3, res)
+      idx = grid_indices(corners, res, rows)
+      feats = jnp.take(table, idx, axis=0)
+      outputs.append(jnp.sum(weights[..., None] * feats, axis=-2))
+    return jnp.concatenate(outputs, axis=-1)
+
+
+def spherical_harmonics_deg4(dirs_Nx3):
+  """Real spherical harmonics up to degree 3 (16 values) of unit directions: Instant-NGP's view encoding."""
+  x, y, z = dirs_Nx3[..., 0], dirs_Nx3[..., 1], dirs_Nx3[..., 2]
+  xx, yy, zz = x * x, y * y, z * z
+  return jnp.stack([
+      jnp.full_like(x, 0.28209479177387814),
+      -0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x,
+      1.0925484305920792 * x * y, -1.0925484305920792 * y * z,
+      0.94617469575755997 * zz - 0.31539156525251999,
+      -1.0925484305920792 * x * z, 0.54627421529603959 * (xx - yy),
+      0.59004358992664352 * y * (-3.0 * xx + yy), 2.8906114426405538 * x * y * z,
+      0.45704579946446572 * y * (1.0 - 5.0 * zz), 0.3731763325901154 * z * (5.0 * zz - 3.0),
+      0.45704579946446572 * x * (1.0 - 5.0 * zz), 1.4453057213202769 * z * (xx - yy),
+      0.59004358992664352 * x * (-xx + 3.0 * yy),
+  ], axis=-1)

@@ -1,0 +1,102 @@
+"""Radiance fields: flax modules mapping points (and view directions) to colour and density."""
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from nerfpod.nerf import encodings
+
+_ACTIVATIONS = {"relu": nn.relu, "softplus": nn.softplus, "exp": jnp.exp}
+
+
+class MLPField(nn.Module):
+  """NeRF's MLP (Mildenhall et al. 2020, fig. 7), sized by config.
+
+  Points are positionally encoded, then `depth` dense layers of `width` with ReLU; the encoded input is
+  concatenated back after each (0-based) layer index in `skips` (the tutorial's 8x256, whose input rejoins
+  after layer `i % 4 == 0 and i > 0`, is skips=(4,)). Without view directions one linear head gives (rgb, sigma), as in the Tiny
+  NeRF tutorial. With them (the paper): sigma from the trunk, then a linear bottleneck of `width`
+  concatenated with the encoded direction, one layer of width/2 and the rgb head.
+  """
+  depth: int = 8
+  width: int = 256
+  skips: Sequence[int] = (4,)
+  num_frequencies: int = 6
+  use_viewdirs: bool = False
+  viewdir_frequencies: int = 4
+  density_activation: str = "relu"
+  dtype: jnp.dtype = jnp.float32  # matmul dtype: bfloat16 for mixed precision, params stay float32
+
+  @nn.compact
+  def __call__(self, points_Nx3, viewdirs_Nx3=None):
+    dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
+    encoded = positional = encodings.positional_encoding(points_Nx3, self.num_frequencies)
+    x = encoded
+    for i in range(self.depth):
+      x = nn.relu(dense(self.width, f"trunk_{i}")(x))
+      if i in self.skips and i < self.depth - 1:
+        x = jnp.concatenate([x, positional], axis=-1)
+    activation = _ACTIVATIONS[self.density_activation]
+    if not self.use_viewdirs:
+      raw = dense(4, "output")(x).astype(jnp.float32)
+      return nn.sigmoid(raw[..., :3]), activation(raw[..., 3])
+    sigma = activation(dense(1, "density")(x).astype(jnp.float32)[..., 0])
+    bottleneck = dense(self.width, "bottleneck")(x)
+    dirs = encodings.positional_encoding(viewdirs_Nx3, self.viewdir_frequencies)
+    h = nn.relu(dense(self.width // 2, "view")(jnp.concatenate([bottleneck, dirs.astype(x.dtype)], -1)))
+    return nn.sigmoid(dense(3, "rgb")(h).astype(jnp.float32)), sigma
+
+
+class HashGridField(nn.Module):
+  """Instant-NGP's field: a hash-grid encoding of the point, a small density MLP, a small colour MLP.
+
+  Points are mapped from the box [-bound, bound]^3 into the unit cube (outside it the density is zero).
+  Density is exp of the first output of the density MLP (Instant-NGP's "trunc_exp" forward); the colour MLP
+  takes the remaining features and, with view directions, their degree-4 spherical-harmonic encoding.
+  """
+  bound: float = 1.5
+  num_levels: int = 16
+  features_per_level: int = 2
+  log2_table_size: int = 19
+  base_resolution: int = 16
+  max_resolution: int = 2048
+  hidden_width: int = 64
+  geo_features: int = 15
+  use_viewdirs: bool = True
+  dtype: jnp.dtype = jnp.float32
+
+  @nn.compact
+  def __call__(self, points_Nx3, viewdirs_Nx3=None):
+    unit = (points_Nx3 + self.bound) / (2.0 * self.bound)
+    inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
+    features = encodings.HashGridEncoding(
+        self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
+        self.max_resolution, name="grid")(jnp.clip(unit, 0.0, 1.0))
+    dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
+    h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
+    h = dense(1 + self.geo_features, "density_out")(h).astype(jnp.float32)
+    sigma = jnp.where(inside, jnp.exp(jnp.minimum(h[..., 0], 15.0)), 0.0)
+    colour_in = [h[..., 1:]]
+    if self.use_viewdirs:
+      colour_in.append(encodings.spherical_harmonics_deg4(viewdirs_Nx3))
+    c = jnp.concatenate(colour_in, axis=-1)
+    c = nn.relu(dense(self.hidden_width, "colour_hidden_0")(c))
+    c = nn.relu(dense(self.hidden_width, "colour_hidden_1")(c))
+    return nn.sigmoid(dense(3, "rgb")(c).astype(jnp.float32)), sigma
+
+
+def make_field(model_config, dtype=jnp.float32) -> nn.Module:
+  """The field named by `model.field` ('mlp' or 'hashgrid') with its config."""
+  if model_config.field == "mlp":
+    return MLPField(depth=model_config.depth, width=model_config.width, skips=tuple(model_config.skips),
+                    num_frequencies=model_config.num_frequencies, use_viewdirs=model_config.use_viewdirs,
+                    viewdir_frequencies=model_config.viewdir_frequencies,
+                    density_activation=model_config.density_activation, dtype=dtype)
+  if model_config.field == "hashgrid":
+    g = model_config.hashgrid
+    return HashGridField(bound=g.bound, num_levels=g.num_levels, features_per_level=g.features_per_level,
+                         log2_table_size=g.log2_table_size, base_resolution=g.base_resolution,
+                         max_resolution=g.max_resolution, hidden_width=g.hidden_width,
+                         geo_features=g.geo_features, use_viewdirs=model_config.use_viewdirs, dtype=dtype)
+  raise ValueError(f"unknown model.field {model_config.field!r}")

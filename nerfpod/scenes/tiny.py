@@ -1,0 +1,40 @@
+"""The Tiny NeRF data (tiny_nerf_data.npz): 106 lego views at 100x100 on black, frames 100-105 held out."""
+import os
+import zipfile
+
+import numpy as np
+
+from nerfpod.errors import UserError
+from nerfpod.nerf.cameras import Intrinsics
+from nerfpod.scenes.base import Scene, Split, check_split
+
+NUM_TRAIN = 100  # frames 0-99 train, the rest are held out (the tutorial validates on frame 101)
+
+
+def load(path: str) -> Scene:
+  if not os.path.isfile(path):
+    raise UserError(f"Tiny NeRF data file {path!r} not found; set --config.data.path to tiny_nerf_data.npz.")
+  try:
+    with np.load(path) as npz:
+      missing = {"images", "poses", "focal"} - set(npz.files)
+      if missing:
+        raise UserError(f"{path} lacks the key(s) {sorted(missing)}; a Tiny NeRF npz holds images, poses "
+                        f"and focal.")
+      images = np.asarray(npz["images"], np.float32)
+      poses = np.asarray(npz["poses"], np.float32)
+      focal = float(npz["focal"])
+  except (ValueError, OSError, zipfile.BadZipFile) as e:
+    raise UserError(f"{path} is not a readable .npz file ({e}); re-download tiny_nerf_data.npz.") from e
+  if images.ndim != 4 or images.shape[-1] != 3 or len(images) <= NUM_TRAIN:
+    raise UserError(f"{path}: images have shape {images.shape}, expected (N > {NUM_TRAIN}, H, W, 3).")
+  if images.max() > 1.0 + 1e-6:  # some copies store 0-255
+    images = images / 255.0
+  _, h, w, _ = images.shape
+  intr = Intrinsics.from_focal(w, h, focal)
+  names = tuple(str(i) for i in range(len(images)))
+  full = check_split(Split(images, poses, intr, names), path)
+  held = slice(NUM_TRAIN, None)
+  train = Split(full.images[:NUM_TRAIN], full.poses[:NUM_TRAIN], intr, names[:NUM_TRAIN])
+  heldout = Split(full.images[held], full.poses[held], intr, names[held])
+  return Scene("tiny_lego", {"train": train, "val": heldout, "test": heldout}, near=2.0, far=6.0,
+               background=(0.0, 0.0, 0.0))

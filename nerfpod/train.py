@@ -1,0 +1,239 @@
+"""Training: the train state, the sharded step, the loop, checkpoints and logging."""
+import json
+import os
+import time
+from typing import Any
+
+import flax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from absl import logging
+from jax.sharding import PartitionSpec as P
+
+from nerfpod import checkpoints, data, distributed, evaluate, render, scenes
+from nerfpod.errors import UserError
+from nerfpod.nerf import model as nerf_model
+
+# Tags folded into the seed so that each use of randomness has its own stream.
+_PARAMS, _RAYS = 0, 1
+
+
+@flax.struct.dataclass
+class TrainState:
+  step: jax.Array  # scalar int32: optimiser steps taken
+  params: Any
+  opt_state: Any
+
+
+def learning_rate_schedule(tc) -> optax.Schedule:
+  """Linear warm-up to lr_init, then log-linear decay to lr_final at the last step (the original NeRF's)."""
+  decay_steps = max(1, tc.num_steps - tc.lr_warmup_steps)
+  decay = optax.exponential_decay(tc.lr_init, decay_steps, tc.lr_final / tc.lr_init)
+  if tc.lr_warmup_steps <= 0:
+    return decay
+  warmup = optax.linear_schedule(0.0, tc.lr_init, tc.lr_warmup_steps)
+  return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
+
+
+def make_optimizer(tc) -> optax.GradientTransformation:
+  adam = optax.adam(learning_rate_schedule(tc), eps=tc.adam_eps)
+  return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if tc.grad_clip > 0 else adam
+
+
+def ray_bounds(config, scene) -> tuple[float, float]:
+  near = config.render.near if config.render.near >= 0 else scene.near
+  far = config.render.far if config.render.far >= 0 else scene.far
+  if not 0 <= near < far:
+    raise UserError(f"render.near={near} and render.far={far} must satisfy 0 <= near < far.")
+  return float(near), float(far)
+
+
+def init_state(model, optimizer, seed: int, mesh) -> TrainState:
+  """Parameters and optimiser state, created directly replicated on every device."""
+  def init(key):
+    rays = jnp.zeros((2, 3), jnp.float32), jnp.ones((2, 3), jnp.float32)
+    params = model.init(key, *rays, 2.0, 6.0, jnp.zeros(3))
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
+  key = jax.random.fold_in(jax.random.key(seed), _PARAMS)
+  return jax.jit(init, out_shardings=distributed.replicated(mesh))(key)
+
+
+def per_ray_uniforms(key, ray_ids, count: int):
+  """(R, count) uniform numbers, ray i's drawn from fold_in(key, ray_ids[i]): the same for a ray whatever
+  device or host renders it, so results do not depend on how the batch is split."""
+  return jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(key, i), (count,)))(ray_ids)
+
+
+def make_train_step(model, optimizer, mesh, near: float, far: float, background):
+  """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
+
+  Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
+  averaged across devices with pmean (every device holds the same number of rays, so that is the global
+  mean) and every device applies the same Adam update to its replica of the parameters.
+  """
+  background = jnp.asarray(background, jnp.float32)
+
+  def loss_fn(params, batch, key):
+    u_coarse = per_ray_uniforms(jax.random.fold_in(key, 0), batch["ray_ids"], model.num_samples)
+    u_fine = (per_ray_uniforms(jax.random.fold_in(key, 1), batch["ray_ids"], model.num_importance)
+              if model.num_importance else None)
+    levels = model.apply(params, batch["origins"], batch["directions"], near, far, background,
+                         u_coarse, u_fine)
+    mses = jnp.stack([jnp.mean((level["rgb"] - batch["rgb"])**2) for level in levels])
+    return jnp.sum(mses), mses
+
+  def local_step(state, batch, key):
+    key = jax.random.fold_in(key, state.step)
+    (loss, mses), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch, key)
+    grads, loss, mses = jax.lax.pmean((grads, loss, mses), distributed.DATA_AXIS)
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    metrics = {"loss": loss, "mse": mses[-1], "psnr": -10.0 * jnp.log10(mses[-1]),
+               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.global_norm(grads)}
+    return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
+
+  step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
+                       out_specs=(P(), P()))
+  return jax.jit(step, donate_argnums=0)
+
+
+def _check_config(config) -> None:
+  tc = config.train
+  if tc.num_steps < 0 or tc.batch_size <= 0:
+    raise UserError("train.num_steps must be >= 0 and train.batch_size > 0.")
+  if tc.batch_size % jax.device_count():
+    raise UserError(f"train.batch_size={tc.batch_size} does not split over {jax.device_count()} devices; "
+                    f"make it a multiple of {jax.device_count()}.")
+  if config.checkpoint.every_steps <= 0:
+    raise UserError("checkpoint.every_steps must be a positive number of steps.")
+
+
+class _Monitor:
+  """TensorBoard events and console lines, written by process 0 only."""
+
+  def __init__(self, workdir: str, num_steps: int, batch_size: int):
+    self.enabled = jax.process_index() == 0
+    self.num_steps, self.batch_size = num_steps, batch_size
+    self.writer = None
+    if self.enabled:
+      import tensorboardX
+      self.writer = tensorboardX.SummaryWriter(logdir=workdir, flush_secs=10)
+    self._last = None  # (step, time) of the last console line
+
+  def scalars(self, step: int, metrics: dict, lr: float) -> None:
+    now = time.perf_counter()
+    if self._last is None or step <= self._last[0]:
+      self._last = (step, now)
+      rays_per_s = None
+    else:
+      rays_per_s = (step - self._last[0]) * self.batch_size / (now - self._last[1])
+      eta = (self.num_steps - step) * (now - self._last[1]) / (step - self._last[0])
+      self._last = (step, now)
+    if not self.enabled:
+      return
+    for name, value in metrics.items():
+      self.writer.add_scalar(f"train/{name}", float(value), step)
+    self.writer.add_scalar("train/learning_rate", lr, step)
+    line = (f"step {step:>6d}/{self.num_steps} | loss {float(metrics['loss']):.5f} | "
+            f"psnr {float(metrics['psnr']):6.2f} dB | lr {lr:.2e}")
+    if rays_per_s is not None:
+      self.writer.add_scalar("train/rays_per_sec", rays_per_s, step)
+      line += f" | {rays_per_s:,.0f} rays/s | ETA {_duration(eta)}"
+    print(line, flush=True)
+
+  def images(self, step: int, images: dict) -> None:
+    if self.enabled:
+      for name, image in images.items():
+        self.writer.add_image(name, np.clip(image, 0.0, 1.0), step, dataformats="HWC")
+
+  def close(self) -> None:
+    if self.writer is not None:
+      self.writer.close()
+
+
+def _duration(seconds: float) -> str:
+  seconds = int(round(seconds))
+  return f"{seconds // 3600}h{seconds // 60 % 60:02d}m" if seconds >= 3600 else f"{seconds // 60}m{seconds % 60:02d}s"
+
+
+def write_config(config, workdir: str) -> dict:
+  """Checks a resumed workdir's config, then saves this run's resolved config as workdir/config.json."""
+  resolved = json.loads(config.to_json_best_effort())
+  checkpoints.check_compatible(workdir, resolved)
+  if jax.process_index() == 0:
+    os.makedirs(workdir, exist_ok=True)
+    tmp = os.path.join(workdir, "config.json.tmp")
+    with open(tmp, "w") as f:
+      json.dump(resolved, f, indent=2, sort_keys=True)
+    os.replace(tmp, os.path.join(workdir, "config.json"))
+  return resolved
+
+
+def train_and_evaluate(config, workdir: str) -> dict:
+  """Trains (resuming from workdir's newest checkpoint), then evaluates the held-out views.
+
+  Returns the metrics written to workdir/eval/metrics.json.
+  """
+  _check_config(config)
+  scene = scenes.load(config.data)
+  scene.split(config.eval.split)  # a missing held-out split fails now, not after training
+  write_config(config, workdir)
+  mesh = distributed.make_mesh()
+  model = nerf_model.from_config(config)
+  near, far = ray_bounds(config, scene)
+  tc = config.train
+  optimizer = make_optimizer(tc)
+  state = init_state(model, optimizer, tc.seed, mesh)
+
+  ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
+  start_step = 0
+  if ckpt.latest_step() is not None:
+    state, position = ckpt.restore(checkpoints.abstract_like(state))
+    start_step = int(position["next_step"])
+    logging.info("resumed from step %d", start_step)
+  if jax.process_index() == 0:
+    print(f"nerfpod: scene {scene.name} ({len(scene.splits['train'])} training views), "
+          f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
+          f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
+
+  train_split = scene.split("train")
+  dataset = data.ray_batches(train_split, tc.seed, tc.batch_size, distributed.local_slice(tc.batch_size),
+                             config.data.pixel_center, max(tc.num_steps, 1))
+  batches = data.iterator(dataset, start_step)
+  step_fn = make_train_step(model, optimizer, mesh, near, far, scene.background)
+  render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+  schedule = learning_rate_schedule(tc)
+  monitor = _Monitor(workdir, tc.num_steps, tc.batch_size)
+  rays_key = jax.random.fold_in(jax.random.key(tc.seed), _RAYS)
+  preview = scene.split(config.eval.split)
+
+  pending = None  # metrics of a log step, fetched only after the next step is dispatched
+  for step in range(start_step, tc.num_steps):
+    local = next(batches)
+    assert int(local.pop("step")) == step, "data pipeline out of step with training"
+    state, metrics = step_fn(state, distributed.to_global(mesh, local), rays_key)
+    if pending is not None:
+      monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+      pending = None
+    done = step + 1
+    if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
+      pending = (done, metrics)
+    ckpt.save(done, state, {"next_step": done})
+    if tc.image_every and done % tc.image_every == 0:
+      out = render.render_image(render_fn, state.params, mesh, preview.poses[0], preview.intrinsics,
+                                config.data.pixel_center, config.eval.chunk)
+      monitor.images(done, {"preview/rgb": out["rgb"],
+                            "preview/depth": evaluate.depth_image(out["depth"], near, far)[..., None]})
+  if pending is not None:
+    monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+  final_step = int(jax.device_get(state.step))
+  if ckpt.latest_step() != final_step:
+    ckpt.save(final_step, state, {"next_step": final_step}, force=True)
+  ckpt.close()
+
+  result = evaluate.evaluate(config, scene, model, state.params, mesh, workdir, final_step,
+                             writer=monitor.writer)
+  monitor.close()
+  return result
