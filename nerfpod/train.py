@@ -86,12 +86,16 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background)
 
   def local_step(state, batch, key):
     key = jax.random.fold_in(key, state.step)
-    (loss, mses), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params, batch, key)
+    # Differentiate w.r.t. a device-varying view of the replicated parameters: each device then gets the
+    # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
+    # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
+    params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
+    (loss, mses), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, key)
     grads, loss, mses = jax.lax.pmean((grads, loss, mses), distributed.DATA_AXIS)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     metrics = {"loss": loss, "mse": mses[-1], "psnr": -10.0 * jnp.log10(mses[-1]),
-               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.global_norm(grads)}
+               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.tree.norm(grads)}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
   step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),

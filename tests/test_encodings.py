@@ -1,0 +1,86 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from nerfpod.nerf import encodings
+
+
+def test_positional_encoding_layout_and_switch_off():
+  x = jnp.array([[0.1, -0.2, 0.3]])
+  enc = encodings.positional_encoding(x, 6)
+  assert enc.shape == (1, 3 + 3 * 2 * 6)
+  np.testing.assert_allclose(enc[0, :3], x[0])
+  np.testing.assert_allclose(enc[0, 3:6], np.sin(x[0]), rtol=1e-6)
+  np.testing.assert_allclose(enc[0, 6:9], np.cos(x[0]), rtol=1e-6)
+  np.testing.assert_allclose(enc[0, -3:], np.cos(32.0 * x[0]), rtol=1e-5)
+  np.testing.assert_array_equal(encodings.positional_encoding(x, 0), x)  # the tutorial's "without"
+
+
+def test_hash_indices_stay_in_range_and_use_the_table():
+  corners = jax.random.randint(jax.random.key(0), (20000, 3), 0, 4096)
+  idx = np.asarray(encodings.hash_indices(corners, 2**14))
+  assert idx.min() >= 0 and idx.max() < 2**14
+  assert len(np.unique(idx)) > 0.6 * 2**14  # spreads over the table
+
+
+def test_dense_levels_index_every_vertex_once():
+  res = 7
+  grid = np.stack(np.meshgrid(*[np.arange(res + 1)] * 3, indexing="ij"), -1).reshape(-1, 3)
+  idx = np.asarray(encodings.grid_indices(jnp.asarray(grid)[:, None, :], res, 2**12))[:, 0]
+  assert sorted(idx.tolist()) == list(range((res + 1)**3))
+
+
+def _grid_and_params(res=8):
+  module = encodings.HashGridEncoding(num_levels=3, features_per_level=2, log2_table_size=8,
+                                      base_resolution=4, max_resolution=res)
+  params = module.init(jax.random.key(0), jnp.zeros((1, 3)))
+  # Larger random tables than the tiny initialisation, so interpolation errors would show.
+  params = jax.tree.map(lambda p: jax.random.normal(jax.random.key(1), p.shape), params)
+  return module, params
+
+
+def test_trilinear_interpolation_is_exact_at_grid_vertices():
+  res = 4
+  corners, weights = encodings.trilinear_corners_and_weights(
+      jnp.array([[0.25, 0.5, 0.75], [1.0, 0.0, 1.0]]), res)
+  w = np.asarray(weights)
+  assert np.allclose(w.max(-1), 1.0) and np.allclose(w.sum(-1), 1.0)
+  best = np.asarray(corners)[np.arange(2), w.argmax(-1)]
+  np.testing.assert_array_equal(best, [[1, 2, 3], [4, 0, 4]])
+  # Through the whole encoding: at a vertex of the coarsest level, level 0's output is that vertex's row.
+  module, params = _grid_and_params()
+  vertex = jnp.array([[0.25, 0.5, 0.75]])
+  out = module.apply(params, vertex)
+  row = 1 * 25 + 2 * 5 + 3  # dense index of vertex (1, 2, 3) on the 5^3 vertices of level 0
+  np.testing.assert_allclose(out[0, :2], params["params"]["level_0"][row], rtol=1e-5)
+
+
+def test_encoding_is_continuous_across_cell_faces():
+  module, params = _grid_and_params()
+  for axis in range(3):
+    face = np.array([0.3, 0.6, 0.45])
+    face[axis] = 0.5  # a cell face on every level (resolutions 4, 5, 8: 0.5 is a face for 4 and 8)
+    eps = np.zeros(3)
+    eps[axis] = 1e-5
+    a = module.apply(params, jnp.asarray([face - eps]))
+    b = module.apply(params, jnp.asarray([face + eps]))
+    np.testing.assert_allclose(a, b, atol=1e-3)
+    c = module.apply(params, jnp.asarray([face + 100 * eps]))
+    assert np.abs(np.asarray(c - a)).max() > np.abs(np.asarray(b - a)).max()  # it does vary
+
+
+@pytest.mark.parametrize("levels,base,top", [(16, 16, 2048), (8, 16, 256)])
+def test_level_resolutions_grow_geometrically(levels, base, top):
+  res = encodings.level_resolutions(levels, base, top)
+  assert res[0] == base and abs(res[-1] - top) <= 1 and len(res) == levels
+  ratios = np.array(res[1:]) / np.array(res[:-1])
+  assert np.allclose(ratios, ratios.mean(), atol=0.1)
+
+
+def test_spherical_harmonics_are_orthonormal():
+  dirs = jax.random.normal(jax.random.key(0), (400_000, 3))
+  dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
+  sh = encodings.spherical_harmonics_deg4(dirs)
+  gram = 4 * np.pi * np.asarray(sh.T @ sh) / len(dirs)
+  np.testing.assert_allclose(gram, np.eye(16), atol=0.03)
