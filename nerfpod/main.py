@@ -4,7 +4,7 @@ Parses flags, starts the multi-host runtime where there is one, and calls train_
 """
 import sys
 
-from absl import app, flags
+from absl import app, flags, logging
 from ml_collections import config_flags
 
 from nerfpod.errors import UserError
@@ -17,25 +17,65 @@ _COORDINATOR = flags.DEFINE_string("coordinator_address", None,
                                    "(else JAX_COORDINATOR_ADDRESS).")
 _NUM_PROCESSES = flags.DEFINE_integer("num_processes", None, "Processes in the run (else JAX_NUM_PROCESSES).")
 _PROCESS_ID = flags.DEFINE_integer("process_id", None, "This process's index (else JAX_PROCESS_ID).")
+_HEARTBEAT = flags.DEFINE_integer("heartbeat_timeout_seconds", 100,
+                                  "Multi-process runs: a process whose peer sent no heartbeat for this long "
+                                  "stops with an error instead of waiting for it forever.")
+_SHUTDOWN = flags.DEFINE_integer("shutdown_timeout_seconds", 60,
+                                 "Multi-process runs: how long a finished process waits for the others at exit.")
+_INIT_TIMEOUT = flags.DEFINE_integer("initialization_timeout", 300,
+                                     "Multi-process runs: how long a process waits for all to connect at start.")
+_MODE = flags.DEFINE_enum("mode", "train", ["train", "eval", "render"],
+                          "train: train (resuming), evaluate, render the orbit; eval: evaluate the workdir's "
+                          "newest checkpoint; render: render (or finish) its orbit and export the videos.")
 flags.mark_flags_as_required(["config", "workdir"])
 
 
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+  if not flags.FLAGS["verbosity"].present:  # orbax and grain log every save at INFO: keep the console readable
+    logging.set_verbosity(logging.WARNING)
   try:
+    try:
+      config = _CONFIG.value
+      config.keys()  # the value is a lazy proxy until first touched
+    except OSError as e:  # ml_collections reports a config file that failed to load on first access
+      raise UserError(f"could not load the --config file ({' '.join(str(e).split())}).") from None
     from nerfpod import distributed  # imports jax; no JAX call happens before initialize
-    distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value)
-    from nerfpod import train
-    train.train_and_evaluate(_CONFIG.value, _WORKDIR.value)
+    distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
+                           heartbeat_timeout_seconds=_HEARTBEAT.value,
+                           shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
+    if _MODE.value == "eval":
+      from nerfpod import evaluate
+      evaluate.evaluate_workdir(config, _WORKDIR.value)
+    elif _MODE.value == "render":
+      from nerfpod import orbit
+      orbit.render_workdir(config, _WORKDIR.value)
+    else:
+      from nerfpod import train
+      train.train_and_evaluate(config, _WORKDIR.value)
   except UserError as e:
     print(f"nerfpod: error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)
 
 
+def _parse_flags(argv):
+  """absl's parsing, with a bad --config or override (unknown key, wrong type) reported in one sentence."""
+  try:
+    return flags.FLAGS(argv)
+  except flags.Error as e:
+    message = str(e)
+  except (AttributeError, KeyError, TypeError, ValueError, FileNotFoundError) as e:
+    message = f"bad --config file or override ({e})"
+  message = " ".join(message.replace("\\n", " ").replace("\\'", "'").replace("''", "'").split())
+  print(f"nerfpod: error: {message}; see `python -m nerfpod.main --helpfull` and the config file's fields.",
+        file=sys.stderr)
+  sys.exit(2)
+
+
 def run():
   """Console-script entry point."""
-  app.run(main)
+  app.run(main, flags_parser=_parse_flags)
 
 
 if __name__ == "__main__":

@@ -54,6 +54,9 @@ def test_trilinear_interpolation_is_exact_at_grid_vertices():
   out = module.apply(params, vertex)
   row = 1 * 25 + 2 * 5 + 3  # dense index of vertex (1, 2, 3) on the 5^3 vertices of level 0
   np.testing.assert_allclose(out[0, :2], params["params"]["level_0"][row], rtol=1e-5)
+  # The finest level (8 cells, 729 vertices) is hashed into 2^8 rows; (2, 4, 6) is one of its vertices.
+  finest = encodings.hash_indices(jnp.array([2, 4, 6]), 2**8)
+  np.testing.assert_allclose(out[0, -2:], params["params"]["level_2"][finest], rtol=1e-5)
 
 
 def test_encoding_is_continuous_across_cell_faces():
@@ -73,7 +76,7 @@ def test_encoding_is_continuous_across_cell_faces():
 @pytest.mark.parametrize("levels,base,top", [(16, 16, 2048), (8, 16, 256)])
 def test_level_resolutions_grow_geometrically(levels, base, top):
   res = encodings.level_resolutions(levels, base, top)
-  assert res[0] == base and abs(res[-1] - top) <= 1 and len(res) == levels
+  assert res[0] == base and res[-1] == top and len(res) == levels
   ratios = np.array(res[1:]) / np.array(res[:-1])
   assert np.allclose(ratios, ratios.mean(), atol=0.1)
 

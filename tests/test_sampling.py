@@ -44,3 +44,18 @@ def test_no_gradient_flows_through_importance_sample_positions():
   grad_w, grad_b = jax.grad(f, argnums=(0, 1))(jnp.linspace(0.1, 1.0, 8)[None], bins)
   np.testing.assert_array_equal(grad_w, 0.0)
   np.testing.assert_array_equal(grad_b, 0.0)
+
+
+def test_clip_to_box_matches_brute_force_inside_test():
+  rng = np.random.default_rng(3)
+  origins = rng.normal(size=(500, 3)) * 3.0
+  directions = rng.normal(size=(500, 3))
+  lo, hi = sampling.clip_to_box(jnp.asarray(origins), jnp.asarray(directions), 0.0, 10.0, 1.0)
+  lo, hi = np.asarray(lo)[:, 0], np.asarray(hi)[:, 0]
+  t = np.linspace(0.0, 10.0, 20001)
+  for i in range(len(origins)):
+    inside = np.all(np.abs(origins[i] + t[:, None] * directions[i]) <= 1.0, axis=-1)
+    if inside.any():
+      assert abs(lo[i] - t[inside][0]) < 1e-3 and abs(hi[i] - t[inside][-1]) < 1e-3
+    else:
+      assert hi[i] - lo[i] <= 1e-3 + 1e-6 and lo[i] == 0.0

@@ -41,7 +41,7 @@ def level_resolutions(num_levels: int, base_resolution: int, max_resolution: int
   if num_levels == 1:
     return [base_resolution]
   growth = math.exp((math.log(max_resolution) - math.log(base_resolution)) / (num_levels - 1))
-  return [int(math.floor(base_resolution * growth**level)) for level in range(num_levels)]
+  return [int(math.floor(base_resolution * growth**level + 1e-6)) for level in range(num_levels)]
 
 
 def trilinear_corners_and_weights(x_Nx3, resolution: int):

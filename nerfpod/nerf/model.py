@@ -13,7 +13,8 @@ class NeRF(nn.Module):
 
   `num_samples` stratified samples go to the coarse field. With `num_importance` > 0 (the paper's
   hierarchical sampling), that many more are drawn from the coarse weights by inverse CDF and the fine field
-  is queried at the union of both sets; each level returns its own rendering, coarse first.
+  is queried at the union of both sets; each level returns its own rendering, coarse first. A bounded field
+  (the hash grid) has each ray's [near, far] clipped to its box first.
   Randomness comes in as arrays of uniform numbers (None: deterministic evaluation), so the module is a
   pure function of its inputs.
   """
@@ -42,6 +43,9 @@ class NeRF(nn.Module):
   def __call__(self, origins_Rx3, directions_Rx3, near, far, background_3,
                uniform_coarse_RxS=None, uniform_fine_RxN=None):
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
+    if self.model_config.field == "hashgrid":  # bounded: sample only inside its box
+      near, far = sampling.clip_to_box(origins_Rx3, directions_Rx3, near, far,
+                                       self.model_config.hashgrid.bound)
     t = sampling.stratified(near, far, self.num_samples, uniform_coarse_RxS)
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse = self._render(self.coarse, origins_Rx3, directions_Rx3, viewdirs, t, background_3)

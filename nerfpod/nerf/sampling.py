@@ -48,3 +48,20 @@ def sample_pdf(bins_RxB1, weights_RxB, num_samples: int, uniform_RxN=None, eps: 
   frac = jnp.where(denom > 0, (u - cdf_lo) / jnp.where(denom > 0, denom, 1.0), 0.0)
   samples = bin_lo + frac * (bin_hi - bin_lo)
   return jax.lax.stop_gradient(samples)
+
+
+def clip_to_box(origins_Rx3, directions_Rx3, near, far, bound: float):
+  """Per-ray [near, far] shrunk to where the ray crosses the box [-bound, bound]^3 (slab method).
+
+  Bounded fields (the hash grid) are empty outside their box, so samples there are wasted. Rays that miss
+  the box get an empty-but-valid interval at `near` (their samples see no density). Returns (R, 1) arrays.
+  """
+  safe = jnp.where(jnp.abs(directions_Rx3) < 1e-12, 1e-12, directions_Rx3)
+  t0 = (-bound - origins_Rx3) / safe
+  t1 = (bound - origins_Rx3) / safe
+  enter = jnp.max(jnp.minimum(t0, t1), axis=-1, keepdims=True)
+  leave = jnp.min(jnp.maximum(t0, t1), axis=-1, keepdims=True)
+  lo = jnp.clip(enter, near, far)
+  hi = jnp.clip(leave, near, far)
+  hit = hi > lo
+  return jnp.where(hit, lo, near), jnp.where(hit, hi, near + 1e-3)

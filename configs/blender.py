@@ -1,0 +1,43 @@
+"""The original NeRF on a Blender synthetic scene: `--config=configs/blender.py:scene=lego`.
+
+The paper's model: positional encoding with 10 frequencies for points and 4 for view directions, 8x256 MLP
+with the input rejoining after layer 4, hierarchical sampling with 64 coarse + 128 fine samples (two
+networks), 4096 rays a step, Adam 5e-4 decaying to 5e-5. Arguments: `scene=NAME` (folder under
+data/nerf_synthetic, or set --config.data.path), `smoke` for tests.
+"""
+from nerfpod import config_util
+
+
+def get_config(arg: str | None = None):
+  args = config_util.parse_arg(arg, scene="lego", smoke=False)
+  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  c.data.kind = "blender"
+  c.data.path = f"data/nerf_synthetic/{args['scene']}"  # a folder with transforms_{train,val,test}.json
+  c.data.downscale = 1
+  c.model.field = "mlp"
+  c.model.num_frequencies = 10
+  c.model.depth = 8
+  c.model.width = 256
+  c.model.skips = (4,)
+  c.model.use_viewdirs = True
+  c.model.viewdir_frequencies = 4
+  c.render.num_samples = 64
+  c.render.num_importance = 128
+  c.train.num_steps = 200_000
+  c.train.batch_size = 4096
+  c.train.lr_init = 5e-4
+  c.train.lr_final = 5e-5
+  c.train.lr_warmup_steps = 0
+  c.train.adam_eps = 1e-8
+  c.train.log_every = 100
+  c.train.image_every = 5000
+  c.checkpoint.every_steps = 5000
+  c.eval.split = "test"           # the data in ../shared/data/lego_400 has no test split: use val there
+  if args["smoke"]:
+    c.data.downscale = 8
+    c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
+    c.render.num_samples, c.render.num_importance = 16, 16
+    c.train.num_steps, c.train.batch_size = 20, 256
+    c.train.log_every, c.train.image_every = 5, 10
+    c.checkpoint.every_steps = 10
+  return c

@@ -1,0 +1,35 @@
+"""The hash-grid field on a Blender synthetic scene: `--config=configs/blender_fast.py:scene=lego`.
+
+Instant-NGP-sized grid (16 levels, 2^19 rows, up to 2048 cells a side), view directions through spherical
+harmonics, 4096 rays a step. Arguments: `scene=NAME` (folder under data/nerf_synthetic, or set
+--config.data.path), `smoke` for tests.
+"""
+from nerfpod import config_util
+
+
+def get_config(arg: str | None = None):
+  args = config_util.parse_arg(arg, scene="lego", smoke=False)
+  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  c.data.kind = "blender"
+  c.data.path = f"data/nerf_synthetic/{args['scene']}"  # a folder with transforms_{train,val,test}.json
+  c.model.field = "hashgrid"
+  c.model.use_viewdirs = True
+  g = c.model.hashgrid
+  g.num_levels, g.log2_table_size, g.max_resolution = 16, 19, 2048
+  g.hidden_width, g.geo_features = 64, 15
+  c.render.num_samples = 128
+  c.train.num_steps = 30_000
+  c.train.batch_size = 4096
+  c.train.lr_init, c.train.lr_final = 1e-2, 3e-4
+  c.train.log_every = 100
+  c.train.image_every = 2500
+  c.checkpoint.every_steps = 2500
+  c.eval.split = "test"           # the data in ../shared/data/lego_400 has no test split: use val there
+  if args["smoke"]:
+    c.data.downscale = 8
+    g.num_levels, g.log2_table_size, g.max_resolution, g.hidden_width, g.geo_features = 4, 12, 64, 16, 7
+    c.render.num_samples = 16
+    c.train.num_steps, c.train.batch_size = 20, 256
+    c.train.log_every, c.train.image_every = 5, 10
+    c.checkpoint.every_steps = 10
+  return c

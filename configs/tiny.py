@@ -1,0 +1,41 @@
+"""The Tiny NeRF tutorial ("Implementing NeRF in JAX") on its own data: tiny_nerf_data.npz, 100x100 lego.
+
+Its model and sampling: positional encoding with 6 frequencies, an 8x256 ReLU MLP whose input rejoins after
+layer 4, no view directions, 256 stratified samples between 2 and 6, Adam at a constant 5e-4, 10,000 rays a
+step (one 100x100 image's worth, here drawn from all training images). Argument: `smoke` for tests.
+`--config.model.num_frequencies=0` reproduces the tutorial's comparison without positional encoding.
+"""
+from nerfpod import config_util
+
+
+def get_config(arg: str | None = None):
+  args = config_util.parse_arg(arg, smoke=False)
+  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  c.data.kind = "tiny"
+  c.data.path = "data/tiny_nerf_data.npz"  # the tutorial's npz (download: see README)
+  c.data.pixel_center = 0.0       # the tutorial's rays pass through pixel corners
+  c.model.field = "mlp"
+  c.model.num_frequencies = 6
+  c.model.depth = 8
+  c.model.width = 256
+  c.model.skips = (4,)
+  c.model.use_viewdirs = False
+  c.render.num_samples = 256
+  c.render.num_importance = 0
+  c.train.num_steps = 1000
+  c.train.batch_size = 10_000
+  c.train.lr_init = 5e-4
+  c.train.lr_final = 5e-4         # the tutorial's constant learning rate
+  c.train.lr_warmup_steps = 0
+  c.train.adam_eps = 1e-8
+  c.train.log_every = 25
+  c.train.image_every = 250
+  c.checkpoint.every_steps = 250
+  c.eval.split = "test"           # frames 100-105
+  if args["smoke"]:
+    c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
+    c.render.num_samples = 16
+    c.train.num_steps, c.train.batch_size = 20, 256
+    c.train.log_every, c.train.image_every = 5, 10
+    c.checkpoint.every_steps = 10
+  return c

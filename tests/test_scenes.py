@@ -1,0 +1,123 @@
+import json
+
+import ml_collections
+import numpy as np
+import pytest
+from PIL import Image
+
+from conftest import LEGO, TINY_NPZ, require
+from nerfpod import scenes
+from nerfpod.errors import UserError
+from nerfpod.nerf import cameras
+from nerfpod.scenes import blender, procedural, tiny
+
+
+def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
+  a, b = procedural.load(image_size=24), procedural.load(image_size=24)
+  for name, n in (("train", 100), ("val", 8), ("test", 8)):
+    np.testing.assert_array_equal(a.splits[name].images, b.splits[name].images)
+    assert a.splits[name].images.shape == (n, 24, 24, 3)
+  assert (a.near, a.far, a.background) == (2.0, 6.0, (1.0, 1.0, 1.0))
+  images = a.splits["train"].images
+  assert (images == 1.0).all(-1).mean() > 0.2  # background visible
+  assert (images < 0.9).any(-1).mean() > 0.2   # and the solids
+  for pose in a.splits["train"].poses:
+    eye = pose[:3, 3]
+    np.testing.assert_allclose(np.linalg.norm(eye), 4.0, rtol=1e-5)
+    assert eye[2] > 0  # upper hemisphere
+    np.testing.assert_allclose(-pose[:3, 2], -eye / 4.0, atol=1e-5)  # looks at the origin
+  assert not np.allclose(a.splits["train"].poses[:8], a.splits["test"].poses)  # held out is new
+
+
+def test_procedural_rendering_is_exact_for_a_ray_onto_the_sphere_top():
+  centre, radius = np.array([0.45, 0.35, 0.45]), 0.45
+  colour = procedural.render(np.array([[0.45, 0.35, 3.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
+  shade = procedural._AMBIENT + (1 - procedural._AMBIENT) * procedural._LIGHT[2]  # normal +z at the top
+  np.testing.assert_allclose(colour, np.array([0.85, 0.2, 0.15]) * shade, rtol=1e-6)
+  miss = procedural.render(np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 0.0, 1.0]]))[0]
+  np.testing.assert_array_equal(miss, 1.0)
+
+
+def test_tiny_nerf_loader_on_the_real_file():
+  scene = tiny.load(str(require(TINY_NPZ)))
+  train, test = scene.split("train"), scene.split("test")
+  assert train.images.shape == (100, 100, 100, 3) and test.images.shape == (6, 100, 100, 3)
+  assert train.intrinsics.fx == pytest.approx(138.8889, rel=1e-5)
+  assert scene.background == (0.0, 0.0, 0.0)
+  with np.load(TINY_NPZ) as npz:
+    np.testing.assert_array_equal(test.poses, npz["poses"][100:])
+
+
+def test_blender_loader_on_real_lego_with_downscale():
+  scene = blender.load(str(require(LEGO)), downscale=4)
+  train = scene.split("train")
+  assert train.images.shape == (100, 100, 100, 3)
+  with open(LEGO / "transforms_train.json") as f:
+    meta = json.load(f)
+  assert train.intrinsics.fx == pytest.approx(0.5 * 100 / np.tan(0.5 * meta["camera_angle_x"]))
+  np.testing.assert_allclose(train.poses[3], np.array(meta["frames"][3]["transform_matrix"]), rtol=1e-6)
+  np.testing.assert_allclose(train.images[:, 0, 0], 1.0)  # transparent corners composite to white
+  assert set(scene.splits) == {"train", "val"}
+  with pytest.raises(UserError, match="no 'test' split.*eval.split"):
+    scene.split("test")
+
+
+def _write_scene(root, size=8, frames=2, alpha=255, sizes=None):
+  """A tiny Blender-format scene: `frames` solid red RGBA images."""
+  (root / "train").mkdir(parents=True)
+  meta = {"camera_angle_x": 0.69, "frames": []}
+  for i in range(frames):
+    s = (sizes or {}).get(i, size)
+    Image.fromarray(np.tile(np.array([255, 0, 0, alpha], np.uint8), (s, s, 1))).save(root / "train" / f"r_{i}.png")
+    pose = cameras.spherical_pose(30.0 * i, -30.0, 4.0)
+    meta["frames"].append({"file_path": f"./train/r_{i}", "transform_matrix": pose.tolist()})
+  (root / "transforms_train.json").write_text(json.dumps(meta))
+  return meta
+
+
+def test_blender_rgba_is_composited_on_white_then_box_downscaled(tmp_path):
+  _write_scene(tmp_path, size=8, alpha=128)
+  split = blender.load_split(str(tmp_path), "train", downscale=2)
+  a = 128 / 255
+  np.testing.assert_allclose(split.images[0, 0, 0], [1.0, 1.0 - a, 1.0 - a], rtol=1e-6)
+  assert split.images.shape == (2, 4, 4, 3)
+  assert split.intrinsics.width == 4 and split.intrinsics.fx == pytest.approx(2.0 / np.tan(0.345))
+
+
+@pytest.mark.parametrize("corrupt,message", [
+    ("missing_folder", "not found; set --config.data.path"),
+    ("malformed_json", "is not valid JSON"),
+    ("missing_keys", "needs the keys 'camera_angle_x'"),
+    ("missing_image", "image file .*r_1.png not found"),
+    ("wrong_size", "r_1.png is 6x6 pixels, but the split's first frame is 8x8"),
+    ("nan_pose", "frame './train/r_1' contains NaN"),
+])
+def test_blender_bad_input_gets_one_clear_sentence(tmp_path, corrupt, message):
+  root = tmp_path / "scene"
+  meta = _write_scene(root, sizes={1: 6} if corrupt == "wrong_size" else None)
+  if corrupt == "missing_folder":
+    root = tmp_path / "nowhere"
+  elif corrupt == "malformed_json":
+    (root / "transforms_train.json").write_text('{"camera_angle_x": 0.69, "frames": [')
+  elif corrupt == "missing_keys":
+    (root / "transforms_train.json").write_text('{"frames": []}')
+  elif corrupt == "missing_image":
+    (root / "train" / "r_1.png").unlink()
+  elif corrupt == "nan_pose":
+    meta["frames"][1]["transform_matrix"][0][3] = float("nan")
+    (root / "transforms_train.json").write_text(json.dumps(meta))
+  with pytest.raises(UserError, match=message):
+    blender.load(str(root))
+
+
+def test_dispatch_refuses_unknown_kinds_and_missing_paths():
+  cfg = ml_collections.ConfigDict({"kind": "colmap", "path": "x", "downscale": 1, "image_size": 8,
+                                   "pixel_center": 0.5})
+  with pytest.raises(UserError, match="unknown data.kind 'colmap'"):
+    scenes.load(cfg)
+  cfg.kind, cfg.path = "tiny", ""
+  with pytest.raises(UserError, match="needs a data path"):
+    scenes.load(cfg)
+  cfg.path = "/nonexistent/tiny.npz"
+  with pytest.raises(UserError, match="not found"):
+    scenes.load(cfg)

@@ -1,0 +1,182 @@
+"""Benchmark a config: throughput, achieved FLOP/s against the measured matmul peak, time to quality.
+
+  python -m tools.benchmark --config=configs/tiny_fast.py:path=tiny_nerf_data.npz --steps=30
+  python -m tools.benchmark --config=configs/tiny_fast.py:path=... --quality --max_seconds=600
+
+Throughput mode times `--steps` train steps after compilation: rays/s and samples/s, the step's FLOPs as
+XLA counts them (cost analysis of the compiled step) divided by its time, the float32 matmul peak measured
+in the same process (a jitted 2048^3 matmul, best of several), their ratio, the share of time spent
+loading data, and peak memory (host RSS; device memory where the backend reports it).
+Quality mode trains the config from scratch and evaluates the held-out split every `--eval_every` steps,
+recording the wall time since the process started (evaluation pauses excluded) at which the mean PSNR first
+reaches 20, 25 and 28 dB. Results print as a JSON line (and go to --out if given).
+"""
+import json
+import platform
+import resource
+import time
+
+_START = time.perf_counter()
+
+from absl import app, flags  # noqa: E402
+from ml_collections import config_flags  # noqa: E402
+
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file to benchmark.", lock_config=True)
+_STEPS = flags.DEFINE_integer("steps", 30, "Timed train steps (throughput mode).")
+_QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20/25/28 dB instead.")
+_MAX_SECONDS = flags.DEFINE_float("max_seconds", 600.0, "Quality mode: stop after this much wall time.")
+_EVAL_EVERY = flags.DEFINE_integer("eval_every", 250, "Quality mode: steps between held-out evaluations.")
+_OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file.")
+THRESHOLDS = (20.0, 25.0, 28.0)
+
+
+def matmul_peak_flops(n: int = 2048, repeats: int = 5) -> float:
+  """Float32 FLOP/s of a jitted n x n x n matmul on the default device, best of `repeats`."""
+  import jax
+  import jax.numpy as jnp
+  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
+  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+  f = jax.jit(lambda x, y: x @ y)
+  f(a, b).block_until_ready()
+  best = float("inf")
+  for _ in range(repeats):
+    t = time.perf_counter()
+    f(a, b).block_until_ready()
+    best = min(best, time.perf_counter() - t)
+  return 2.0 * n**3 / best
+
+
+def _peak_memory() -> dict:
+  import jax
+  out = {"host_peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+  stats = jax.local_devices()[0].memory_stats() or {}
+  if "peak_bytes_in_use" in stats:
+    out["device_peak_mib"] = stats["peak_bytes_in_use"] / 2**20
+  return out
+
+
+class _Setup:
+  """The trainer's pieces for `config`, built as train_and_evaluate builds them."""
+
+  def __init__(self, config):
+    import jax
+    from nerfpod import data, distributed, render, scenes, train
+    from nerfpod.nerf import model as nerf_model
+    self.config = config
+    self.scene = scenes.load(config.data)
+    self.mesh = distributed.make_mesh()
+    self.model = nerf_model.from_config(config)
+    self.near, self.far = train.ray_bounds(config, self.scene)
+    optimizer = train.make_optimizer(config.train)
+    self.state = train.init_state(self.model, optimizer, config.train.seed, self.mesh)
+    self.step_fn = train.make_train_step(self.model, optimizer, self.mesh, self.near, self.far,
+                                         self.scene.background)
+    self.render_fn = render.make_render_fn(self.model, self.mesh, self.near, self.far, self.scene.background)
+    tc = config.train
+    dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
+                               distributed.local_slice(tc.batch_size), config.data.pixel_center,
+                               max(tc.num_steps, 1))
+    self.batches = data.iterator(dataset, 0)
+    self.key = jax.random.fold_in(jax.random.key(tc.seed), 1)
+    self._to_global = lambda local: distributed.to_global(self.mesh, local)
+
+  def next_batch(self):
+    local = next(self.batches)
+    local.pop("step")
+    return self._to_global(local)
+
+  def step(self, batch):
+    self.state, metrics = self.step_fn(self.state, batch, self.key)
+    return metrics
+
+  def heldout_psnr(self) -> float:
+    import numpy as np
+    from nerfpod import metrics, render
+    split = self.scene.split(self.config.eval.split)
+    count = len(split) if self.config.eval.max_views <= 0 else min(len(split), self.config.eval.max_views)
+    psnrs = []
+    for i in range(count):
+      out = render.render_image(self.render_fn, self.state.params, self.mesh, split.poses[i],
+                                split.intrinsics, self.config.data.pixel_center, self.config.eval.chunk)
+      psnrs.append(metrics.psnr(np.clip(out["rgb"], 0, 1), split.images[i]))
+    return float(np.mean(psnrs))
+
+
+def throughput(config, steps: int) -> dict:
+  import jax
+  setup = _Setup(config)
+  batch = setup.next_batch()
+  compiled = setup.step_fn.lower(setup.state, batch, setup.key).compile()
+  cost = compiled.cost_analysis()
+  cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+  flops_per_step = float(cost.get("flops", float("nan")))
+  for _ in range(3):  # warm-up
+    jax.block_until_ready(setup.step(setup.next_batch()))
+  data_s = step_s = 0.0
+  for _ in range(steps):
+    t0 = time.perf_counter()
+    batch = setup.next_batch()
+    jax.block_until_ready(batch)
+    t1 = time.perf_counter()
+    jax.block_until_ready(setup.step(batch))
+    t2 = time.perf_counter()
+    data_s, step_s = data_s + t1 - t0, step_s + t2 - t1
+  peak = matmul_peak_flops()
+  rays = steps * config.train.batch_size
+  samples_per_ray = config.render.num_samples + (config.render.num_samples + config.render.num_importance
+                                                 if config.render.num_importance else 0)
+  achieved = flops_per_step * steps / step_s
+  return {"rays_per_s": rays / (data_s + step_s), "samples_per_s": rays * samples_per_ray / (data_s + step_s),
+          "step_ms": 1e3 * step_s / steps, "data_ms": 1e3 * data_s / steps,
+          "data_fraction": data_s / (data_s + step_s), "flops_per_step": flops_per_step,
+          "achieved_flops": achieved, "matmul_peak_flops": peak, "fraction_of_peak": achieved / peak,
+          **_peak_memory()}
+
+
+def time_to_quality(config, max_seconds: float, eval_every: int) -> dict:
+  import jax
+  setup = _Setup(config)
+  paused = 0.0  # time spent in the benchmark's own evaluations
+  reached, history = {}, []
+  for step in range(1, config.train.num_steps + 1):
+    jax.block_until_ready(setup.step(setup.next_batch()))
+    elapsed = time.perf_counter() - _START - paused
+    if step % eval_every == 0 or step == config.train.num_steps or elapsed > max_seconds:
+      t = time.perf_counter()
+      psnr = setup.heldout_psnr()
+      paused += time.perf_counter() - t
+      history.append({"step": step, "seconds": round(elapsed, 1), "psnr": round(psnr, 2)})
+      print(json.dumps(history[-1]), flush=True)
+      for threshold in THRESHOLDS:
+        if psnr >= threshold and threshold not in reached:
+          reached[threshold] = elapsed
+      if elapsed > max_seconds or all(t in reached for t in THRESHOLDS):
+        break
+  return {f"seconds_to_{int(t)}db": reached.get(t) for t in THRESHOLDS} | {
+      "final_psnr": history[-1]["psnr"], "final_step": history[-1]["step"], "history": history,
+      **_peak_memory()}
+
+
+def main(argv):
+  del argv
+  import jax
+  config = _CONFIG.value
+  result = {"config": {"field": config.model.field, "samples": config.render.num_samples,
+                       "importance": config.render.num_importance, "batch_size": config.train.batch_size,
+                       "data": config.data.kind},
+            "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                        "backend": jax.default_backend(), "devices": jax.device_count(),
+                        "device_kind": jax.devices()[0].device_kind}}
+  if _QUALITY.value:
+    result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value)
+  else:
+    result["throughput"] = throughput(config, _STEPS.value)
+  line = json.dumps(result)
+  print(line)
+  if _OUT.value:
+    with open(_OUT.value, "w") as f:
+      f.write(line + "\n")
+
+
+if __name__ == "__main__":
+  app.run(main)
