@@ -1,11 +1,12 @@
 """Held-out evaluation: render the views of a split, PSNR and SSIM per view and on average."""
 import json
-import os
 
 import jax
 import numpy as np
+from etils import epath
 
 from nerfpod import metrics, render
+from nerfpod.errors import UserError
 
 
 def depth_image(depth_HxW, near: float, far: float) -> np.ndarray:
@@ -19,6 +20,8 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
   near, far = ray_bounds(config, scene)
   split = scene.split(config.eval.split)
   count = len(split) if config.eval.max_views <= 0 else min(len(split), config.eval.max_views)
+  if config.eval.chunk <= 0:
+    raise UserError(f"eval.chunk={config.eval.chunk} must be a positive number of rays.")
   render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
   views = []
   for index in range(count):
@@ -37,11 +40,10 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
             "mean": {"psnr": float(np.mean([v["psnr"] for v in views])),
                      "ssim": float(np.mean([v["ssim"] for v in views]))}}
   if jax.process_index() == 0:
-    os.makedirs(os.path.join(workdir, "eval"), exist_ok=True)
-    path = os.path.join(workdir, "eval", "metrics.json")
-    with open(path + ".tmp", "w") as f:
-      json.dump(result, f, indent=2)
-    os.replace(path + ".tmp", path)
+    directory = epath.Path(workdir) / "eval"  # a local path or gs://
+    directory.mkdir(parents=True, exist_ok=True)
+    (directory / "metrics.json.tmp").write_text(json.dumps(result, indent=2))
+    (directory / "metrics.json.tmp").replace(directory / "metrics.json")
     if writer is not None:
       writer.add_scalar(f"eval/{config.eval.split}/psnr", result["mean"]["psnr"], step)
       writer.add_scalar(f"eval/{config.eval.split}/ssim", result["mean"]["ssim"], step)
@@ -49,3 +51,19 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
     print(f"eval {config.eval.split}: {count} views, mean PSNR {result['mean']['psnr']:.2f} dB, "
           f"SSIM {result['mean']['ssim']:.4f}", flush=True)
   return result
+
+
+def evaluate_workdir(config, workdir: str) -> dict:
+  """--mode=eval: evaluates workdir's newest checkpoint (no training) and writes eval/metrics.json."""
+  from nerfpod import train
+  trained = train.load_trained(config, workdir)
+  writer = None
+  if jax.process_index() == 0:
+    import tensorboardX
+    writer = tensorboardX.SummaryWriter(logdir=workdir)
+  try:
+    return evaluate(config, trained.scene, trained.model, trained.state.params, trained.mesh, workdir,
+                    trained.step, writer=writer)
+  finally:
+    if writer is not None:
+      writer.close()

@@ -2,7 +2,7 @@
 import json
 import os
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax
 import jax
@@ -12,7 +12,7 @@ import optax
 from absl import logging
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import checkpoints, data, distributed, evaluate, render, scenes
+from nerfpod import checkpoints, data, distributed, evaluate, orbit, render, scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 
@@ -176,7 +176,7 @@ def write_config(config, workdir: str) -> dict:
 
 
 def train_and_evaluate(config, workdir: str) -> dict:
-  """Trains (resuming from workdir's newest checkpoint), then evaluates the held-out views.
+  """Trains (resuming from workdir's newest checkpoint), evaluates the held-out views, renders the orbit.
 
   Returns the metrics written to workdir/eval/metrics.json.
   """
@@ -239,5 +239,38 @@ def train_and_evaluate(config, workdir: str) -> dict:
 
   result = evaluate.evaluate(config, scene, model, state.params, mesh, workdir, final_step,
                              writer=monitor.writer)
+  if config.orbit.render_after_training:
+    orbit.render_orbit(config, scene, model, state.params, workdir, final_step, writer=monitor.writer)
   monitor.close()
   return result
+
+
+class Trained(NamedTuple):
+  """A workdir's newest checkpoint restored onto this run's mesh: what evaluation and rendering start from."""
+  scene: Any
+  mesh: Any
+  model: Any
+  state: TrainState
+  step: int
+
+
+def load_trained(config, workdir: str) -> Trained:
+  """The scene, mesh, model and newest checkpointed state of workdir, for --mode=eval and --mode=render."""
+  if checkpoints.latest_step(workdir) is None:
+    raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
+                    f"the default) or pass the --workdir of a trained run.")
+  checkpoints.check_compatible(workdir, json.loads(config.to_json_best_effort()))
+  scene = scenes.load(config.data)
+  scene.split(config.eval.split)
+  mesh = distributed.make_mesh()
+  model = nerf_model.from_config(config)
+  state = init_state(model, make_optimizer(config.train), config.train.seed, mesh)
+  ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
+  try:
+    state, _ = ckpt.restore(checkpoints.abstract_like(state))
+  finally:
+    ckpt.close()
+  step = int(jax.device_get(state.step))
+  if jax.process_index() == 0:
+    print(f"nerfpod: restored step {step} of {workdir}", flush=True)
+  return Trained(scene, mesh, model, state, step)

@@ -1,0 +1,81 @@
+"""Held-out evaluation: metrics.json's contents against reference metrics, TensorBoard, --mode=eval."""
+import json
+
+import numpy as np
+import pytest
+
+from conftest import smoke_config
+from nerfpod import evaluate, metrics, render, train
+from nerfpod.errors import UserError
+
+OVERRIDES = {"train.num_steps": 3, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 2,
+             "orbit.render_after_training": False}
+
+
+def _scalars(workdir, tag):
+  from tensorboard.backend.event_processing import event_accumulator
+  events = event_accumulator.EventAccumulator(str(workdir), size_guidance={"scalars": 0, "images": 0})
+  events.Reload()
+  return {e.step: e.value for e in events.Scalars(tag)} if tag in events.Tags()["scalars"] else {}
+
+
+def test_psnr_and_ssim_closed_forms_at_scale_and_against_a_reference_implementation():
+  skimage_metrics = pytest.importorskip("skimage.metrics")
+  # PSNR of a uniform error e is -20 log10(e); SSIM of two constant images depends on their means only.
+  assert metrics.psnr(np.full((4, 4, 3), 0.75), np.full((4, 4, 3), 0.5)) == pytest.approx(-20 * np.log10(0.25))
+  c1 = 0.01**2
+  assert metrics.ssim(np.zeros((16, 16, 3)), np.ones((16, 16, 3))) == pytest.approx(c1 / (1 + c1))
+  rng = np.random.default_rng(3)
+  a = rng.uniform(0, 1, (37, 29, 3))
+  for b in (np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1), 1 - a, rng.uniform(0, 1, a.shape)):
+    assert metrics.psnr(a, b) == pytest.approx(skimage_metrics.peak_signal_noise_ratio(b, a, data_range=1))
+    want = skimage_metrics.structural_similarity(a, b, gaussian_weights=True, sigma=1.5,
+                                                 use_sample_covariance=False, data_range=1.0,
+                                                 channel_axis=-1)
+    assert metrics.ssim(a, b) == pytest.approx(want, abs=1e-9)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+  """A smoke run of 3 steps: checkpoint, eval/metrics.json and TensorBoard events (no orbit)."""
+  directory = tmp_path_factory.mktemp("run")
+  result = train.train_and_evaluate(smoke_config(**OVERRIDES), str(directory))
+  return directory, result
+
+
+def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
+  directory, result = workdir
+  written = json.loads((directory / "eval" / "metrics.json").read_text())
+  assert written == result
+  assert written["step"] == 3 and written["scene"] == "procedural" and written["split"] == "test"
+  assert [v["index"] for v in written["views"]] == [0, 1]  # eval.max_views=2 of the 8 test views
+  # Recompute every view from the checkpoint with the plain renderer and the metrics module.
+  config = smoke_config(**OVERRIDES)
+  trained = train.load_trained(config, str(directory))
+  assert trained.step == 3
+  near, far = train.ray_bounds(config, trained.scene)
+  render_fn = render.make_render_fn(trained.model, trained.mesh, near, far, trained.scene.background)
+  split = trained.scene.split("test")
+  for view in written["views"]:
+    out = render.render_image(render_fn, trained.state.params, trained.mesh, split.poses[view["index"]],
+                              split.intrinsics, config.data.pixel_center, 512)
+    rgb = np.clip(out["rgb"], 0, 1)
+    assert view["psnr"] == pytest.approx(metrics.psnr(rgb, split.images[view["index"]]), abs=1e-4)
+    assert view["ssim"] == pytest.approx(metrics.ssim(rgb, split.images[view["index"]]), abs=1e-5)
+  assert written["mean"]["psnr"] == pytest.approx(np.mean([v["psnr"] for v in written["views"]]))
+  assert written["mean"]["ssim"] == pytest.approx(np.mean([v["ssim"] for v in written["views"]]))
+  assert _scalars(directory, "eval/test/psnr") == {3: pytest.approx(written["mean"]["psnr"], rel=1e-6)}
+
+
+def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, tmp_path):
+  directory, _ = workdir
+  config = smoke_config(**dict(OVERRIDES, **{"eval.split": "val", "eval.max_views": 1, "eval.chunk": 64}))
+  result = evaluate.evaluate_workdir(config, str(directory))
+  written = json.loads((directory / "eval" / "metrics.json").read_text())
+  assert written == result and written["split"] == "val" and written["step"] == 3
+  assert [v["index"] for v in written["views"]] == [0]
+  assert _scalars(directory, "eval/val/ssim") == {3: pytest.approx(written["mean"]["ssim"], rel=1e-6)}
+  with pytest.raises(UserError, match="holds no checkpoint"):
+    evaluate.evaluate_workdir(config, str(tmp_path / "empty"))
+  with pytest.raises(UserError, match="no 'nope' split"):
+    evaluate.evaluate_workdir(smoke_config(**dict(OVERRIDES, **{"eval.split": "nope"})), str(directory))

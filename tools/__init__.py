@@ -1,0 +1,1 @@
+"""User tools that are not the trainer (`python -m tools.export ...`)."""
