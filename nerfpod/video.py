@@ -65,7 +65,8 @@ class ChannelStyle:
     acc = np.stack([f["acc"] for f in sample_frames])
     depth = np.stack([expected_depth(f["depth"], f["acc"]) for f in sample_frames])
     disparity = np.stack([f["disparity"] for f in sample_frames])
-    return cls(value_range(depth, acc, (near, far)), value_range(disparity, acc, (1.0 / far, 1.0 / near)))
+    nearest = max(near, 1e-3 * far)  # near may be 0
+    return cls(value_range(depth, acc, (near, far)), value_range(disparity, acc, (1.0 / far, 1.0 / nearest)))
 
   def image(self, channel: str, frame: dict) -> np.ndarray:
     """(H, W, 3) uint8 picture of one channel of one frame."""
