@@ -39,26 +39,29 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model.hashgrid.geo_features = 7       # features passed from the density MLP to the colour MLP
 
   c.render = ml_collections.ConfigDict()
-  c.render.num_samples = 64       # stratified (coarse) samples per ray
+  c.render.num_samples = 48       # stratified (coarse) samples per ray
   c.render.num_importance = 0     # extra importance samples per ray for a fine network; 0: no fine network
-  c.render.last_delta = 1e10      # length of the last sample's interval, world units (1e10: infinite)
+  c.render.last_delta = 0.0       # length of the last sample's interval, world units (the paper: 1e10,
+                                  # opaque at the far end: use it only with a fixed background colour)
   c.render.near = -1.0            # ray start, world units; negative: the scene's own bound
   c.render.far = -1.0             # ray end, world units; negative: the scene's own bound
 
   c.train = ml_collections.ConfigDict()
-  c.train.num_steps = 3000        # optimiser steps
+  c.train.num_steps = 1500        # optimiser steps
   c.train.batch_size = 1024       # rays per step, over all devices of all hosts
+  c.train.microbatches = 1        # slices each device's rays are processed in (gradient accumulation)
   c.train.lr_init = 1e-2          # learning rate at the start (after warm-up)
-  c.train.lr_final = 5e-4         # learning rate at the last step (log-linear decay in between)
+  c.train.lr_final = 1e-3         # learning rate at the last step (log-linear decay in between)
   c.train.lr_warmup_steps = 50    # linear warm-up from 0, steps
   c.train.adam_eps = 1e-15        # Adam's epsilon (1e-15 for hash grids, 1e-8 for MLPs)
+  c.train.random_background = True  # data with alpha: composite training rays on random colours
   c.train.grad_clip = 0.0         # clip the global gradient norm to this; 0: no clipping
   c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
   c.train.log_every = 100         # steps between TensorBoard scalars and console lines
-  c.train.image_every = 1000      # steps between rendered held-out views in TensorBoard; 0: never
+  c.train.image_every = 500       # steps between rendered held-out views in TensorBoard; 0: never
 
   c.checkpoint = ml_collections.ConfigDict()
-  c.checkpoint.every_steps = 1000  # steps between (asynchronous) checkpoints; one is always saved at the end
+  c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end
   c.checkpoint.max_to_keep = 3    # newest checkpoints kept on disk
 
   c.eval = ml_collections.ConfigDict()

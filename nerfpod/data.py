@@ -19,10 +19,12 @@ def global_pixel_indices(seed: int, step: int, batch_size: int, num_pixels: int)
 
 
 class LocalRayBatch(grain.transforms.Map):
-  """step -> this host's slice of the global batch: rays, target colours and the rays' batch positions."""
+  """step -> this host's slice of the global batch: rays, target colours (and alphas where the data have
+  them) and the rays' positions in the global batch."""
 
   def __init__(self, split: Split, seed: int, batch_size: int, rows: slice, pixel_center: float):
     self._images = split.images
+    self._alphas = split.alphas
     self._poses = split.poses
     self._intr = split.intrinsics
     self._seed, self._batch_size, self._rows = seed, batch_size, rows
@@ -36,13 +38,16 @@ class LocalRayBatch(grain.transforms.Map):
     row, col = np.divmod(pixel, w)
     origins, directions = cameras.rays_for_pixels(self._poses[image], self._intr, row, col,
                                                   self._pixel_center)
-    return {
+    batch = {
         "origins": origins,
         "directions": directions,
         "rgb": self._images[image, row, col],
         "ray_ids": np.arange(self._rows.start, self._rows.stop, dtype=np.int32),
         "step": np.int64(step),
     }
+    if self._alphas is not None:
+      batch["alpha"] = self._alphas[image, row, col]
+    return batch
 
 
 def ray_batches(split: Split, seed: int, batch_size: int, rows: slice, pixel_center: float,

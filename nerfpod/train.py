@@ -66,12 +66,18 @@ def per_ray_uniforms(key, ray_ids, count: int):
   return jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(key, i), (count,)))(ray_ids)
 
 
-def make_train_step(model, optimizer, mesh, near: float, far: float, background):
+def make_train_step(model, optimizer, mesh, near: float, far: float, background,
+                    random_background: bool = False, microbatches: int = 1):
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
   averaged across devices with pmean (every device holds the same number of rays, so that is the global
   mean) and every device applies the same Adam update to its replica of the parameters.
+  With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
+  colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
+  colour, which gives clean depth, opacity and disparity.
+  With `microbatches` > 1, each device's rays are processed in that many sequential slices whose gradients
+  are averaged (gradient accumulation): the same result in a fraction of the activation memory.
   """
   background = jnp.asarray(background, jnp.float32)
 
@@ -79,10 +85,28 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background)
     u_coarse = per_ray_uniforms(jax.random.fold_in(key, 0), batch["ray_ids"], model.num_samples)
     u_fine = (per_ray_uniforms(jax.random.fold_in(key, 1), batch["ray_ids"], model.num_importance)
               if model.num_importance else None)
-    levels = model.apply(params, batch["origins"], batch["directions"], near, far, background,
+    target, ray_background = batch["rgb"], background
+    if random_background and "alpha" in batch:
+      ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
+      target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
+    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background,
                          u_coarse, u_fine)
-    mses = jnp.stack([jnp.mean((level["rgb"] - batch["rgb"])**2) for level in levels])
+    mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
     return jnp.sum(mses), mses
+
+  value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
+
+  def accumulate(params, batch, key):
+    """(loss, mses), grads of the mean over this device's rays, one micro-batch at a time."""
+    if microbatches == 1:
+      return value_and_grad(params, batch, key)
+    slices = jax.tree.map(lambda x: x.reshape((microbatches, -1) + x.shape[1:]), batch)
+    def body(total, micro):
+      value, grads = value_and_grad(params, micro, key)
+      return jax.tree.map(lambda a, b: a + b / microbatches, total, (value, grads)), None
+    zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(value_and_grad, params,
+                                                        jax.tree.map(lambda x: x[0], slices), key))
+    return jax.lax.scan(body, zeros, slices)[0]
 
   def local_step(state, batch, key):
     key = jax.random.fold_in(key, state.step)
@@ -90,7 +114,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background)
     # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
     params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
-    (loss, mses), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, key)
+    (loss, mses), grads = accumulate(params, batch, key)
     grads, loss, mses = jax.lax.pmean((grads, loss, mses), distributed.DATA_AXIS)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
@@ -110,6 +134,9 @@ def _check_config(config) -> None:
   if tc.batch_size % jax.device_count():
     raise UserError(f"train.batch_size={tc.batch_size} does not split over {jax.device_count()} devices; "
                     f"make it a multiple of {jax.device_count()}.")
+  if tc.microbatches < 1 or tc.batch_size % (jax.device_count() * tc.microbatches):
+    raise UserError(f"train.batch_size={tc.batch_size} does not split into train.microbatches="
+                    f"{tc.microbatches} equal slices on each of {jax.device_count()} devices.")
   if config.checkpoint.every_steps <= 0:
     raise UserError("checkpoint.every_steps must be a positive number of steps.")
 
@@ -166,19 +193,15 @@ def write_config(config, workdir: str) -> dict:
   """Checks a resumed workdir's config, then saves this run's resolved config as workdir/config.json."""
   resolved = json.loads(config.to_json_best_effort())
   checkpoints.check_compatible(workdir, resolved)
-  if jax.process_index() == 0:
-    os.makedirs(workdir, exist_ok=True)
-    tmp = os.path.join(workdir, "config.json.tmp")
-    with open(tmp, "w") as f:
-      json.dump(resolved, f, indent=2, sort_keys=True)
-    os.replace(tmp, os.path.join(workdir, "config.json"))
+  checkpoints.write_config(workdir, resolved)  # process 0; local paths or gs://
   return resolved
 
 
 def train_and_evaluate(config, workdir: str) -> dict:
   """Trains (resuming from workdir's newest checkpoint), evaluates the held-out views, renders the orbit.
 
-  Returns the metrics written to workdir/eval/metrics.json.
+  Returns the metrics written to workdir/eval/metrics.json, or None when a SIGTERM (preemption) stopped
+  training: the state was then saved at a step all processes agreed on, and nothing else is done.
   """
   _check_config(config)
   scene = scenes.load(config.data)
@@ -206,7 +229,8 @@ def train_and_evaluate(config, workdir: str) -> dict:
   dataset = data.ray_batches(train_split, tc.seed, tc.batch_size, distributed.local_slice(tc.batch_size),
                              config.data.pixel_center, max(tc.num_steps, 1))
   batches = data.iterator(dataset, start_step)
-  step_fn = make_train_step(model, optimizer, mesh, near, far, scene.background)
+  step_fn = make_train_step(model, optimizer, mesh, near, far, scene.background, tc.random_background,
+                            tc.microbatches)
   render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
   schedule = learning_rate_schedule(tc)
   monitor = _Monitor(workdir, tc.num_steps, tc.batch_size)
@@ -214,6 +238,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
   preview = scene.split(config.eval.split)
 
   pending = None  # metrics of a log step, fetched only after the next step is dispatched
+  preempted_at = None
   for step in range(start_step, tc.num_steps):
     local = next(batches)
     assert int(local.pop("step")) == step, "data pipeline out of step with training"
@@ -224,7 +249,10 @@ def train_and_evaluate(config, workdir: str) -> dict:
     done = step + 1
     if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
       pending = (done, metrics)
-    ckpt.save(done, state, {"next_step": done})
+    ckpt.save(done, state, {"next_step": done})  # every checkpoint.every_steps, and when preempted
+    if ckpt.reached_preemption(done):
+      preempted_at = done
+      break
     if tc.image_every and done % tc.image_every == 0:
       out = render.render_image(render_fn, state.params, mesh, preview.poses[0], preview.intrinsics,
                                 config.data.pixel_center, config.eval.chunk)
@@ -232,6 +260,13 @@ def train_and_evaluate(config, workdir: str) -> dict:
                             "preview/depth": evaluate.depth_image(out["depth"], near, far)[..., None]})
   if pending is not None:
     monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+  if preempted_at is not None:
+    ckpt.close()  # waits until the step is on disk
+    monitor.close()
+    if jax.process_index() == 0:
+      print(f"nerfpod: preempted: saved step {preempted_at} in {checkpoints.checkpoint_dir(workdir)} and "
+            f"stopped; the same command resumes from there.", flush=True)
+    return None
   final_step = int(jax.device_get(state.step))
   if ckpt.latest_step() != final_step:
     ckpt.save(final_step, state, {"next_step": final_step}, force=True)

@@ -56,3 +56,11 @@ def test_sequence_depends_on_seed_and_step_only_and_resumes_anywhere(split):
   other_seed = data.ray_batches(split, 2, 32, slice(0, 32), 0.5, 10)[0]["rgb"]
   assert not np.array_equal(other_seed, full[0])
   assert not np.array_equal(full[1], full[0])
+
+
+def test_batches_carry_alpha_where_the_data_have_it(split):
+  batch = data.LocalRayBatch(split, 0, 512, slice(0, 512), 0.5).map(1)
+  _, alpha = procedural.render(batch["origins"], batch["directions"], return_alpha=True)
+  np.testing.assert_array_equal(batch["alpha"], alpha)
+  assert 0 < alpha.mean() < 1
+  np.testing.assert_array_equal(batch["rgb"][alpha == 0], 1.0)  # background rays are white

@@ -1,5 +1,6 @@
 """The sharded train step: same loss and parameters on 8 simulated devices as on one."""
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
@@ -10,11 +11,12 @@ from nerfpod import data, distributed, scenes, train
 from nerfpod.nerf import model as nerf_model
 
 
-def _run_steps(mesh, config, num_steps, optimizer):
+def _run_steps(mesh, config, num_steps, optimizer, microbatches=1):
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
   state = train.init_state(model, optimizer, config.train.seed, mesh)
-  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background)
+  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+                                  microbatches=microbatches)
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
                              slice(0, config.train.batch_size), 0.5, num_steps)
   key = jax.random.key(7)
@@ -47,6 +49,17 @@ def test_eight_devices_match_one_device(field, importance):
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
 
 
+def test_microbatches_accumulate_to_the_same_step():
+  config = smoke_config(**{"model.field": "mlp", "model.depth": 2, "model.width": 16, "model.skips": (),
+                           "train.batch_size": 128})
+  one = Mesh(np.array(jax.devices()[:2]), (distributed.DATA_AXIS,))
+  sgd = optax.sgd(0.5)
+  losses_1, params_1 = _run_steps(one, config, 2, sgd)
+  losses_4, params_4 = _run_steps(one, config, 2, sgd, microbatches=4)
+  np.testing.assert_allclose(losses_4, losses_1, rtol=1e-5)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_4, params_1)
+
+
 def test_adam_step_on_eight_devices_follows_the_same_loss_trajectory():
   config = smoke_config(**{"train.batch_size": 128})
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
@@ -54,3 +67,40 @@ def test_adam_step_on_eight_devices_follows_the_same_loss_trajectory():
   losses_1, _ = _run_steps(one, config, 4, optimizer)
   losses_8, _ = _run_steps(distributed.make_mesh(), config, 4, optimizer)
   np.testing.assert_allclose(losses_8, losses_1, rtol=1e-4)
+
+
+def _with_biases(params, density_bias, rgb_bias):
+  """The hash-grid field's params with its density and colour output biases set (pushing sigma and rgb)."""
+  def set_bias(path, p):
+    name = jax.tree_util.keystr(path)
+    if "density_out" in name and "bias" in name:
+      return jnp.asarray(p).at[0].set(density_bias)
+    if "'rgb'" in name and "bias" in name:
+      return jnp.asarray(p).at[:].set(rgb_bias)
+    return p
+  return jax.tree_util.tree_map_with_path(set_bias, params)
+
+
+def test_random_background_makes_transparency_the_only_fit_for_empty_space():
+  config = smoke_config(**{"train.batch_size": 64})
+  mesh = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  model = nerf_model.from_config(config)
+  optimizer = optax.sgd(0.0)  # only the loss matters here
+  params = jax.device_get(train.init_state(model, optimizer, 0, mesh).params)
+  rays = {"origins": np.tile([[0.0, 0.0, 4.0]], (64, 1)).astype(np.float32),
+          "directions": np.tile([[0.0, 0.0, -1.0]], (64, 1)).astype(np.float32),
+          "rgb": np.ones((64, 3), np.float32), "alpha": np.zeros(64, np.float32),  # white background rays
+          "ray_ids": np.arange(64, dtype=np.int32)}
+
+  def loss(params, random_background):
+    step = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, (1.0, 1.0, 1.0), random_background)
+    state = train.TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
+    state = jax.device_put(jax.device_get(state), distributed.replicated(mesh))  # fresh: the step donates it
+    _, metrics = step(state, jax.device_put(rays, distributed.batch_sharding(mesh)), jax.random.key(0))
+    return float(metrics["loss"])
+
+  transparent = _with_biases(params, -30.0, 0.0)
+  white_walls = _with_biases(params, 30.0, 30.0)
+  assert loss(transparent, False) < 1e-6 and loss(transparent, True) < 1e-6
+  assert loss(white_walls, False) < 1e-6  # on a fixed white background, white walls fit as well
+  assert loss(white_walls, True) > 0.1    # on random colours they do not: E[(1 - u)^2] = 1/3

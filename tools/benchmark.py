@@ -70,7 +70,8 @@ class _Setup:
     optimizer = train.make_optimizer(config.train)
     self.state = train.init_state(self.model, optimizer, config.train.seed, self.mesh)
     self.step_fn = train.make_train_step(self.model, optimizer, self.mesh, self.near, self.far,
-                                         self.scene.background)
+                                         self.scene.background, config.train.random_background,
+                                         config.train.microbatches)
     self.render_fn = render.make_render_fn(self.model, self.mesh, self.near, self.far, self.scene.background)
     tc = config.train
     dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,

@@ -14,6 +14,7 @@ class Split:
   poses: np.ndarray       # (N, 4, 4) float32 camera-to-world, OpenGL convention (camera looks down -z)
   intrinsics: Intrinsics  # width, height, focal lengths, principal point in pixels
   names: tuple[str, ...]  # where each frame came from (file path or index), for messages and metrics
+  alphas: np.ndarray | None = None  # (N, H, W) float32 coverage in [0, 1], where the data have it (RGBA)
 
   def __len__(self) -> int:
     return len(self.images)
@@ -43,6 +44,8 @@ def check_split(split: Split, where: str) -> Split:
   h, w = split.intrinsics.height, split.intrinsics.width
   if split.images.shape != (n, h, w, 3):
     raise UserError(f"{where}: images have shape {split.images.shape}, expected ({n}, {h}, {w}, 3).")
+  if split.alphas is not None and split.alphas.shape != (n, h, w):
+    raise UserError(f"{where}: alphas have shape {split.alphas.shape}, expected ({n}, {h}, {w}).")
   if split.poses.shape != (n, 4, 4):
     raise UserError(f"{where}: poses have shape {split.poses.shape}, expected ({n}, 4, 4) camera-to-world.")
   bad = np.flatnonzero(~np.isfinite(split.poses).all(axis=(1, 2)))

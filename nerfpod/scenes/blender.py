@@ -27,7 +27,8 @@ def _read_json(path: str) -> dict:
 
 
 def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
-  """An RGBA (or RGB) image composited on white and box-downscaled, float32 (H, W, 3) in [0, 1]."""
+  """An RGBA (or RGB) image composited on white and box-downscaled: float32 (H, W, 4) in [0, 1], the
+  composited colour and the alpha."""
   if not os.path.isfile(path):
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame from the "
                     f"transforms file.")
@@ -37,10 +38,11 @@ def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
   except OSError as e:
     raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
   rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])  # composite before filtering
+  out = np.concatenate([rgb, rgba[..., 3:]], axis=-1)
   if downscale > 1:
-    h, w = rgb.shape[0] // downscale, rgb.shape[1] // downscale
-    rgb = rgb[:h * downscale, :w * downscale].reshape(h, downscale, w, downscale, 3).mean(axis=(1, 3))
-  return rgb
+    h, w = out.shape[0] // downscale, out.shape[1] // downscale
+    out = out[:h * downscale, :w * downscale].reshape(h, downscale, w, downscale, 4).mean(axis=(1, 3))
+  return out
 
 
 def load_split(root: str, split: str, downscale: int = 1) -> Split:
@@ -84,7 +86,9 @@ def load_split(root: str, split: str, downscale: int = 1) -> Split:
     raise UserError(f"{path}: camera_angle_x is not a number.") from e
   focal = 0.5 * w / np.tan(0.5 * angle)
   intr = Intrinsics.from_focal(w, h, focal)
-  return check_split(Split(np.stack(images), poses, intr, tuple(names)), path)
+  stacked = np.stack(images)
+  return check_split(Split(np.ascontiguousarray(stacked[..., :3]), poses, intr, tuple(names),
+                           alphas=np.ascontiguousarray(stacked[..., 3])), path)
 
 
 def load(root: str, downscale: int = 1, splits=SPLITS) -> Scene:

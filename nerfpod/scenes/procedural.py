@@ -78,8 +78,11 @@ def _objects():
   ]
 
 
-def render(origins, directions, background=(1.0, 1.0, 1.0)) -> np.ndarray:
-  """Exact colours of rays (..., 3): the nearest surface's shaded albedo, or the background."""
+def render(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
+  """Exact colours of rays (..., 3): the nearest surface's shaded albedo, or the background.
+
+  With return_alpha, also whether each ray hits a surface (1.0) or not (0.0), like an RGBA render's alpha.
+  """
   o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
   best_t = np.full(o.shape[:-1], np.inf)
   colour = np.broadcast_to(np.asarray(background, np.float64), o.shape).copy()
@@ -91,6 +94,8 @@ def render(origins, directions, background=(1.0, 1.0, 1.0)) -> np.ndarray:
     shade = _AMBIENT + (1 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, 1.0)
     colour = np.where(closer[..., None], albedo * shade[..., None], colour)
     best_t = np.where(closer, t, best_t)
+  if return_alpha:
+    return colour.astype(np.float32), np.isfinite(best_t).astype(np.float32)
   return colour.astype(np.float32)
 
 
@@ -111,6 +116,7 @@ def load(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test
   splits = {}
   for seed, (name, n) in enumerate((("train", num_train), ("val", num_val), ("test", num_test))):
     poses = hemisphere_poses(n, seed=seed)
-    images = np.stack([render(*image_rays(p, intr, pixel_center)) for p in poses])
-    splits[name] = Split(images, poses, intr, tuple(f"{name}_{i}" for i in range(n)))
+    rendered = [render(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
+    images, alphas = np.stack([r[0] for r in rendered]), np.stack([r[1] for r in rendered])
+    splits[name] = Split(images, poses, intr, tuple(f"{name}_{i}" for i in range(n)), alphas=alphas)
   return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0))
