@@ -34,10 +34,13 @@ def get_config(arg: str | None = None):
   c.train.image_every = 250
   c.checkpoint.every_steps = 250
   c.eval.split = "test"           # frames 100-105
+  c.orbit.num_frames = 120        # the tutorial's orbit: 120 frames of 100x100
+  c.orbit.width = 100
   if args["smoke"]:
     c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
     c.render.num_samples = 16
     c.train.num_steps, c.train.batch_size = 20, 256
     c.train.log_every, c.train.image_every = 5, 10
     c.checkpoint.every_steps = 10
+    c.orbit.num_frames, c.orbit.width = 4, 16
   return c

@@ -1,6 +1,8 @@
 """nerfpod's entry point: `python -m nerfpod.main --config=configs/default.py --workdir=DIR`.
 
-Parses flags, starts the multi-host runtime where there is one, and calls train_and_evaluate.
+Parses flags, starts the multi-host runtime where there is one, and runs the mode: `train` (the default:
+train_and_evaluate, which trains, evaluates and renders the orbit), `eval` or `render` (from the workdir's
+newest checkpoint). A user's mistake is printed as one sentence with exit code 2.
 """
 import sys
 

@@ -31,12 +31,14 @@ def ssim(image, reference, max_val: float = 1.0, filter_size: int = 11, filter_s
   A Gaussian window of 11 pixels with sigma 1.5 over the region where it fits entirely ('valid'), the
   constants K1 = 0.01 and K2 = 0.03, averaged over pixels and colour channels. This equals
   skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False,
-  data_range=1) on images larger than the window.
+  data_range=1) on images larger than the window; on smaller ones the window shrinks to fit.
   """
   a = np.asarray(image, np.float64)
   b = np.asarray(reference, np.float64)
   if a.ndim == 2:
     a, b = a[..., None], b[..., None]
+  # An image smaller than the window: shrink the window (odd, at most the image) rather than average nothing.
+  filter_size = min(filter_size, (min(a.shape[:2]) - 1) // 2 * 2 + 1)
   kernel = _gaussian_kernel(filter_size, filter_sigma)
   mu_a, mu_b = _filter_valid(a, kernel), _filter_valid(b, kernel)
   var_a = _filter_valid(a * a, kernel) - mu_a**2

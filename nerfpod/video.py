@@ -82,7 +82,8 @@ class ChannelStyle:
       return to_uint8(turbo(normalised) * acc[..., None])  # fades to black where nothing is hit
     if channel == "disparity":
       lo, hi = self.disparity_range
-      return to_uint8(turbo((np.asarray(frame["disparity"], np.float64) - lo) / (hi - lo)))
+      # acc / depth is 1 / (mean t) even on nearly empty rays, where it means nothing: fade those to black.
+      return to_uint8(turbo((np.asarray(frame["disparity"], np.float64) - lo) / (hi - lo)) * acc[..., None])
     raise ValueError(f"unknown channel {channel!r}; known: {CHANNELS}")
 
 

@@ -20,6 +20,12 @@ def test_ssim_of_identical_images_is_one_and_of_a_constant_shift_closed_form():
   assert metrics.ssim(np.full((20, 20, 3), c), np.full((20, 20, 3), c + d)) == pytest.approx(expected)
 
 
+def test_ssim_of_images_smaller_than_the_window_is_defined():
+  a = np.random.default_rng(2).uniform(size=(6, 8, 3))
+  assert metrics.ssim(a, a) == pytest.approx(1.0)
+  assert 0 < metrics.ssim(a, np.clip(a + 0.2, 0, 1)) < 1
+
+
 def test_ssim_matches_scikit_image():
   skimage_metrics = pytest.importorskip("skimage.metrics")
   rng = np.random.default_rng(1)
