@@ -1,14 +1,27 @@
 """Orbax checkpoints of everything a run needs to resume exactly: train state + data position.
 
+A workdir's checkpoints live in DIR/checkpoints/<step>/ with two items: `state` (the train state's arrays)
+and `data` (the pipeline's position, {"next_step": s}, which does not depend on the number of hosts).
+
 Saves are asynchronous: the state is copied off the devices, then written in the background while training
-goes on. Orbax writes each step into a temporary folder and renames it only once every process has finished,
-so a save cut off half way is never taken as the latest checkpoint.
+goes on. Every process takes part in every save; orbax writes each step into `<step>.orbax-checkpoint-tmp`
+and renames it to `<step>` only once every process has finished (on gs://, which cannot rename, it marks a
+finished step with a `commit_success.txt` instead), so a save cut off half way is never taken as the latest.
+
+Preemption: a TPU VM gets SIGTERM before maintenance. With several processes, JAX's distributed runtime
+catches it on whichever host gets it and makes all hosts agree on one step (`reached_preemption`); with one
+process, a SIGTERM handler sets a flag. Either way `save` then writes that step, whatever the interval.
+
+Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
 import json
-import os
+import signal
+import threading
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
+from etils import epath
 
 from nerfpod.errors import UserError
 
@@ -37,53 +50,110 @@ def incompatible_fields(saved: dict, current: dict) -> list[str]:
 
 def check_compatible(workdir: str, config_json: dict) -> None:
   """Refuses to resume a workdir whose checkpoints came from a config of another shape or data."""
-  path = os.path.join(workdir, "config.json")
-  if not os.path.exists(path) or latest_step(workdir) is None:
+  path = epath.Path(workdir) / "config.json"
+  if latest_step(workdir) is None or not path.exists():
     return
-  with open(path) as f:
-    saved = json.load(f)
+  saved = json.loads(path.read_text())
   differing = incompatible_fields(saved, config_json)
   if differing:
-    shown = ", ".join(f"{k} ({_flatten(saved).get(k, '<absent>')!r} -> {_flatten(config_json).get(k, '<absent>')!r})"
+    was, now = _flatten(saved), _flatten(config_json)
+    shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
                       for k in differing[:6])
-    raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}; use a new "
-                    f"--workdir or the workdir's own config.json settings.")
+    more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
+    raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
+                    f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
+                    f"logging cadence, checkpoint.*, eval.* and orbit.* may change on resuming).")
 
 
-def checkpoint_dir(workdir: str) -> str:
-  return os.path.join(os.path.abspath(workdir), "checkpoints")
+def write_config(workdir: str, config_json: dict) -> None:
+  """Writes workdir/config.json (the resolved config) whole or not at all; process 0 only."""
+  if jax.process_index() != 0:
+    return
+  directory = epath.Path(workdir)
+  directory.mkdir(parents=True, exist_ok=True)
+  tmp = directory / "config.json.tmp"
+  tmp.write_text(json.dumps(config_json, indent=2, sort_keys=True))
+  tmp.replace(directory / "config.json")
+
+
+def checkpoint_dir(workdir: str) -> epath.Path:
+  workdir = str(workdir)
+  return epath.Path(workdir if "://" in workdir else epath.Path(workdir).absolute()) / "checkpoints"
+
+
+def finished_steps(workdir: str) -> list[int]:
+  """Steps of the complete checkpoints, oldest first; temporary (cut-off) ones are not among them."""
+  directory = checkpoint_dir(workdir)
+  if not directory.exists():
+    return []
+  return sorted(ocp.path.step.checkpoint_steps(directory))
 
 
 def latest_step(workdir: str) -> int | None:
-  """Newest complete checkpoint's step, without starting a manager (temporary folders are ignored)."""
-  directory = checkpoint_dir(workdir)
-  if not os.path.isdir(directory):
-    return None
-  steps = [int(name) for name in os.listdir(directory) if name.isdigit()]
-  return max(steps) if steps else None
+  """Newest complete checkpoint's step, without starting a manager."""
+  steps = finished_steps(workdir)
+  return steps[-1] if steps else None
 
 
 class Checkpoints:
-  """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position)."""
+  """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position).
+
+  Also the preemption watch: `reached_preemption(step)` is True at the one step all processes agree to
+  stop at after a SIGTERM. Use as a context manager, or call close().
+  """
 
   def __init__(self, workdir: str, every_steps: int, max_to_keep: int):
-    options = ocp.CheckpointManagerOptions(save_interval_steps=every_steps, max_to_keep=max_to_keep,
-                                           enable_async_checkpointing=True, create=True)
+    cm = ocp.checkpoint_managers
+    options = ocp.CheckpointManagerOptions(
+        max_to_keep=max_to_keep, enable_async_checkpointing=True, create=True,
+        cleanup_tmp_directories=True,  # leftovers of a save cut off by a crash
+        # Every `every_steps` steps and at a preemption; explicitly so, as orbax's default policy would
+        # also save the first step of every run.
+        save_decision_policy=cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
+                                               cm.PreemptionCheckpointingPolicy()]))
     self.manager = ocp.CheckpointManager(checkpoint_dir(workdir), options=options,
                                          item_names=("state", "data"))
+    self._sigterm = threading.Event()
+    self._previous_handler = None
+    if not jax.distributed.is_initialized() and threading.current_thread() is threading.main_thread():
+      # One process: no distributed runtime to catch the signal, so note it here and stop cleanly.
+      self._previous_handler = signal.signal(signal.SIGTERM, lambda *_: self._sigterm.set())
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
 
   def latest_step(self) -> int | None:
     return self.manager.latest_step()
 
   def restore(self, abstract_state, step: int | None = None):
-    """(state, data position) of `step` (default: the newest), arrays placed as in `abstract_state`."""
+    """(state, data position) of `step` (default: the newest), arrays placed as in `abstract_state`.
+
+    The placement comes from `abstract_state`'s shardings, i.e. this run's mesh, whatever mesh wrote the
+    checkpoint: a run can come back on another number of hosts or devices.
+    """
     step = self.manager.latest_step() if step is None else step
     restored = self.manager.restore(step, args=ocp.args.Composite(
         state=ocp.args.StandardRestore(abstract_state), data=ocp.args.JsonRestore()))
     return restored["state"], restored["data"]
 
+  def reached_preemption(self, step: int) -> bool:
+    """True at the step where every process stops after a SIGTERM reached any of them.
+
+    Call it at every step, with the same steps on every process (the distributed runtime picks the step
+    after the furthest one any process had reached when the signal came).
+    """
+    if jax.distributed.is_initialized():
+      return self.manager.reached_preemption(step)
+    return self._sigterm.is_set()
+
   def save(self, step: int, state, data_position: dict, force: bool = False) -> bool:
-    """Starts an asynchronous save of `state` at `step` if due (or forced); returns whether it started."""
+    """Starts an asynchronous save of `state` at `step` if due, forced or preempted; returns whether it did."""
+    if self.manager.latest_step() == step:
+      return False
+    force = force or self.reached_preemption(step)
     return self.manager.save(step, args=ocp.args.Composite(
         state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_position)), force=force)
 
@@ -91,10 +161,29 @@ class Checkpoints:
     self.manager.wait_until_finished()
 
   def close(self) -> None:
+    """Waits for the last save to be complete on disk; gives SIGTERM back to its previous handler."""
     self.manager.wait_until_finished()
     self.manager.close()
+    if self._previous_handler is not None:
+      signal.signal(signal.SIGTERM, self._previous_handler)
+      self._previous_handler = None
 
 
 def abstract_like(tree):
   """ShapeDtypeStructs with shardings: what StandardRestore needs to place a restored tree."""
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), tree)
+
+
+def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:
+  """(state as nested dicts of NumPy arrays, data position, step) of a workdir's checkpoint, on any host and
+  without a mesh: for tools and tests that inspect parameters. Default step: the newest."""
+  step = latest_step(workdir) if step is None else step
+  if step is None:
+    raise UserError(f"workdir {workdir} holds no complete checkpoint.")
+  path = checkpoint_dir(workdir) / str(step)
+  checkpointer = ocp.PyTreeCheckpointer()
+  tree = checkpointer.metadata(path / "state").item_metadata.tree
+  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree)
+  state = checkpointer.restore(path / "state", args=ocp.args.PyTreeRestore(restore_args=restore_args))
+  position = ocp.Checkpointer(ocp.JsonCheckpointHandler()).restore(path / "data")
+  return state, position, step

@@ -13,18 +13,33 @@ DATA_AXIS = "data"
 
 def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
                process_id: int | None = None, heartbeat_timeout_seconds: int = 100,
-               initialization_timeout: int = 300) -> None:
+               shutdown_timeout_seconds: int = 60, initialization_timeout: int = 300) -> None:
   """Starts jax.distributed when this is one process of several; must run before any other JAX call.
 
   Flags win over the standard variables JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID. With
-  none of them: on a TPU VM pod JAX finds its peers itself; anywhere else this is a single process.
+  none of them: on a Cloud TPU VM, JAX finds its peers itself (in the VM's metadata); anywhere else this is
+  a single process.
+
+  The timeouts bound how long a process waits for the others: a process whose peer stopped sending
+  heartbeats for `heartbeat_timeout_seconds` stops with an error (instead of hanging in a collective);
+  at exit it waits at most `shutdown_timeout_seconds` for the others; at start-up at most
+  `initialization_timeout` for all of them to connect.
   """
   coordinator_address = coordinator_address or os.environ.get("JAX_COORDINATOR_ADDRESS") or None
-  if num_processes is None and os.environ.get("JAX_NUM_PROCESSES"):
-    num_processes = int(os.environ["JAX_NUM_PROCESSES"])
-  if process_id is None and os.environ.get("JAX_PROCESS_ID"):
-    process_id = int(os.environ["JAX_PROCESS_ID"])
+  try:
+    if num_processes is None and os.environ.get("JAX_NUM_PROCESSES"):
+      num_processes = int(os.environ["JAX_NUM_PROCESSES"])
+    if process_id is None and os.environ.get("JAX_PROCESS_ID"):
+      process_id = int(os.environ["JAX_PROCESS_ID"])
+  except ValueError as e:
+    raise UserError(f"JAX_NUM_PROCESSES and JAX_PROCESS_ID must be integers ({e}).") from None
+  for name, value in (("heartbeat_timeout_seconds", heartbeat_timeout_seconds),
+                      ("shutdown_timeout_seconds", shutdown_timeout_seconds),
+                      ("initialization_timeout", initialization_timeout)):
+    if value <= 0:
+      raise UserError(f"--{name}={value} must be a positive number of seconds.")
   timeouts = dict(heartbeat_timeout_seconds=heartbeat_timeout_seconds,
+                  shutdown_timeout_seconds=shutdown_timeout_seconds,
                   initialization_timeout=initialization_timeout)
   if coordinator_address or (num_processes or 1) > 1:
     if not coordinator_address or num_processes is None or process_id is None:
@@ -34,14 +49,20 @@ def initialize(coordinator_address: str | None = None, num_processes: int | None
       raise UserError(f"--process_id={process_id} is outside [0, {num_processes}).")
     jax.distributed.initialize(coordinator_address=coordinator_address, num_processes=num_processes,
                                process_id=process_id, **timeouts)
-  elif _on_tpu_pod():
+  elif _on_cloud_tpu_vm():
     jax.distributed.initialize(**timeouts)
 
 
-def _on_tpu_pod() -> bool:
-  """True on a TPU VM that is one worker of several (the metadata TPU runtimes export)."""
-  hosts = os.environ.get("TPU_WORKER_HOSTNAMES", "")
-  return "," in hosts
+def _on_cloud_tpu_vm() -> bool:
+  """True on a Cloud TPU VM (JAX found TPU chips and libtpu at import), where initialize() needs no
+  arguments: it reads the pod's workers from the VM's metadata (a single-host VM makes a pod of one)."""
+  if "," in os.environ.get("TPU_WORKER_HOSTNAMES", ""):
+    return True
+  try:
+    from jax._src import cloud_tpu_init  # set while `import jax` ran; no public equivalent
+  except ImportError:
+    return False
+  return bool(getattr(cloud_tpu_init, "running_in_cloud_tpu_vm", False))
 
 
 def make_mesh() -> Mesh:

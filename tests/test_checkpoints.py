@@ -1,0 +1,122 @@
+"""Checkpoints in one process: complete steps only, max_to_keep, restore onto another mesh, SIGTERM, and the
+config-compatibility check. (Real processes, kills and pods: test_multiprocess.py.)"""
+import json
+import os
+import shutil
+import signal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from conftest import smoke_config
+from nerfpod import checkpoints, distributed
+from nerfpod.errors import UserError
+
+
+def _state(mesh, value: float):
+  """A small replicated pytree, as the train state is."""
+  tree = {"step": jnp.asarray(int(value), jnp.int32), "params": {"w": jnp.full((4, 3), float(value)),
+                                                                 "b": jnp.arange(5.0) * value}}
+  return jax.device_put(tree, NamedSharding(mesh, P()))
+
+
+def _mesh(count: int) -> Mesh:
+  return Mesh(np.array(jax.devices()[:count]), (distributed.DATA_AXIS,))
+
+
+def test_saves_every_n_steps_keeps_the_newest_and_restores_state_and_position(tmp_path):
+  mesh = _mesh(8)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
+    saved = [step for step in range(1, 8) if ckpt.save(step, _state(mesh, step), {"next_step": step})]
+    ckpt.wait()
+  assert saved == [2, 4, 6]  # every 2 steps, and no extra save of a run's first step
+  assert checkpoints.finished_steps(str(tmp_path)) == [4, 6]
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
+    state, position = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))
+  assert position == {"next_step": 6}
+  np.testing.assert_array_equal(state["params"]["b"], np.arange(5.0) * 6)
+
+
+def test_a_save_cut_off_half_way_is_never_the_latest(tmp_path):
+  mesh = _mesh(8)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    ckpt.save(10, _state(mesh, 10), {"next_step": 10})
+  directory = checkpoints.checkpoint_dir(str(tmp_path))
+  # What a process killed while writing step 20 leaves behind: orbax's temporary folder, half full.
+  shutil.copytree(directory / "10", directory / "20.orbax-checkpoint-tmp")
+  os.remove(directory / "20.orbax-checkpoint-tmp" / "commit_success.txt")
+  shutil.rmtree(directory / "20.orbax-checkpoint-tmp" / "state" / "d")
+  assert checkpoints.latest_step(str(tmp_path)) == 10
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    assert ckpt.latest_step() == 10
+    state, position = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))
+    assert position == {"next_step": 10} and int(state["step"]) == 10
+    # The run goes on and writes step 20 properly over the leftovers.
+    assert ckpt.save(20, _state(mesh, 20), {"next_step": 20})
+  assert checkpoints.finished_steps(str(tmp_path)) == [10, 20]
+  assert not (directory / "20.orbax-checkpoint-tmp").exists()
+
+
+@pytest.mark.parametrize("devices", [1, 2])
+def test_restores_onto_a_mesh_of_another_size(tmp_path, devices):
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
+    ckpt.save(3, _state(_mesh(8), 3.5), {"next_step": 3})
+  smaller = _mesh(devices)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
+    state, _ = ckpt.restore(checkpoints.abstract_like(_state(smaller, 0)))
+  w = state["params"]["w"]
+  assert w.sharding == NamedSharding(smaller, P()) and len(w.sharding.device_set) == devices
+  np.testing.assert_array_equal(w, np.full((4, 3), 3.5))
+  numpy_state, position, step = checkpoints.read_numpy(str(tmp_path))
+  assert step == 3 and position == {"next_step": 3}
+  np.testing.assert_array_equal(numpy_state["params"]["w"], np.full((4, 3), 3.5))
+
+
+def test_sigterm_in_a_single_process_saves_the_current_step_then_gives_the_signal_back(tmp_path):
+  mesh = _mesh(8)
+  before = signal.getsignal(signal.SIGTERM)
+  ckpt = checkpoints.Checkpoints(str(tmp_path), every_steps=100, max_to_keep=3)
+  try:
+    assert not ckpt.reached_preemption(7)
+    os.kill(os.getpid(), signal.SIGTERM)  # caught: the flag is set, nothing dies
+    assert ckpt.reached_preemption(7)
+    assert ckpt.save(7, _state(mesh, 7), {"next_step": 7})  # off the 100-step interval
+  finally:
+    ckpt.close()
+  assert signal.getsignal(signal.SIGTERM) == before
+  assert checkpoints.latest_step(str(tmp_path)) == 7
+
+
+def test_read_numpy_of_an_empty_workdir_is_a_user_error(tmp_path):
+  with pytest.raises(UserError, match="holds no complete checkpoint"):
+    checkpoints.read_numpy(str(tmp_path))
+
+
+def _config_json(**overrides):
+  return json.loads(smoke_config(**overrides).to_json_best_effort())
+
+
+def test_only_step_count_cadence_checkpoint_eval_and_orbit_may_change():
+  saved = _config_json()
+  allowed = _config_json(**{"train.num_steps": 999, "train.log_every": 1, "train.image_every": 0,
+                            "checkpoint.every_steps": 7, "eval.max_views": 1})
+  assert checkpoints.incompatible_fields(saved, allowed) == []
+  changed = _config_json(**{"model.hashgrid.num_levels": 2, "data.image_size": 16, "train.seed": 3,
+                            "train.num_steps": 999})
+  assert checkpoints.incompatible_fields(saved, changed) == ["data.image_size", "model.hashgrid.num_levels",
+                                                             "train.seed"]
+
+
+def test_resuming_a_workdir_of_another_shape_names_the_fields(tmp_path):
+  saved = _config_json()
+  checkpoints.write_config(str(tmp_path), saved)
+  changed = _config_json(**{"model.hashgrid.hidden_width": 8})
+  checkpoints.check_compatible(str(tmp_path), changed)  # no checkpoint yet: anything goes
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
+    ckpt.save(1, _state(_mesh(8), 1), {"next_step": 1})
+  with pytest.raises(UserError, match=r"model\.hashgrid\.hidden_width \(16 -> 8\)"):
+    checkpoints.check_compatible(str(tmp_path), changed)
+  checkpoints.check_compatible(str(tmp_path), _config_json(**{"train.num_steps": 5}))
