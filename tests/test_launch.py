@@ -1,0 +1,153 @@
+"""launch/: the local N-process launcher (with stand-in processes, no JAX) and the TPU pod script."""
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from procs import REPO
+
+LOCAL = REPO / "launch" / "local.py"
+TPU_POD = REPO / "launch" / "tpu_pod.py"
+
+
+def _launch_fake(tmp_path, actions: str, *launcher_flags: str):
+  """launch/local.py with stand-in processes doing `actions`; its output goes to tmp_path/launcher.log."""
+  env = dict(os.environ, NERFPOD_TEST_FAKE=actions, PYTHONPATH=str(REPO / "tests"))
+  out = open(tmp_path / "launcher.log", "wb")
+  proc = subprocess.Popen([sys.executable, str(LOCAL), "--module=procs", f"--log_dir={tmp_path / 'logs'}",
+                           *launcher_flags, "--", "--config=x.py", "--workdir=/tmp/w"],
+                          cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
+  out.close()
+  return proc
+
+
+def _wait_for_text(path, text, proc, timeout=30.0):
+  deadline = time.monotonic() + timeout
+  while not (path.exists() and text in path.read_text()):
+    assert proc.poll() is None, f"the launcher exited early, status {proc.returncode}"
+    assert time.monotonic() < deadline, f"no {text!r} in {path}"
+    time.sleep(0.05)
+
+
+def test_local_launcher_starts_every_process_with_its_id_and_stops_all_when_one_fails(tmp_path):
+  proc = _launch_fake(tmp_path, "wait,exit:3,wait", "--num_processes=3", "--devices_per_process=2",
+                      "--grace_s=1")
+  try:
+    code = proc.wait(timeout=30)
+  finally:
+    proc.kill()
+  out = (tmp_path / "launcher.log").read_text()
+  assert code == 3, out  # the status of the process that failed, not of those stopped after it
+  assert "process 1 exited with status 3" in out
+  first = next(line for line in out.splitlines() if line.startswith("fake process 0 ready"))
+  assert "JAX_NUM_CPU_DEVICES=2" in first
+  assert "--config=x.py --workdir=/tmp/w --coordinator_address=127.0.0.1:" in first
+  assert "--num_processes=3 --process_id=0" in first
+  # Processes 1.. write to the log folder, not to the launcher's output.
+  assert "fake process 1" not in out
+  assert "--process_id=2" in (tmp_path / "logs" / "process_2.log").read_text()
+
+
+def test_local_launcher_passes_sigterm_on_and_exits_0_when_all_do(tmp_path):
+  proc = _launch_fake(tmp_path, "wait,wait", "--num_processes=2", "--devices_per_process=1")
+  try:
+    _wait_for_text(tmp_path / "launcher.log", "fake process 0 ready", proc)
+    _wait_for_text(tmp_path / "logs" / "process_1.log", "fake process 1 ready", proc)
+    proc.send_signal(signal.SIGTERM)
+    code = proc.wait(timeout=30)
+  finally:
+    proc.kill()
+  assert code == 0, (tmp_path / "launcher.log").read_text()
+
+
+def test_local_launcher_refuses_bad_counts():
+  out = subprocess.run([sys.executable, str(LOCAL), "--num_processes=0"], capture_output=True, text=True,
+                       timeout=30)
+  assert out.returncode == 2 and "--num_processes and --devices_per_process must be at least 1" in out.stderr
+
+
+def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None):
+  """Runs launch/tpu_pod.py with a stand-in `gcloud` on PATH that records its calls; returns (result, calls).
+
+  fake_gcloud_exists: what the stand-in's `describe` answers: {"bucket": bool, "pod": bool}."""
+  bin_dir = tmp_path / "bin"
+  bin_dir.mkdir(exist_ok=True)
+  calls = tmp_path / "gcloud_calls"
+  exists = fake_gcloud_exists or {}
+  gcloud = bin_dir / "gcloud"
+  gcloud.write_text(
+      "#!/bin/sh\n"
+      f"printf '%s\\n' \"$*\" >> {shlex.quote(str(calls))}\n"
+      f"case \"$*\" in *'storage buckets describe'*) exit {0 if exists.get('bucket') else 1};; "
+      f"*'tpu-vm describe'*) exit {0 if exists.get('pod') else 1};; esac\nexit 0\n")
+  gcloud.chmod(0o755)
+  env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}", TMPDIR=str(tmp_path))
+  result = subprocess.run([sys.executable, str(TPU_POD), *args], capture_output=True, text=True, env=env,
+                          timeout=60, cwd=tmp_path)
+  return result, (calls.read_text().splitlines() if calls.exists() else [])
+
+
+POD_ARGS = ("--name=nerf-pod", "--zone=us-central2-b", "--project=my-proj", "--accelerator-type=v4-32",
+            "--workdir=gs://my-bucket/runs/lego", "--", "--config=configs/default.py",
+            "--config.train.num_steps=500")
+
+
+def test_tpu_pod_dry_run_prints_every_command_and_runs_none(tmp_path):
+  result, calls = _tpu_pod(tmp_path, "--dry-run", *POD_ARGS)
+  assert result.returncode == 0, result.stderr
+  assert calls == []  # nothing was run
+  commands = [shlex.split(line) for line in result.stdout.splitlines()
+              if line and not line.startswith(("#", "launch/tpu_pod.py:"))]
+  assert [c[:5] for c in commands] == [
+      ["gcloud", "storage", "buckets", "describe", "gs://my-bucket"],
+      ["gcloud", "storage", "buckets", "create", "gs://my-bucket"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "describe"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "create"],
+      ["tar", "-czf", str(tmp_path / "nerfpod-src.tar.gz"), "--exclude=.git", "--exclude=__pycache__"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "scp"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
+  ]
+  bucket_create, _, pod_create, _, scp, install, start, follow = commands[1:]
+  assert "--location=us-central2" in bucket_create
+  assert pod_create[5] == "nerf-pod" and "--accelerator-type=v4-32" in pod_create
+  assert "--zone=us-central2-b" in pod_create and "--project=my-proj" in pod_create
+  assert "--worker=all" in scp and "nerf-pod:~/nerfpod-src.tar.gz" in scp
+  assert "--worker=all" in install
+  assert "pip install" in _command(install) and "-e ." in _command(install)
+  assert "gcsfs" in _command(install)  # what epath (orbax) needs for gs://
+  # The same command on every worker, writing into the bucket; then worker 0's log, to the run's end.
+  assert "--worker=all" in start
+  inner = shlex.split(shlex.split(_command(start).split("nohup sh -c ", 1)[1])[0])
+  assert inner[:3] == ["python3", "-m", "nerfpod.main"]
+  assert inner[3:6] == ["--config=configs/default.py", "--config.train.num_steps=500",
+                        "--workdir=gs://my-bucket/runs/lego"]
+  assert "--worker=0" in follow and "tail --pid=" in _command(follow)
+
+
+def _command(ssh: list[str]) -> str:
+  return next(a for a in ssh if a.startswith("--command="))[len("--command="):]
+
+
+def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
+  result, calls = _tpu_pod(tmp_path, *POD_ARGS, fake_gcloud_exists={"bucket": False, "pod": True})
+  assert result.returncode == 0, result.stderr
+  verbs = [" ".join(c.split()[:4]) for c in calls]
+  assert verbs == ["storage buckets describe gs://my-bucket", "storage buckets create gs://my-bucket",
+                   "compute tpus tpu-vm describe", "compute tpus tpu-vm scp", "compute tpus tpu-vm ssh",
+                   "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
+  assert (tmp_path / "nerfpod-src.tar.gz").stat().st_size > 0  # the project, packed for the workers
+
+
+@pytest.mark.parametrize("bad,message", [
+    (("--workdir=/tmp/local",), "must be a gs:// path"),
+    (("--workdir=gs://b/x", "--", "--workdir=gs://b/y"), "pass --workdir to this script"),
+])
+def test_tpu_pod_refuses_what_cannot_work_on_a_pod(tmp_path, bad, message):
+  result, calls = _tpu_pod(tmp_path, "--name=p", "--zone=us-central2-b", "--dry-run", *bad)
+  assert result.returncode == 2 and message in result.stderr and calls == []
