@@ -1,0 +1,182 @@
+"""Real nerfpod processes for tests: N processes x M simulated CPU devices on 127.0.0.1.
+
+Imported by tests (start, wait, signal, always clean up), and run as a script it is one such process:
+`python tests/procs.py <nerfpod.main flags>` runs nerfpod.main and, when NERFPOD_TEST_RECORD is set to a
+folder, also records which rays the data pipeline loaded on this process (process_<index>.npz there).
+"""
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+REPO = pathlib.Path(__file__).resolve().parent.parent
+
+# JAX's persistent compilation cache, shared by the test processes: a process that runs a program another
+# one compiled before skips the compilation (seconds each on a small CPU).
+COMPILATION_CACHE = pathlib.Path(tempfile.gettempdir()) / f"nerfpod-test-jax-cache-{os.getuid()}"
+# Multi-process runs in tests: quick to notice a dead peer, quick to exit.
+FAST_FAILURE_FLAGS = ("--heartbeat_timeout_seconds=30", "--shutdown_timeout_seconds=20",
+                      "--initialization_timeout=60")
+
+
+def overrides_to_flags(overrides: dict) -> list[str]:
+  out = []
+  for key, value in overrides.items():
+    out.append(f"--config.{key}={value}")
+  return out
+
+
+class Run:
+  """One run of `num_processes` processes; a context manager that kills whatever still runs on exit."""
+
+  def __init__(self, workdir, overrides: dict, num_processes: int = 1, devices_per_process: int = 8,
+               extra_flags=(), record_dir=None, log_dir=None, config="configs/default.py:smoke",
+               via_launcher: bool = False):
+    """Starts the processes. via_launcher: through launch/local.py (one child here, the launcher, whose
+    output is process 0's), else each process directly (so that a test can signal any one of them)."""
+    import portpicker
+    self.workdir = pathlib.Path(workdir)
+    self.log_dir = pathlib.Path(log_dir or self.workdir.parent / f"{self.workdir.name}-logs")
+    self.log_dir.mkdir(parents=True, exist_ok=True)
+    self.procs: list[subprocess.Popen] = []
+    self.logs: list[pathlib.Path] = []
+    self.started = time.monotonic()
+    flags = [f"--config={config}", f"--workdir={self.workdir}", *overrides_to_flags(overrides)]
+    if num_processes > 1 and not via_launcher:
+      port = portpicker.pick_unused_port()
+      flags += [f"--coordinator_address=127.0.0.1:{port}", f"--num_processes={num_processes}"]
+    if num_processes > 1:
+      flags += FAST_FAILURE_FLAGS
+    flags += list(extra_flags)  # last, so that they win over the above
+    env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(devices_per_process), JAX_PLATFORMS="cpu",
+               PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO), JAX_COMPILATION_CACHE_DIR=str(COMPILATION_CACHE),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "XLA_FLAGS"):
+      env.pop(name, None)
+    if record_dir is not None:
+      env["NERFPOD_TEST_RECORD"] = str(record_dir)
+    attempt = len(list(self.log_dir.glob("run*_process_0.log")))
+    if via_launcher:
+      argvs = [[sys.executable, str(REPO / "launch" / "local.py"), f"--num_processes={num_processes}",
+                f"--devices_per_process={devices_per_process}", f"--log_dir={self.log_dir / f'run{attempt}'}",
+                "--grace_s=10", "--", *flags]]
+      env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "tests")])
+    else:
+      argvs = [[sys.executable, str(REPO / "tests" / "procs.py"), *flags]
+               + ([f"--process_id={index}"] if num_processes > 1 else []) for index in range(num_processes)]
+    for index, argv in enumerate(argvs):
+      log = self.log_dir / f"run{attempt}_process_{index}.log"
+      self.logs.append(log)
+      with open(log, "wb") as out:
+        self.procs.append(subprocess.Popen(argv, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                           start_new_session=True))
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.kill()
+
+  def kill(self, index: int | None = None, sig=signal.SIGKILL) -> None:
+    for i, proc in enumerate(self.procs):
+      if (index is None or i == index) and proc.poll() is None:
+        proc.send_signal(sig)
+        if sig == signal.SIGKILL:
+          proc.wait()
+
+  def signal(self, index: int, sig) -> None:
+    if self.procs[index].poll() is None:
+      self.procs[index].send_signal(sig)
+
+  def output(self, index: int = 0) -> str:
+    return self.logs[index].read_text(errors="replace")
+
+  def wait(self, timeout: float) -> list[int]:
+    """Return codes of all processes; fails (after killing them all) if any runs past `timeout` seconds."""
+    deadline = time.monotonic() + timeout
+    try:
+      for proc in self.procs:
+        proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+    except subprocess.TimeoutExpired:
+      self.kill()
+      raise AssertionError(f"processes still running after {timeout} s; logs:\n" + self.tails())
+    return [proc.returncode for proc in self.procs]
+
+  def wait_ok(self, timeout: float) -> None:
+    codes = self.wait(timeout)
+    assert codes == [0] * len(codes), f"exit codes {codes}; logs:\n" + self.tails()
+
+  def wait_for(self, predicate, timeout: float, what: str) -> None:
+    """Polls until predicate() holds; fails if it does not within `timeout` s or a process exits first."""
+    deadline = time.monotonic() + timeout
+    while not predicate():
+      if any(proc.poll() is not None for proc in self.procs):
+        raise AssertionError(f"a process exited before {what}; logs:\n" + self.tails())
+      if time.monotonic() > deadline:
+        self.kill()
+        raise AssertionError(f"no {what} after {timeout} s; logs:\n" + self.tails())
+      time.sleep(0.05)
+
+  def tails(self, lines: int = 25) -> str:
+    out = []
+    for i, log in enumerate(self.logs):
+      text = [l for l in log.read_text(errors="replace").splitlines()
+              if not l.startswith(("I1", "I0", "[Gloo]"))]
+      out.append(f"--- process {i} ({log}) ---\n" + "\n".join(text[-lines:]))
+    return "\n".join(out)
+
+
+def _record_loaded_rays(folder: str) -> None:
+  """Wraps the pipeline's per-step map so that this process's loaded rays are saved at exit."""
+  import atexit
+
+  import numpy as np
+
+  from nerfpod import data
+  loaded = {}
+  original = data.LocalRayBatch.map
+
+  def map_and_record(self, step):
+    out = original(self, step)
+    loaded[int(step)] = {k: np.asarray(out[k]) for k in ("ray_ids", "origins", "directions", "rgb")}
+    return out
+
+  index = next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0")
+
+  def save():
+    if loaded:
+      steps = sorted(loaded)
+      np.savez(os.path.join(folder, f"process_{index}.npz"), steps=np.array(steps),
+               **{k: np.stack([loaded[s][k] for s in steps]) for k in loaded[steps[0]]})
+
+  data.LocalRayBatch.map = map_and_record
+  atexit.register(save)
+
+
+def _fake_process(actions: str) -> None:
+  """A stand-in for nerfpod.main in launcher tests (no JAX): prints what it was given, then does what
+  `actions` (comma-separated, one per process) says for its process id: 'exit:N' or 'wait' (until SIGTERM,
+  then exit 0)."""
+  index = int(next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0"))
+  action = actions.split(",")[index]
+  print(f"fake process {index} ready: JAX_NUM_CPU_DEVICES={os.environ.get('JAX_NUM_CPU_DEVICES')} "
+        f"args={' '.join(sys.argv[1:])}", flush=True)
+  if action.startswith("exit:"):
+    sys.exit(int(action.split(":")[1]))
+  signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+  time.sleep(60)
+  sys.exit(9)
+
+
+if __name__ == "__main__":
+  if os.environ.get("NERFPOD_TEST_FAKE"):
+    _fake_process(os.environ["NERFPOD_TEST_FAKE"])
+  sys.path.insert(0, str(REPO))
+  if os.environ.get("NERFPOD_TEST_RECORD"):
+    _record_loaded_rays(os.environ["NERFPOD_TEST_RECORD"])
+  from nerfpod import main
+  sys.argv[0] = "nerfpod.main"
+  main.run()

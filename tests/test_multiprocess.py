@@ -1,0 +1,209 @@
+"""Real multi-process runs on 127.0.0.1: the same trajectory on any number of hosts and devices, exact
+resume after SIGKILL, elastic restore, preemption by SIGTERM, a dead peer, and a refused workdir.
+
+Every run is the same 24-step job; its uninterrupted result on 1 process x 8 devices (this pytest process)
+is the reference every other run must end at.
+"""
+import random
+import re
+import signal
+import time
+
+import jax
+import numpy as np
+import pytest
+
+import procs
+from conftest import smoke_config
+from nerfpod import checkpoints, data, distributed, scenes, train
+from nerfpod.errors import UserError
+
+NUM_STEPS = 24
+OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.every_steps": 6,
+             "checkpoint.max_to_keep": 3, "train.log_every": 10, "train.image_every": 0,
+             "eval.max_views": 1, "orbit.render_after_training": False}
+# How close two runs' parameters must be, per tensor: the norm of the difference relative to the tensor's
+# norm, and the fraction of entries off by more than 1e-3 of the tensor's largest magnitude. 2x4 and 1x8
+# devices sum the gradient mean the same way: they agree to round-off. 1 or 2 devices sum it in another
+# order, and Adam (eps 1e-15) divides each gradient component by its own running RMS, so where a hash-grid
+# entry's gradient is nearly zero the round-off can flip the sign of its update: a handful of entries
+# then differ by a few lr-sized steps while the rest agree to round-off.
+SAME_SUMS = {"rel_tol": 1e-5, "outliers": 0.0}
+OTHER_SUMS = {"rel_tol": 1e-2, "outliers": 0.01}
+RUN_TIMEOUT = 120  # seconds any one run may take on a loaded 2-core machine
+# The same job, checkpointed every 2 steps: as each save waits for the previous one to finish, the run
+# moves at the pace of its saves, which leaves time to interrupt it after a checkpoint and before its end.
+# (Checkpoint settings may change between a run and its resumption; they do not touch the trajectory.)
+THROTTLED = dict(OVERRIDES, **{"checkpoint.every_steps": 2})
+
+
+def assert_params_close(workdir, reference, rel_tol, outliers):
+  state, position, step = checkpoints.read_numpy(str(workdir))
+  assert step == NUM_STEPS and position == {"next_step": NUM_STEPS} and int(state["step"]) == NUM_STEPS
+  got, want = jax.tree.leaves_with_path(state["params"]), jax.tree.leaves_with_path(reference)
+  assert [path for path, _ in got] == [path for path, _ in want]
+  for (path, a), (_, b) in zip(got, want):
+    name = jax.tree_util.keystr(path)
+    rel = np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-12)
+    off = np.mean(np.abs(a - b) > 1e-3 * np.abs(b).max())
+    assert rel <= rel_tol, f"{name}: relative difference {rel:.2e} > {rel_tol:.0e}"
+    assert off <= outliers, f"{name}: {off:.2%} of the entries differ, more than {outliers:.0%}"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+  """Final parameters of the uninterrupted job on 1 process x 8 devices."""
+  workdir = tmp_path_factory.mktemp("reference")
+  train.train_and_evaluate(smoke_config(**OVERRIDES), str(workdir))
+  state, _, step = checkpoints.read_numpy(str(workdir))
+  assert step == NUM_STEPS
+  return {"workdir": workdir, "params": state["params"]}
+
+
+def test_two_processes_and_one_device_follow_the_same_trajectory(reference, tmp_path):
+  record = tmp_path / "record"
+  record.mkdir()
+  with procs.Run(tmp_path / "pod", OVERRIDES, num_processes=2, devices_per_process=4,
+                 record_dir=record) as pod:
+    pod.wait_ok(RUN_TIMEOUT)
+  assert "2 process(es), 8 device(s)" in pod.output(0)
+  assert_params_close(tmp_path / "pod", reference["params"], **SAME_SUMS)
+
+  # Each process loaded its own half of every global batch, and the halves make up the whole batch.
+  config = smoke_config(**OVERRIDES)
+  split = scenes.load(config.data).split("train")
+  batch = config.train.batch_size
+  whole = data.ray_batches(split, config.train.seed, batch, slice(0, batch), config.data.pixel_center,
+                           NUM_STEPS)
+  loaded = [np.load(record / f"process_{i}.npz") for i in range(2)]
+  for step in range(NUM_STEPS):
+    rows = [np.flatnonzero(part["steps"] == step) for part in loaded]
+    assert all(len(r) == 1 for r in rows), f"step {step} not loaded once by each process"
+    ids = [part["ray_ids"][r[0]] for part, r in zip(loaded, rows)]
+    np.testing.assert_array_equal(ids[0], np.arange(0, batch // 2))
+    np.testing.assert_array_equal(ids[1], np.arange(batch // 2, batch))
+    expected = whole[step]
+    for key in ("origins", "directions", "rgb"):
+      np.testing.assert_array_equal(
+          np.concatenate([part[key][r[0]] for part, r in zip(loaded, rows)]), expected[key])
+
+  with procs.Run(tmp_path / "single", OVERRIDES, devices_per_process=1) as single:
+    single.wait_ok(RUN_TIMEOUT)
+  assert "1 process(es), 1 device(s)" in single.output(0)
+  assert_params_close(tmp_path / "single", reference["params"], **OTHER_SUMS)
+
+
+def test_sigkill_at_any_moment_then_restart_ends_with_the_same_parameters(reference, tmp_path):
+  workdir = tmp_path / "run"
+  with procs.Run(workdir, THROTTLED) as run:
+    run.wait_for(lambda: checkpoints.latest_step(str(workdir)) is not None, RUN_TIMEOUT, "a checkpoint")
+    time.sleep(random.uniform(0.0, 0.3))  # mid-step, mid-save, whichever it is now
+    run.kill()
+  stopped_at = checkpoints.latest_step(str(workdir))
+  assert stopped_at is not None and stopped_at < NUM_STEPS, "the run was not cut short"
+  with procs.Run(workdir, OVERRIDES) as again:
+    again.wait_ok(RUN_TIMEOUT)
+  assert f"steps {stopped_at}..{NUM_STEPS}" in again.output(0), again.tails()
+  # Same devices as the reference: the same computations, so (all but) the same bits.
+  assert_params_close(workdir, reference["params"], rel_tol=1e-6, outliers=0.0)
+
+
+def test_sigterm_to_one_host_saves_an_agreed_step_then_resumes_on_another_topology(reference, tmp_path):
+  workdir = tmp_path / "pod"
+  with procs.Run(workdir, THROTTLED, num_processes=2, devices_per_process=4) as pod:
+    pod.wait_for(lambda: "step      1/" in pod.output(0), RUN_TIMEOUT, "first training step")
+    sent = time.monotonic()
+    pod.signal(1, signal.SIGTERM)  # what a TPU VM gets before maintenance, here on one host only
+    pod.wait_ok(60)
+    assert time.monotonic() - sent < 60
+  lines = [l for l in pod.output(0).splitlines() if l.startswith("nerfpod: preempted")]
+  assert len(lines) == 1, pod.tails()
+  agreed = checkpoints.latest_step(str(workdir))
+  assert 0 < agreed < NUM_STEPS and f"saved step {agreed} " in lines[0]
+  assert not (workdir / "eval" / "metrics.json").exists()  # no evaluation after a preemption
+
+  # Written by 2 processes x 4 devices, continued by 1 process x 2 devices.
+  with procs.Run(workdir, OVERRIDES, devices_per_process=2) as elastic:
+    elastic.wait_ok(RUN_TIMEOUT)
+  assert f"1 process(es), 2 device(s), steps {agreed}..{NUM_STEPS}" in elastic.output(0)
+  assert_params_close(workdir, reference["params"], **OTHER_SUMS)
+
+
+def test_single_process_sigterm_then_resume_on_two_processes(reference, tmp_path):
+  workdir = tmp_path / "run"
+  with procs.Run(workdir, THROTTLED, devices_per_process=2) as run:
+    run.wait_for(lambda: "step      1/" in run.output(0), RUN_TIMEOUT, "first training step")
+    run.signal(0, signal.SIGTERM)
+    run.wait_ok(60)
+  assert "nerfpod: preempted: saved step" in run.output(0)
+  agreed = checkpoints.latest_step(str(workdir))
+  assert 0 < agreed < NUM_STEPS
+
+  # Written by 1 process x 2 devices, continued by 2 processes x 4 devices (started by launch/local.py).
+  with procs.Run(workdir, OVERRIDES, num_processes=2, devices_per_process=4, via_launcher=True) as pod:
+    pod.wait_ok(RUN_TIMEOUT)
+  assert f"2 process(es), 8 device(s), steps {agreed}..{NUM_STEPS}" in pod.output(0)
+  assert_params_close(workdir, reference["params"], **OTHER_SUMS)
+
+
+def test_a_dead_process_stops_the_others_within_the_heartbeat_timeout(tmp_path):
+  workdir = tmp_path / "pod"
+  heartbeat = 6
+  overrides = dict(OVERRIDES, **{"train.num_steps": 100000, "checkpoint.every_steps": 3})
+  with procs.Run(workdir, overrides, num_processes=2, devices_per_process=2,
+                 extra_flags=[f"--heartbeat_timeout_seconds={heartbeat}"]) as pod:
+    pod.wait_for(lambda: checkpoints.latest_step(str(workdir)) is not None, RUN_TIMEOUT,
+                 "first checkpoint")
+    saved_before = checkpoints.latest_step(str(workdir))
+    pod.kill(1)
+    killed = time.monotonic()
+    codes = pod.wait(timeout=heartbeat + 30)
+    took = time.monotonic() - killed
+  assert codes[0] != 0, pod.tails()
+  assert took < heartbeat + 15, f"the survivor took {took:.1f} s to stop"
+  out = pod.output(0)
+  assert "another task died" in out or "stopped sending heartbeats" in out, pod.tails()
+  # What was saved before is still there, complete, and restorable.
+  latest = checkpoints.latest_step(str(workdir))
+  assert latest >= saved_before
+  state, position, step = checkpoints.read_numpy(str(workdir))
+  assert position == {"next_step": latest} and int(state["step"]) == latest
+
+
+def test_resuming_with_another_model_shape_is_refused_in_one_sentence(reference, tmp_path):
+  changed = dict(OVERRIDES, **{"model.hashgrid.num_levels": 2, "model.hashgrid.hidden_width": 8,
+                               "train.num_steps": NUM_STEPS + 10})
+  with procs.Run(reference["workdir"], changed, log_dir=tmp_path) as run:
+    codes = run.wait(RUN_TIMEOUT)
+  out = run.output(0)
+  assert codes == [2], run.tails()
+  errors = [l for l in out.splitlines() if l.startswith("nerfpod: error:")]
+  assert len(errors) == 1 and "Traceback" not in out
+  assert "model.hashgrid.hidden_width (16 -> 8)" in errors[0]
+  assert "model.hashgrid.num_levels (4 -> 2)" in errors[0]
+  assert "train.num_steps" not in errors[0].split(";")[0]  # allowed to change
+  assert checkpoints.latest_step(str(reference["workdir"])) == NUM_STEPS  # untouched
+
+
+@pytest.mark.parametrize("args,env,message", [
+    ({"coordinator_address": "127.0.0.1:1234", "num_processes": 2}, {}, "needs all of --coordinator_address"),
+    ({"num_processes": 2, "process_id": 0}, {}, "needs all of --coordinator_address"),
+    ({}, {"JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": "0"}, "needs all of --coordinator_address"),
+    ({"coordinator_address": "127.0.0.1:1234", "num_processes": 2, "process_id": 2}, {}, "outside [0, 2)"),
+    ({}, {"JAX_NUM_PROCESSES": "two"}, "must be integers"),
+    ({"heartbeat_timeout_seconds": 0}, {}, "--heartbeat_timeout_seconds=0 must be a positive"),
+])
+def test_initialize_refuses_an_incomplete_or_impossible_multi_process_setting(monkeypatch, args, env, message):
+  for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
+    monkeypatch.delenv(name, raising=False)
+  for name, value in env.items():
+    monkeypatch.setenv(name, value)
+  with pytest.raises(UserError, match=re.escape(message)):
+    distributed.initialize(**args)
+
+
+def test_initialize_without_settings_off_tpu_is_a_single_process(monkeypatch):
+  for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "TPU_WORKER_HOSTNAMES"):
+    monkeypatch.delenv(name, raising=False)
+  distributed.initialize()
+  assert not jax.distributed.is_initialized() and jax.process_count() == 1
