@@ -115,7 +115,11 @@ class Checkpoints:
                                          item_names=("state", "data"))
     self._sigterm = threading.Event()
     self._previous_handler = None
-    if not jax.distributed.is_initialized() and threading.current_thread() is threading.main_thread():
+    if jax.distributed.is_initialized():
+      # Tell the preemption service where this run stands (it resumes after the newest checkpoint): a
+      # SIGTERM before the first step then makes the processes agree on the first step, not on step 1.
+      self.reached_preemption(self.manager.latest_step() or 0)
+    elif threading.current_thread() is threading.main_thread():
       # One process: no distributed runtime to catch the signal, so note it here and stop cleanly.
       self._previous_handler = signal.signal(signal.SIGTERM, lambda *_: self._sigterm.set())
 

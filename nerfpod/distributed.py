@@ -13,7 +13,7 @@ DATA_AXIS = "data"
 
 def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
                process_id: int | None = None, heartbeat_timeout_seconds: int = 100,
-               shutdown_timeout_seconds: int = 60, initialization_timeout: int = 300) -> None:
+               shutdown_timeout_seconds: int = 300, initialization_timeout: int = 300) -> None:
   """Starts jax.distributed when this is one process of several; must run before any other JAX call.
 
   Flags win over the standard variables JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID. With

@@ -22,8 +22,9 @@ _PROCESS_ID = flags.DEFINE_integer("process_id", None, "This process's index (el
 _HEARTBEAT = flags.DEFINE_integer("heartbeat_timeout_seconds", 100,
                                   "Multi-process runs: a process whose peer sent no heartbeat for this long "
                                   "stops with an error instead of waiting for it forever.")
-_SHUTDOWN = flags.DEFINE_integer("shutdown_timeout_seconds", 60,
-                                 "Multi-process runs: how long a finished process waits for the others at exit.")
+_SHUTDOWN = flags.DEFINE_integer("shutdown_timeout_seconds", 300,
+                                 "Multi-process runs: how long a finished process waits for the others at exit "
+                                 "(process 0 may still be exporting videos).")
 _INIT_TIMEOUT = flags.DEFINE_integer("initialization_timeout", 300,
                                      "Multi-process runs: how long a process waits for all to connect at start.")
 _MODE = flags.DEFINE_enum("mode", "train", ["train", "eval", "render"],

@@ -6,7 +6,7 @@ is the reference every other run must end at.
 """
 import random
 import re
-import signal
+from signal import SIGTERM
 import time
 
 import jax
@@ -113,7 +113,7 @@ def test_sigterm_to_one_host_saves_an_agreed_step_then_resumes_on_another_topolo
   with procs.Run(workdir, THROTTLED, num_processes=2, devices_per_process=4) as pod:
     pod.wait_for(lambda: "step      1/" in pod.output(0), RUN_TIMEOUT, "first training step")
     sent = time.monotonic()
-    pod.signal(1, signal.SIGTERM)  # what a TPU VM gets before maintenance, here on one host only
+    pod.signal(1, SIGTERM)  # what a TPU VM gets before maintenance, here on one host only
     pod.wait_ok(60)
     assert time.monotonic() - sent < 60
   lines = [l for l in pod.output(0).splitlines() if l.startswith("nerfpod: preempted")]
@@ -129,20 +129,30 @@ def test_sigterm_to_one_host_saves_an_agreed_step_then_resumes_on_another_topolo
   assert_params_close(workdir, reference["params"], **OTHER_SUMS)
 
 
-def test_single_process_sigterm_then_resume_on_two_processes(reference, tmp_path):
+def test_preemptions_in_one_process_and_in_a_just_resumed_pod_lose_nothing(reference, tmp_path):
   workdir = tmp_path / "run"
   with procs.Run(workdir, THROTTLED, devices_per_process=2) as run:
     run.wait_for(lambda: "step      1/" in run.output(0), RUN_TIMEOUT, "first training step")
-    run.signal(0, signal.SIGTERM)
+    run.signal(0, SIGTERM)
     run.wait_ok(60)
   assert "nerfpod: preempted: saved step" in run.output(0)
-  agreed = checkpoints.latest_step(str(workdir))
-  assert 0 < agreed < NUM_STEPS
+  first = checkpoints.latest_step(str(workdir))
+  assert 0 < first < NUM_STEPS
 
-  # Written by 1 process x 2 devices, continued by 2 processes x 4 devices (started by launch/local.py).
-  with procs.Run(workdir, OVERRIDES, num_processes=2, devices_per_process=4, via_launcher=True) as pod:
-    pod.wait_ok(RUN_TIMEOUT)
-  assert f"2 process(es), 8 device(s), steps {agreed}..{NUM_STEPS}" in pod.output(0)
+  # Written by 1 process x 2 devices, continued by 2 processes x 4 devices started by launch/local.py,
+  # which passes a SIGTERM on to both as soon as they have restored: before their first step.
+  with procs.Run(workdir, THROTTLED, num_processes=2, devices_per_process=4, via_launcher=True) as pod:
+    pod.wait_for(lambda: f"steps {first}..{NUM_STEPS}" in pod.output(0), RUN_TIMEOUT, "the restore")
+    pod.signal(0, SIGTERM)
+    pod.wait_ok(60)
+  assert f"2 process(es), 8 device(s), steps {first}..{NUM_STEPS}" in pod.output(0)
+  assert "nerfpod: preempted: saved step" in pod.output(0), pod.tails()
+  second = checkpoints.latest_step(str(workdir))
+  assert first < second < NUM_STEPS
+
+  with procs.Run(workdir, OVERRIDES, devices_per_process=4) as last:
+    last.wait_ok(RUN_TIMEOUT)
+  assert f"steps {second}..{NUM_STEPS}" in last.output(0)
   assert_params_close(workdir, reference["params"], **OTHER_SUMS)
 
 
