@@ -6,12 +6,14 @@
 
 Everything after `--` goes to `python -m nerfpod.main` unchanged; the launcher adds
 --coordinator_address=127.0.0.1:<free port>, --num_processes and --process_id, and sets JAX_NUM_CPU_DEVICES
-and JAX_PLATFORMS=cpu. Process 0's output streams here; the others' goes to --log_dir. SIGINT and SIGTERM
-are passed on to every process (SIGTERM is what a TPU VM gets before maintenance: the processes agree on a
-step, checkpoint it and exit 0). When one process fails, the others get --grace_s seconds to stop by
-themselves (the distributed runtime notices a missing peer) and are then killed. The launcher exits 0 if all
-processes did, else with the status of the first that failed (killed by signal N: 128 + N). Standard
-library only: it starts fast.
+and JAX_PLATFORMS=cpu. Process 0's output streams here; the others' goes to --log_dir.
+
+SIGTERM, and a first Ctrl-C, reach every process as SIGTERM, which is what a TPU VM gets before
+maintenance: the processes agree on a step, checkpoint it and exit 0 (the same command resumes from there).
+A second Ctrl-C kills them. When one process fails, the others get --grace_s seconds to stop by themselves
+(the distributed runtime notices a missing peer) and are then killed. The launcher exits 0 if all processes
+did, else with the status of the first that failed (killed by signal N: 128 + N). Standard library only: it
+starts fast.
 """
 import argparse
 import os
@@ -95,10 +97,19 @@ def main(argv: list[str]) -> int:
   children: list[subprocess.Popen] = []
   logs = []
 
+  interrupts = []
+
   def forward(signum, _frame):
+    """SIGTERM, and a first Ctrl-C, reach every process as SIGTERM (they checkpoint an agreed step and
+    exit 0); a second Ctrl-C kills them."""
+    if signum == signal.SIGINT:
+      interrupts.append(signum)
+      if len(interrupts) == 1:
+        print("launch/local.py: stopping at a checkpoint; Ctrl-C again to kill", file=sys.stderr, flush=True)
+    kill = len(interrupts) > 1
     for child in children:
       if child.poll() is None:
-        child.send_signal(signum)
+        child.kill() if kill else child.send_signal(signal.SIGTERM)
 
   signal.signal(signal.SIGTERM, forward)
   signal.signal(signal.SIGINT, forward)

@@ -52,12 +52,13 @@ def test_local_launcher_starts_every_process_with_its_id_and_stops_all_when_one_
   assert "--process_id=2" in (tmp_path / "logs" / "process_2.log").read_text()
 
 
-def test_local_launcher_passes_sigterm_on_and_exits_0_when_all_do(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_local_launcher_passes_sigterm_or_ctrl_c_on_as_sigterm_and_exits_0_when_all_do(tmp_path, sig):
   proc = _launch_fake(tmp_path, "wait,wait", "--num_processes=2", "--devices_per_process=1")
   try:
     _wait_for_text(tmp_path / "launcher.log", "fake process 0 ready", proc)
     _wait_for_text(tmp_path / "logs" / "process_1.log", "fake process 1 ready", proc)
-    proc.send_signal(signal.SIGTERM)
+    proc.send_signal(sig)  # the stand-ins exit 0 on SIGTERM only
     code = proc.wait(timeout=30)
   finally:
     proc.kill()
