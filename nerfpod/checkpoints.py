@@ -9,8 +9,9 @@ and renames it to `<step>` only once every process has finished (on gs://, which
 finished step with a `commit_success.txt` instead), so a save cut off half way is never taken as the latest.
 
 Preemption: a TPU VM gets SIGTERM before maintenance. With several processes, JAX's distributed runtime
-catches it on whichever host gets it and makes all hosts agree on one step (`reached_preemption`); with one
-process, a SIGTERM handler sets a flag. Either way `save` then writes that step, whatever the interval.
+catches it on whichever host gets it and makes all hosts agree on one step (`reached_preemption`: the step
+after the furthest one any process had reached); with one process, a SIGTERM handler sets a flag. Either
+way `save` then writes that step, whatever the interval, and the loop stops there.
 
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
@@ -115,12 +116,15 @@ class Checkpoints:
                                          item_names=("state", "data"))
     self._sigterm = threading.Event()
     self._previous_handler = None
-    if jax.distributed.is_initialized():
+    self._agree = jax.process_count() > 1
+    if self._agree:
       # Tell the preemption service where this run stands (it resumes after the newest checkpoint): a
       # SIGTERM before the first step then makes the processes agree on the first step, not on step 1.
       self.reached_preemption(self.manager.latest_step() or 0)
     elif threading.current_thread() is threading.main_thread():
-      # One process: no distributed runtime to catch the signal, so note it here and stop cleanly.
+      # One process (jax.distributed or not): nobody to agree with, so just note the signal. (JAX's service
+      # would also do, but orbax's save-finalising thread reports older steps to it, which with one
+      # process can make the agreed step one the loop has already passed.)
       self._previous_handler = signal.signal(signal.SIGTERM, lambda *_: self._sigterm.set())
 
   def __enter__(self):
@@ -149,7 +153,7 @@ class Checkpoints:
     Call it at every step, with the same steps on every process (the distributed runtime picks the step
     after the furthest one any process had reached when the signal came).
     """
-    if jax.distributed.is_initialized():
+    if self._agree:
       return self.manager.reached_preemption(step)
     return self._sigterm.is_set()
 
