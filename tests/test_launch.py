@@ -52,7 +52,7 @@ def test_local_launcher_starts_every_process_with_its_id_and_stops_all_when_one_
   assert "--process_id=2" in (tmp_path / "logs" / "process_2.log").read_text()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "Ctrl-C"])
 def test_local_launcher_passes_sigterm_or_ctrl_c_on_as_sigterm_and_exits_0_when_all_do(tmp_path, sig):
   proc = _launch_fake(tmp_path, "wait,wait", "--num_processes=2", "--devices_per_process=1")
   try:
