@@ -10,7 +10,8 @@ from nerfpod import config_util
 
 def get_config(arg: str | None = None):
   args = config_util.parse_arg(arg, scene="lego", smoke=False)
-  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  default = config_util.sibling_module(__file__, "default")
+  c = default.get_config()
   c.data.kind = "blender"
   c.data.path = f"data/nerf_synthetic/{args['scene']}"  # a folder with transforms_{train,val,test}.json
   c.data.downscale = 1
@@ -36,10 +37,5 @@ def get_config(arg: str | None = None):
   c.checkpoint.every_steps = 5000
   c.eval.split = "test"           # the data in ../shared/data/lego_400 has no test split: use val there
   if args["smoke"]:
-    c.data.downscale = 8
-    c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
-    c.render.num_samples, c.render.num_importance = 16, 16
-    c.train.num_steps, c.train.batch_size = 20, 256
-    c.train.log_every, c.train.image_every = 5, 10
-    c.checkpoint.every_steps = 10
+    default.shrink_for_smoke(c)
   return c

@@ -9,7 +9,8 @@ from nerfpod import config_util
 
 def get_config(arg: str | None = None):
   args = config_util.parse_arg(arg, scene="lego", smoke=False)
-  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  default = config_util.sibling_module(__file__, "default")
+  c = default.get_config()
   c.data.kind = "blender"
   c.data.path = f"data/nerf_synthetic/{args['scene']}"  # a folder with transforms_{train,val,test}.json
   c.model.field = "hashgrid"
@@ -26,10 +27,5 @@ def get_config(arg: str | None = None):
   c.checkpoint.every_steps = 2500
   c.eval.split = "test"           # the data in ../shared/data/lego_400 has no test split: use val there
   if args["smoke"]:
-    c.data.downscale = 8
-    g.num_levels, g.log2_table_size, g.max_resolution, g.hidden_width, g.geo_features = 4, 12, 64, 16, 7
-    c.render.num_samples = 16
-    c.train.num_steps, c.train.batch_size = 20, 256
-    c.train.log_every, c.train.image_every = 5, 10
-    c.checkpoint.every_steps = 10
+    default.shrink_for_smoke(c)
   return c

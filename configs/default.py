@@ -81,22 +81,32 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.orbit.fps = 30.0              # frames per second of the exported videos
 
   if args["smoke"]:
-    c.data.image_size = 32
-    c.model.hashgrid.num_levels = 4
-    c.model.hashgrid.log2_table_size = 12
-    c.model.hashgrid.max_resolution = 64
-    c.model.hashgrid.hidden_width = 16
-    c.render.num_samples = 16
-    c.train.num_steps = 20
-    c.train.batch_size = 256
-    c.train.lr_warmup_steps = 2
-    c.train.log_every = 5
-    c.train.image_every = 10
-    c.checkpoint.every_steps = 10
-    c.eval.max_views = 2
-    c.eval.chunk = 1024
-    c.orbit.num_frames = 4
-    c.orbit.width = 16
-    c.orbit.height = 16
-    c.orbit.chunk = 1024
+    shrink_for_smoke(c)
   return c
+
+
+def shrink_for_smoke(c: ml_collections.ConfigDict) -> None:
+  """Shrinks any config to seconds (tests, CI): tiny images, models, batches, runs, evals and orbits."""
+  c.data.image_size = 32
+  c.data.downscale = max(c.data.downscale, 8) if c.data.kind == "blender" else c.data.downscale
+  c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
+  c.model.hashgrid.num_levels = 4
+  c.model.hashgrid.log2_table_size = 12
+  c.model.hashgrid.max_resolution = 64
+  c.model.hashgrid.hidden_width = 16
+  c.model.hashgrid.geo_features = 7
+  c.render.num_samples = 16
+  c.render.num_importance = min(c.render.num_importance, 16)
+  c.train.num_steps = 20
+  c.train.batch_size = 256
+  c.train.microbatches = 1
+  c.train.lr_warmup_steps = 2
+  c.train.log_every = 5
+  c.train.image_every = 10
+  c.checkpoint.every_steps = 10
+  c.eval.max_views = 2
+  c.eval.chunk = 1024
+  c.orbit.num_frames = 4
+  c.orbit.width = 16
+  c.orbit.height = 16
+  c.orbit.chunk = 1024

@@ -10,7 +10,8 @@ from nerfpod import config_util
 
 def get_config(arg: str | None = None):
   args = config_util.parse_arg(arg, smoke=False)
-  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  default = config_util.sibling_module(__file__, "default")
+  c = default.get_config()
   c.data.kind = "tiny"
   c.data.path = "data/tiny_nerf_data.npz"  # the tutorial's npz (download: see README)
   c.data.pixel_center = 0.0       # the tutorial's rays pass through pixel corners
@@ -37,10 +38,5 @@ def get_config(arg: str | None = None):
   c.orbit.num_frames = 120        # the tutorial's orbit: 120 frames of 100x100
   c.orbit.width = 100
   if args["smoke"]:
-    c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
-    c.render.num_samples = 16
-    c.train.num_steps, c.train.batch_size = 20, 256
-    c.train.log_every, c.train.image_every = 5, 10
-    c.checkpoint.every_steps = 10
-    c.orbit.num_frames, c.orbit.width = 4, 16
+    default.shrink_for_smoke(c)
   return c

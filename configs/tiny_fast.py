@@ -8,7 +8,8 @@ from nerfpod import config_util
 
 def get_config(arg: str | None = None):
   args = config_util.parse_arg(arg, path="data/tiny_nerf_data.npz", smoke=False)
-  c = config_util.sibling_config(__file__, "default", "smoke" if args["smoke"] else None)
+  default = config_util.sibling_module(__file__, "default")
+  c = default.get_config()
   c.data.kind = "tiny"
   c.data.path = args["path"]      # tiny_nerf_data.npz
   c.data.pixel_center = 0.5       # Blender renders the pixel centres (the original code's 0.0 costs ~1.5 dB here)
@@ -21,7 +22,5 @@ def get_config(arg: str | None = None):
   c.checkpoint.every_steps = 1000
   c.eval.split = "test"           # frames 100-105
   if args["smoke"]:
-    c.train.num_steps = 20
-    c.train.log_every, c.train.image_every = 5, 10
-    c.checkpoint.every_steps = 10
+    default.shrink_for_smoke(c)
   return c

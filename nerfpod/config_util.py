@@ -5,13 +5,18 @@ import os
 import ml_collections
 
 
-def sibling_config(this_file: str, name: str, arg: str | None = None) -> ml_collections.ConfigDict:
-  """get_config(arg) of configs/<name>.py, found next to `this_file` (works wherever the repo is)."""
+def sibling_module(this_file: str, name: str):
+  """The config module configs/<name>.py, found next to `this_file` (works wherever the repo is)."""
   path = os.path.join(os.path.dirname(os.path.abspath(this_file)), f"{name}.py")
   spec = importlib.util.spec_from_file_location(f"nerfpod_config_{name}", path)
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
-  return module.get_config(arg)
+  return module
+
+
+def sibling_config(this_file: str, name: str, arg: str | None = None) -> ml_collections.ConfigDict:
+  """get_config(arg) of configs/<name>.py, found next to `this_file`."""
+  return sibling_module(this_file, name).get_config(arg)
 
 
 def parse_arg(arg: str | None, **defaults) -> dict:

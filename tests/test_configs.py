@@ -1,0 +1,42 @@
+"""The configs: every one loads, keeps the names scripts rely on, and documents its fields."""
+import re
+
+import pytest
+
+from conftest import REPO
+from nerfpod.config_util import sibling_config
+
+CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast"]
+CONTRACT = ["data.path", "data.downscale", "train.num_steps", "train.seed", "checkpoint.every_steps",
+            "eval.split", "eval.max_views", "orbit.num_frames"]
+
+
+def _get(config, dotted):
+  for part in dotted.split("."):
+    config = config[part]
+  return config
+
+
+@pytest.mark.parametrize("name", CONFIGS)
+@pytest.mark.parametrize("arg", [None, "smoke"])
+def test_config_loads_with_the_contract_names(name, arg):
+  config = sibling_config(str(REPO / "configs" / "x.py"), name, arg)
+  for dotted in CONTRACT:
+    _get(config, dotted)
+  if arg == "smoke":
+    assert config.train.num_steps <= 20 and config.train.batch_size <= 256
+
+
+def test_config_arguments_are_parsed_and_unknown_ones_refused():
+  assert sibling_config(str(REPO / "configs" / "x.py"), "blender", "scene=chair").data.path.endswith("chair")
+  with pytest.raises(ValueError, match="unknown config argument 'scen'"):
+    sibling_config(str(REPO / "configs" / "x.py"), "blender", "scen=chair")
+
+
+def test_every_field_of_the_default_config_has_a_comment():
+  source = (REPO / "configs" / "default.py").read_text()
+  body = source[source.index("def get_config"):source.index("def shrink_for_smoke")]
+  assignments = [line for line in body.splitlines() if re.match(r"\s+c\.[a-z_.]+ = ", line)
+                 and "ConfigDict()" not in line]
+  assert len(assignments) > 40
+  assert [line for line in assignments if "#" not in line] == []
