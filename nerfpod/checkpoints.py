@@ -103,11 +103,14 @@ class Checkpoints:
   stop at after a SIGTERM. Use as a context manager, or call close().
   """
 
-  def __init__(self, workdir: str, every_steps: int, max_to_keep: int):
+  def __init__(self, workdir: str, every_steps: int, max_to_keep: int, read_only: bool = False):
+    """`read_only` (evaluation, rendering): never writes, deletes or cleans anything in the workdir, which
+    a training run may be writing at the same time, and leaves SIGTERM alone."""
     cm = ocp.checkpoint_managers
+    self._closed = False
     options = ocp.CheckpointManagerOptions(
-        max_to_keep=max_to_keep, enable_async_checkpointing=True, create=True,
-        cleanup_tmp_directories=True,  # leftovers of a save cut off by a crash
+        max_to_keep=max_to_keep, enable_async_checkpointing=True, create=not read_only, read_only=read_only,
+        cleanup_tmp_directories=not read_only,  # leftovers of a save cut off by a crash
         # Every `every_steps` steps and at a preemption; explicitly so, as orbax's default policy would
         # also save the first step of every run.
         save_decision_policy=cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
@@ -116,8 +119,10 @@ class Checkpoints:
                                          item_names=("state", "data"))
     self._sigterm = threading.Event()
     self._previous_handler = None
-    self._agree = jax.process_count() > 1
-    if self._agree:
+    self._agree = jax.process_count() > 1 and not read_only
+    if read_only:
+      pass
+    elif self._agree:
       # Tell the preemption service where this run stands (it resumes after the newest checkpoint): a
       # SIGTERM before the first step then makes the processes agree on the first step, not on step 1.
       self.reached_preemption(self.manager.latest_step() or 0)
@@ -169,7 +174,10 @@ class Checkpoints:
     self.manager.wait_until_finished()
 
   def close(self) -> None:
-    """Waits for the last save to be complete on disk; gives SIGTERM back to its previous handler."""
+    """Waits for the last save to be complete on disk; gives SIGTERM back to its previous handler. Once."""
+    if self._closed:
+      return
+    self._closed = True
     self.manager.wait_until_finished()
     self.manager.close()
     if self._previous_handler is not None:

@@ -215,62 +215,64 @@ def train_and_evaluate(config, workdir: str) -> dict:
   state = init_state(model, optimizer, tc.seed, mesh)
 
   ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
-  start_step = 0
-  if ckpt.latest_step() is not None:
-    state, position = ckpt.restore(checkpoints.abstract_like(state))
-    start_step = int(position["next_step"])
-    logging.info("resumed from step %d", start_step)
-  if jax.process_index() == 0:
-    print(f"nerfpod: scene {scene.name} ({len(scene.splits['train'])} training views), "
-          f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
-          f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
+  try:
+    start_step = 0
+    if ckpt.latest_step() is not None:
+      state, position = ckpt.restore(checkpoints.abstract_like(state))
+      start_step = int(position["next_step"])
+      logging.info("resumed from step %d", start_step)
+    if jax.process_index() == 0:
+      print(f"nerfpod: scene {scene.name} ({len(scene.splits['train'])} training views), "
+            f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
+            f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
 
-  train_split = scene.split("train")
-  dataset = data.ray_batches(train_split, tc.seed, tc.batch_size, distributed.local_slice(tc.batch_size),
-                             config.data.pixel_center, max(tc.num_steps, 1))
-  batches = data.iterator(dataset, start_step)
-  step_fn = make_train_step(model, optimizer, mesh, near, far, scene.background, tc.random_background,
-                            tc.microbatches)
-  render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
-  schedule = learning_rate_schedule(tc)
-  monitor = _Monitor(workdir, tc.num_steps, tc.batch_size)
-  rays_key = jax.random.fold_in(jax.random.key(tc.seed), _RAYS)
-  preview = scene.split(config.eval.split)
+    train_split = scene.split("train")
+    dataset = data.ray_batches(train_split, tc.seed, tc.batch_size, distributed.local_slice(tc.batch_size),
+                               config.data.pixel_center, max(tc.num_steps, 1))
+    batches = data.iterator(dataset, start_step)
+    step_fn = make_train_step(model, optimizer, mesh, near, far, scene.background, tc.random_background,
+                              tc.microbatches)
+    render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+    schedule = learning_rate_schedule(tc)
+    monitor = _Monitor(workdir, tc.num_steps, tc.batch_size)
+    rays_key = jax.random.fold_in(jax.random.key(tc.seed), _RAYS)
+    preview = scene.split(config.eval.split)
 
-  pending = None  # metrics of a log step, fetched only after the next step is dispatched
-  preempted_at = None
-  for step in range(start_step, tc.num_steps):
-    local = next(batches)
-    assert int(local.pop("step")) == step, "data pipeline out of step with training"
-    state, metrics = step_fn(state, distributed.to_global(mesh, local), rays_key)
+    pending = None  # metrics of a log step, fetched only after the next step is dispatched
+    preempted_at = None
+    for step in range(start_step, tc.num_steps):
+      local = next(batches)
+      assert int(local.pop("step")) == step, "data pipeline out of step with training"
+      state, metrics = step_fn(state, distributed.to_global(mesh, local), rays_key)
+      if pending is not None:
+        monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+        pending = None
+      done = step + 1
+      if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
+        pending = (done, metrics)
+      ckpt.save(done, state, {"next_step": done})  # every checkpoint.every_steps, and when preempted
+      if ckpt.reached_preemption(done):
+        preempted_at = done
+        break
+      if tc.image_every and done % tc.image_every == 0:
+        out = render.render_image(render_fn, state.params, mesh, preview.poses[0], preview.intrinsics,
+                                  config.data.pixel_center, config.eval.chunk)
+        monitor.images(done, {"preview/rgb": out["rgb"],
+                              "preview/depth": evaluate.depth_image(out["depth"], near, far)[..., None]})
     if pending is not None:
       monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
-      pending = None
-    done = step + 1
-    if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
-      pending = (done, metrics)
-    ckpt.save(done, state, {"next_step": done})  # every checkpoint.every_steps, and when preempted
-    if ckpt.reached_preemption(done):
-      preempted_at = done
-      break
-    if tc.image_every and done % tc.image_every == 0:
-      out = render.render_image(render_fn, state.params, mesh, preview.poses[0], preview.intrinsics,
-                                config.data.pixel_center, config.eval.chunk)
-      monitor.images(done, {"preview/rgb": out["rgb"],
-                            "preview/depth": evaluate.depth_image(out["depth"], near, far)[..., None]})
-  if pending is not None:
-    monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
-  if preempted_at is not None:
-    ckpt.close()  # waits until the step is on disk
-    monitor.close()
-    if jax.process_index() == 0:
-      print(f"nerfpod: preempted: saved step {preempted_at} in {checkpoints.checkpoint_dir(workdir)} and "
-            f"stopped; the same command resumes from there.", flush=True)
-    return None
-  final_step = int(jax.device_get(state.step))
-  if ckpt.latest_step() != final_step:
-    ckpt.save(final_step, state, {"next_step": final_step}, force=True)
-  ckpt.close()
+    if preempted_at is not None:
+      ckpt.close()  # waits until the step is on disk
+      monitor.close()
+      if jax.process_index() == 0:
+        print(f"nerfpod: preempted: saved step {preempted_at} in {checkpoints.checkpoint_dir(workdir)} and "
+              f"stopped; the same command resumes from there.", flush=True)
+      return None
+    final_step = int(jax.device_get(state.step))
+    if ckpt.latest_step() != final_step:
+      ckpt.save(final_step, state, {"next_step": final_step}, force=True)
+  finally:
+    ckpt.close()  # also on an exception: waits for a save under way, gives SIGTERM back
 
   result = evaluate.evaluate(config, scene, model, state.params, mesh, workdir, final_step,
                              writer=monitor.writer)
@@ -300,11 +302,9 @@ def load_trained(config, workdir: str) -> Trained:
   mesh = distributed.make_mesh()
   model = nerf_model.from_config(config)
   state = init_state(model, make_optimizer(config.train), config.train.seed, mesh)
-  ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
-  try:
+  with checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
+                               read_only=True) as ckpt:
     state, _ = ckpt.restore(checkpoints.abstract_like(state))
-  finally:
-    ckpt.close()
   step = int(jax.device_get(state.step))
   if jax.process_index() == 0:
     print(f"nerfpod: restored step {step} of {workdir}", flush=True)

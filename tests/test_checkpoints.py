@@ -60,6 +60,21 @@ def test_a_save_cut_off_half_way_is_never_the_latest(tmp_path):
   assert not (directory / "20.orbax-checkpoint-tmp").exists()
 
 
+def test_read_only_restore_leaves_a_save_under_way_and_sigterm_alone(tmp_path):
+  """--mode=eval/render may run beside training: they must not clean up its in-progress save."""
+  mesh = _mesh(8)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    ckpt.save(10, _state(mesh, 10), {"next_step": 10})
+  directory = checkpoints.checkpoint_dir(str(tmp_path))
+  shutil.copytree(directory / "10", directory / "20.orbax-checkpoint-tmp")  # training is writing step 20
+  handler = signal.getsignal(signal.SIGTERM)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3, read_only=True) as ckpt:
+    assert signal.getsignal(signal.SIGTERM) is handler
+    state, position = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))
+  assert position == {"next_step": 10} and int(state["step"]) == 10
+  assert (directory / "20.orbax-checkpoint-tmp").exists()
+
+
 @pytest.mark.parametrize("devices", [1, 2])
 def test_restores_onto_a_mesh_of_another_size(tmp_path, devices):
   with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
