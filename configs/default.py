@@ -71,10 +71,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   c.orbit = ml_collections.ConfigDict()
   c.orbit.render_after_training = True  # render the orbit (archive + videos) when training ends
-  c.orbit.num_frames = 60         # frames over one full turn, azimuth 0..360 degrees (the tutorial: 120)
+  c.orbit.num_frames = 120        # frames over one full turn, azimuth 0..360 degrees (the tutorial's 120)
   c.orbit.elevation = -30.0       # degrees, the tutorial's sign: -30 is 30 degrees above the z = 0 plane
   c.orbit.radius = 4.0            # distance of the cameras from the origin they look at, world units
-  c.orbit.width = 64              # frame width, pixels; 0: the eval split's
+  c.orbit.width = 0               # frame width, pixels; 0: the eval split's
   c.orbit.height = 0              # frame height, pixels; 0: from the width with the eval split's aspect
   c.orbit.focal = 0.0             # focal length, pixels; 0: the eval split's field of view at this width
   c.orbit.chunk = 4096            # rays per device call, over this host's own devices (bounds memory)

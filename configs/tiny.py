@@ -35,8 +35,6 @@ def get_config(arg: str | None = None):
   c.train.image_every = 250
   c.checkpoint.every_steps = 250
   c.eval.split = "test"           # frames 100-105
-  c.orbit.num_frames = 120        # the tutorial's orbit: 120 frames of 100x100
-  c.orbit.width = 100
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

@@ -15,8 +15,8 @@ class MLPField(nn.Module):
 
   Points are positionally encoded, then `depth` dense layers of `width` with ReLU; the encoded input is
   concatenated back after each (0-based) layer index in `skips` (the tutorial's 8x256, whose input rejoins
-  after layer `i % 4 == 0 and i > 0`, is skips=(4,)). Without view directions one linear head gives (rgb, sigma), as in the Tiny
-  NeRF tutorial. With them (the paper): sigma from the trunk, then a linear bottleneck of `width`
+  after layer `i % 4 == 0 and i > 0`, is skips=(4,)). Without view directions one linear head gives
+  (rgb, sigma), as in the Tiny NeRF tutorial. With them (the paper): sigma from the trunk, then a linear bottleneck of `width`
   concatenated with the encoded direction, one layer of width/2 and the rgb head.
   """
   depth: int = 8
