@@ -35,7 +35,6 @@ def get_config(arg: str | None = None):
   c.train.log_every = 100
   c.train.image_every = 5000
   c.checkpoint.every_steps = 5000
-  c.eval.split = "test"           # the data in ../shared/data/lego_400 has no test split: use val there
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

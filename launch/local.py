@@ -24,6 +24,8 @@ import sys
 import tempfile
 import time
 
+from _cli import split_forwarded  # launch/ is on sys.path: these run as scripts
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -36,11 +38,7 @@ def free_port() -> int:
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   """(launcher options, nerfpod.main arguments): the two sides of the `--` separator."""
-  if "--" in argv:
-    cut = argv.index("--")
-    own, forwarded = argv[:cut], argv[cut + 1:]
-  else:
-    own, forwarded = argv, []
+  own, forwarded = split_forwarded(argv)
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                    usage="%(prog)s [options] -- [nerfpod.main flags]")
   parser.add_argument("--num_processes", type=int, default=2, help="processes (simulated hosts) to start")

@@ -24,6 +24,8 @@ import subprocess
 import sys
 import tempfile
 
+from _cli import split_forwarded  # launch/ is on sys.path: these run as scripts
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REMOTE_DIR = "nerfpod"  # under each worker's home
 LOG = f"~/{REMOTE_DIR}/run.log"
@@ -32,11 +34,7 @@ STATUS = f"~/{REMOTE_DIR}/run.status"
 
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
-  if "--" in argv:
-    cut = argv.index("--")
-    own, forwarded = argv[:cut], argv[cut + 1:]
-  else:
-    own, forwarded = argv, []
+  own, forwarded = split_forwarded(argv)
   p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                               usage="%(prog)s --name=NAME --zone=ZONE --workdir=gs://... [options] -- "
                                     "[nerfpod.main flags]")
