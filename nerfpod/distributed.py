@@ -78,13 +78,16 @@ def replicated(mesh: Mesh) -> NamedSharding:
   return NamedSharding(mesh, P())
 
 
-def local_slice(global_size: int) -> slice:
-  """This process's contiguous share of a global batch of `global_size` rows (process order = mesh order)."""
-  count, index = jax.process_count(), jax.process_index()
-  if global_size % (jax.device_count()) != 0:
+def local_slice(global_size: int, mesh: Mesh | None = None) -> slice:
+  """This process's contiguous share of a global batch of `global_size` rows laid over `mesh` (default: all
+  devices of all hosts; process order = mesh order). On a mesh of this process's own devices: every row."""
+  devices = jax.devices() if mesh is None else list(mesh.devices.flat)
+  processes = sorted({d.process_index for d in devices})
+  if global_size % len(devices) != 0:
     raise UserError(f"a global batch of {global_size} rays does not split evenly over "
-                    f"{jax.device_count()} devices; make train.batch_size a multiple of the device count.")
-  per_process = global_size // count
+                    f"{len(devices)} devices; make train.batch_size a multiple of the device count.")
+  per_process = global_size // len(processes)
+  index = processes.index(jax.process_index())
   return slice(index * per_process, (index + 1) * per_process)
 
 
@@ -95,7 +98,8 @@ def to_global(mesh: Mesh, local_tree):
 
 
 def to_host(tree):
-  """Global arrays -> full NumPy arrays on every process (an all-gather across hosts where needed)."""
-  if jax.process_count() == 1:
-    return jax.tree.map(np.asarray, tree)
+  """Arrays -> full NumPy arrays on this process: fetched where they are all on its own devices, else
+  all-gathered across hosts (a collective: every process must call it)."""
+  if all(x.is_fully_addressable for x in jax.tree.leaves(tree)):
+    return jax.device_get(tree)
   return multihost_utils.process_allgather(tree, tiled=True)

@@ -269,24 +269,8 @@ def to_local(params, mesh: Mesh):
 
 def render_frame(render_fn, params, mesh: Mesh, c2w, intr: cameras.Intrinsics, pixel_center: float,
                  chunk: int) -> dict:
-  """One frame on this process's devices: rays split into chunks of `chunk` (a multiple of the device
-  count; the last chunk padded) sharded over `mesh`. All chunks are dispatched before any is fetched."""
-  origins, directions = cameras.image_rays(c2w, intr, pixel_center)
-  origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-  n, devices = len(origins), mesh.size
-  chunk = max(devices, chunk - chunk % devices)
-  chunk = min(chunk, -(-n // devices) * devices)  # a small image is one call, padded to the device count
-  sharding = NamedSharding(mesh, P(distributed.DATA_AXIS))
-  pieces = []
-  for start in range(0, n, chunk):
-    o, d = origins[start:start + chunk], directions[start:start + chunk]
-    if len(o) < chunk:
-      pad = ((0, chunk - len(o)), (0, 0))
-      o, d = np.pad(o, pad, mode="edge"), np.pad(d, pad, mode="edge")
-    pieces.append(render_fn(params, jax.device_put(o, sharding), jax.device_put(d, sharding)))
-  pieces = jax.device_get(pieces)
-  out = {k: np.concatenate([p[k] for p in pieces])[:n] for k in render.OUTPUTS}
-  out = {k: v.reshape((intr.height, intr.width) + v.shape[1:]) for k, v in out.items()}
+  """One frame on this process's devices (`mesh`), rgb as uint8."""
+  out = render.render_image(render_fn, params, mesh, c2w, intr, pixel_center, chunk)
   out["rgb"] = video.to_uint8(out["rgb"])
   return out
 

@@ -1,5 +1,4 @@
 """Rendering whole images with a trained model, split in chunks over every device of every host."""
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -22,22 +21,23 @@ def make_render_fn(model, mesh, near: float, far: float, background):
 
 
 def render_rays(render_fn, params, mesh, origins_Nx3, directions_Nx3, chunk: int) -> dict:
-  """Renders N rays in global chunks of `chunk` rays; every process passes the same rays and gets all results.
+  """Renders N rays in chunks of `chunk` rays (a multiple of the mesh's device count) sharded over `mesh`.
 
-  Each process feeds only its own share of every chunk; the last chunk is padded.
+  On a mesh over every host, every process passes the same rays, feeds only its own share of each chunk
+  and gets all results back; on a mesh of this process's own devices (orbit frames), no other host takes
+  part. Every chunk is dispatched before any is fetched; the last is padded; a small input is one call.
   """
-  n = len(origins_Nx3)
-  chunk = max(jax.device_count(), chunk - chunk % jax.device_count())
+  n, devices = len(origins_Nx3), mesh.size
+  chunk = max(devices, chunk - chunk % devices)
+  chunk = min(chunk, -(-n // devices) * devices)
   padded = -(-n // chunk) * chunk
   pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - n, axis=0)]) if padded > n else x
   origins, directions = pad(origins_Nx3), pad(directions_Nx3)
-  rows = distributed.local_slice(chunk)
-  pieces = []
-  for start in range(0, padded, chunk):
-    o = origins[start:start + chunk][rows]
-    d = directions[start:start + chunk][rows]
-    out = render_fn(params, *distributed.to_global(mesh, (o, d)))
-    pieces.append(distributed.to_host(out))
+  rows = distributed.local_slice(chunk, mesh)
+  pieces = [render_fn(params, *distributed.to_global(
+      mesh, (origins[start:start + chunk][rows], directions[start:start + chunk][rows])))
+            for start in range(0, padded, chunk)]
+  pieces = distributed.to_host(pieces)
   return {k: np.concatenate([p[k] for p in pieces])[:n] for k in OUTPUTS}
 
 
