@@ -14,19 +14,30 @@ def depth_image(depth_HxW, near: float, far: float) -> np.ndarray:
   return np.clip((far - np.asarray(depth_HxW)) / (far - near), 0.0, 1.0)
 
 
-def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer=None) -> dict:
-  """Renders config.eval.split, writes workdir/eval/metrics.json (process 0) and returns the metrics."""
+def render_views(config, scene, render_fn, params, mesh):
+  """(index, rendering) of each evaluated view of config.eval.split: the first eval.max_views (0: all)."""
+  split = scene.split(config.eval.split)
+  count = len(split) if config.eval.max_views <= 0 else min(len(split), config.eval.max_views)
+  for index in range(count):
+    yield index, render.render_image(render_fn, params, mesh, split.poses[index], split.intrinsics,
+                                     config.data.pixel_center, config.eval.chunk)
+
+
+def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer=None,
+             render_fn=None) -> dict:
+  """Renders config.eval.split, writes workdir/eval/metrics.json (process 0) and returns the metrics.
+
+  `render_fn`: an already compiled renderer of this model and mesh (training's), else one is made.
+  """
   from nerfpod.train import ray_bounds  # the trainer imports this module
   near, far = ray_bounds(config, scene)
   split = scene.split(config.eval.split)
-  count = len(split) if config.eval.max_views <= 0 else min(len(split), config.eval.max_views)
+  if render_fn is None:
+    render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
   if config.eval.chunk <= 0:
     raise UserError(f"eval.chunk={config.eval.chunk} must be a positive number of rays.")
-  render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
   views = []
-  for index in range(count):
-    out = render.render_image(render_fn, params, mesh, split.poses[index], split.intrinsics,
-                              config.data.pixel_center, config.eval.chunk)
+  for index, out in render_views(config, scene, render_fn, params, mesh):
     rgb = np.clip(out["rgb"], 0.0, 1.0)
     views.append({"index": index, "name": split.names[index],
                   "psnr": metrics.psnr(rgb, split.images[index]),
@@ -48,7 +59,7 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
       writer.add_scalar(f"eval/{config.eval.split}/psnr", result["mean"]["psnr"], step)
       writer.add_scalar(f"eval/{config.eval.split}/ssim", result["mean"]["ssim"], step)
       writer.flush()
-    print(f"eval {config.eval.split}: {count} views, mean PSNR {result['mean']['psnr']:.2f} dB, "
+    print(f"eval {config.eval.split}: {len(views)} views, mean PSNR {result['mean']['psnr']:.2f} dB, "
           f"SSIM {result['mean']['ssim']:.4f}", flush=True)
   return result
 

@@ -1,6 +1,5 @@
 """Training: the train state, the sharded step, the loop, checkpoints and logging."""
 import json
-import os
 import time
 from typing import Any, NamedTuple
 
@@ -127,6 +126,51 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   return jax.jit(step, donate_argnums=0)
 
 
+class Setup(NamedTuple):
+  """What training, evaluation, rendering and the benchmark all build from a config, on the global mesh."""
+  scene: Any
+  mesh: Any
+  model: Any
+  optimizer: Any
+  near: float
+  far: float
+  state: TrainState  # freshly initialised: restore a checkpoint into it
+  render_fn: Any     # the compiled renderer (previews, evaluation)
+
+  def train_step(self, config, microbatches: int | None = None):
+    """The jitted train step of this set-up (micro-batches: config.train's unless given)."""
+    tc = config.train
+    return make_train_step(self.model, self.optimizer, self.mesh, self.near, self.far, self.scene.background,
+                           tc.random_background, tc.microbatches if microbatches is None else microbatches)
+
+  def batches(self, config, start_step: int):
+    """This host's slices of the global training batches from `start_step` on."""
+    tc = config.train
+    dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
+                               distributed.local_slice(tc.batch_size), config.data.pixel_center,
+                               max(tc.num_steps, 1))
+    return data.iterator(dataset, start_step)
+
+
+def setup(config) -> Setup:
+  """Loads the scene (a missing held-out split fails now, not after training), makes the mesh, the model,
+  the optimiser, the initial state and the renderer."""
+  scene = scenes.load(config.data)
+  scene.split(config.eval.split)
+  mesh = distributed.make_mesh()
+  model = nerf_model.from_config(config)
+  near, far = ray_bounds(config, scene)
+  optimizer = make_optimizer(config.train)
+  state = init_state(model, optimizer, config.train.seed, mesh)
+  render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+  return Setup(scene, mesh, model, optimizer, near, far, state, render_fn)
+
+
+def rays_key(seed: int):
+  """The key of the rays' randomness (stratified jitter, random backgrounds); the step folds in the step."""
+  return jax.random.fold_in(jax.random.key(seed), _RAYS)
+
+
 def _check_config(config) -> None:
   tc = config.train
   if tc.num_steps < 0 or tc.batch_size <= 0:
@@ -206,15 +250,10 @@ def train_and_evaluate(config, workdir: str) -> dict:
   training: the state was then saved at a step all processes agreed on, and nothing else is done.
   """
   _check_config(config)
-  scene = scenes.load(config.data)
-  scene.split(config.eval.split)  # a missing held-out split fails now, not after training
+  s = setup(config)
+  scene, mesh, model, near, far, state = s.scene, s.mesh, s.model, s.near, s.far, s.state
   write_config(config, workdir)
-  mesh = distributed.make_mesh()
-  model = nerf_model.from_config(config)
-  near, far = ray_bounds(config, scene)
   tc = config.train
-  optimizer = make_optimizer(tc)
-  state = init_state(model, optimizer, tc.seed, mesh)
 
   ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
   try:
@@ -228,16 +267,11 @@ def train_and_evaluate(config, workdir: str) -> dict:
             f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
             f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
 
-    train_split = scene.split("train")
-    dataset = data.ray_batches(train_split, tc.seed, tc.batch_size, distributed.local_slice(tc.batch_size),
-                               config.data.pixel_center, max(tc.num_steps, 1))
-    batches = data.iterator(dataset, start_step)
-    step_fn = make_train_step(model, optimizer, mesh, near, far, scene.background, tc.random_background,
-                              tc.microbatches)
-    render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+    batches = s.batches(config, start_step)
+    step_fn = s.train_step(config)
     schedule = learning_rate_schedule(tc)
     monitor = _Monitor(workdir, tc.num_steps, tc.batch_size)
-    rays_key = jax.random.fold_in(jax.random.key(tc.seed), _RAYS)
+    key = rays_key(tc.seed)
     preview = scene.split(config.eval.split)
 
     pending = None  # metrics of a log step, fetched only after the next step is dispatched
@@ -245,7 +279,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
     for step in range(start_step, tc.num_steps):
       local = next(batches)
       assert int(local.pop("step")) == step, "data pipeline out of step with training"
-      state, metrics = step_fn(state, distributed.to_global(mesh, local), rays_key)
+      state, metrics = step_fn(state, distributed.to_global(mesh, local), key)
       if pending is not None:
         monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
         pending = None
@@ -257,7 +291,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
         preempted_at = done
         break
       if tc.image_every and done % tc.image_every == 0:
-        out = render.render_image(render_fn, state.params, mesh, preview.poses[0], preview.intrinsics,
+        out = render.render_image(s.render_fn, state.params, mesh, preview.poses[0], preview.intrinsics,
                                   config.data.pixel_center, config.eval.chunk)
         monitor.images(done, {"preview/rgb": out["rgb"],
                               "preview/depth": evaluate.depth_image(out["depth"], near, far)[..., None]})
@@ -277,7 +311,7 @@ def train_and_evaluate(config, workdir: str) -> dict:
     ckpt.close()  # also on an exception: waits for a save under way, gives SIGTERM back
 
   result = evaluate.evaluate(config, scene, model, state.params, mesh, workdir, final_step,
-                             writer=monitor.writer)
+                             writer=monitor.writer, render_fn=s.render_fn)
   if config.orbit.render_after_training:
     orbit.render_orbit(config, scene, model, state.params, workdir, final_step, writer=monitor.writer)
   monitor.close()
@@ -299,15 +333,11 @@ def load_trained(config, workdir: str) -> Trained:
     raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
                     f"the default) or pass the --workdir of a trained run.")
   checkpoints.check_compatible(workdir, json.loads(config.to_json_best_effort()))
-  scene = scenes.load(config.data)
-  scene.split(config.eval.split)
-  mesh = distributed.make_mesh()
-  model = nerf_model.from_config(config)
-  state = init_state(model, make_optimizer(config.train), config.train.seed, mesh)
+  s = setup(config)
   with checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
                                read_only=True) as ckpt:
-    state, _ = ckpt.restore(checkpoints.abstract_like(state))
+    state, _ = ckpt.restore(checkpoints.abstract_like(s.state))
   step = int(jax.device_get(state.step))
   if jax.process_index() == 0:
     print(f"nerfpod: restored step {step} of {workdir}", flush=True)
-  return Trained(scene, mesh, model, state, step)
+  return Trained(s.scene, s.mesh, s.model, state, step)

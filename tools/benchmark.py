@@ -56,33 +56,19 @@ def _peak_memory() -> dict:
 
 
 class _Setup:
-  """The trainer's pieces for `config`, built as train_and_evaluate builds them."""
+  """The trainer's pieces for `config` (train.setup), a batch stream from step 0 and the step."""
 
   def __init__(self, config):
-    import jax
-    from nerfpod import data, distributed, render, scenes, train
-    from nerfpod.nerf import model as nerf_model
+    from nerfpod import distributed, train
     self.config = config
-    self.scene = scenes.load(config.data)
-    self.mesh = distributed.make_mesh()
-    self.model = nerf_model.from_config(config)
-    self.near, self.far = train.ray_bounds(config, self.scene)
-    optimizer = train.make_optimizer(config.train)
-    self.state = train.init_state(self.model, optimizer, config.train.seed, self.mesh)
+    self.setup = train.setup(config)
+    self.scene, self.mesh, self.state = self.setup.scene, self.setup.mesh, self.setup.state
+    self.step_fn = self.setup.train_step(config)
     # The same step without micro-batches, only ever lowered: XLA's cost analysis counts a loop body
     # once, so the FLOPs of a step with a micro-batch scan are read off this one.
-    self.unlooped_step_fn = train.make_train_step(self.model, optimizer, self.mesh, self.near, self.far,
-                                                  self.scene.background, config.train.random_background)
-    self.step_fn = train.make_train_step(self.model, optimizer, self.mesh, self.near, self.far,
-                                         self.scene.background, config.train.random_background,
-                                         config.train.microbatches)
-    self.render_fn = render.make_render_fn(self.model, self.mesh, self.near, self.far, self.scene.background)
-    tc = config.train
-    dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
-                               distributed.local_slice(tc.batch_size), config.data.pixel_center,
-                               max(tc.num_steps, 1))
-    self.batches = data.iterator(dataset, 0)
-    self.key = jax.random.fold_in(jax.random.key(tc.seed), 1)
+    self.unlooped_step_fn = self.setup.train_step(config, microbatches=1)
+    self.batches = self.setup.batches(config, 0)
+    self.key = train.rays_key(config.train.seed)
     self._to_global = lambda local: distributed.to_global(self.mesh, local)
 
   def next_batch(self):
@@ -96,15 +82,12 @@ class _Setup:
 
   def heldout_psnr(self) -> float:
     import numpy as np
-    from nerfpod import metrics, render
+    from nerfpod import evaluate, metrics
     split = self.scene.split(self.config.eval.split)
-    count = len(split) if self.config.eval.max_views <= 0 else min(len(split), self.config.eval.max_views)
-    psnrs = []
-    for i in range(count):
-      out = render.render_image(self.render_fn, self.state.params, self.mesh, split.poses[i],
-                                split.intrinsics, self.config.data.pixel_center, self.config.eval.chunk)
-      psnrs.append(metrics.psnr(np.clip(out["rgb"], 0, 1), split.images[i]))
-    return float(np.mean(psnrs))
+    return float(np.mean([metrics.psnr(np.clip(out["rgb"], 0, 1), split.images[index])
+                          for index, out in evaluate.render_views(self.config, self.scene,
+                                                                  self.setup.render_fn,
+                                                                  self.state.params, self.mesh)]))
 
 
 def throughput(config, steps: int) -> dict:
