@@ -14,6 +14,12 @@ def depth_image(depth_HxW, near: float, far: float) -> np.ndarray:
   return np.clip((far - np.asarray(depth_HxW)) / (far - near), 0.0, 1.0)
 
 
+def check_config(config) -> None:
+  """Refuses evaluation settings that cannot work, before any training or rendering starts."""
+  if config.eval.chunk <= 0:
+    raise UserError(f"eval.chunk={config.eval.chunk} must be a positive number of rays.")
+
+
 def render_views(config, scene, render_fn, params, mesh):
   """(index, rendering) of each evaluated view of config.eval.split: the first eval.max_views (0: all)."""
   split = scene.split(config.eval.split)
@@ -34,8 +40,6 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
   split = scene.split(config.eval.split)
   if render_fn is None:
     render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
-  if config.eval.chunk <= 0:
-    raise UserError(f"eval.chunk={config.eval.chunk} must be a positive number of rays.")
   views = []
   for index, out in render_views(config, scene, render_fn, params, mesh):
     rgb = np.clip(out["rgb"], 0.0, 1.0)

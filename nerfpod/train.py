@@ -181,6 +181,7 @@ def _check_config(config) -> None:
   if tc.microbatches < 1 or tc.batch_size % (jax.device_count() * tc.microbatches):
     raise UserError(f"train.batch_size={tc.batch_size} does not split into train.microbatches="
                     f"{tc.microbatches} equal slices on each of {jax.device_count()} devices.")
+  evaluate.check_config(config)
   if config.checkpoint.every_steps <= 0:
     raise UserError("checkpoint.every_steps must be a positive number of steps.")
 
@@ -333,6 +334,7 @@ def load_trained(config, workdir: str) -> Trained:
     raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
                     f"the default) or pass the --workdir of a trained run.")
   checkpoints.check_compatible(workdir, json.loads(config.to_json_best_effort()))
+  evaluate.check_config(config)
   s = setup(config)
   with checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
                                read_only=True) as ckpt:

@@ -75,6 +75,12 @@ def test_bad_input_exits_non_zero_with_one_sentence(tmp_path, args, message):
   assert len([l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]) == 1
 
 
+def test_bad_eval_settings_are_refused_before_training(tmp_path):
+  result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", "--config.eval.chunk=0")
+  assert result.returncode == 2 and "eval.chunk=0 must be a positive number of rays" in result.stderr
+  assert "step " not in result.stdout and not (tmp_path / "checkpoints").exists()
+
+
 def test_missing_config_file_is_refused_clearly(tmp_path):
   result = run_main("--config=configs/no_such_config.py", f"--workdir={tmp_path}")
   assert result.returncode == 2 and "Traceback" not in result.stderr
