@@ -28,7 +28,7 @@ from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "checkpoint.", "eval.",
-                     "orbit.")
+                     "orbit.", "compile.")
 
 
 def _flatten(tree, prefix=""):
@@ -63,7 +63,7 @@ def check_compatible(workdir: str, config_json: dict) -> None:
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
                     f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
-                    f"logging cadence, checkpoint.*, eval.* and orbit.* may change on resuming).")
+                    f"logging cadence, checkpoint.*, eval.*, orbit.* and compile.* may change on resuming).")
 
 
 def write_config(workdir: str, config_json: dict) -> None:

@@ -5,7 +5,7 @@ import jax
 import numpy as np
 from etils import epath
 
-from nerfpod import metrics, render
+from nerfpod import metrics, render, xla_options
 from nerfpod.errors import UserError
 
 
@@ -39,7 +39,8 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
   near, far = ray_bounds(config, scene)
   split = scene.split(config.eval.split)
   if render_fn is None:
-    render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+    render_fn = render.make_render_fn(model, mesh, near, far, scene.background,
+                                      xla_options.compiler_options(config))
   views = []
   for index, out in render_views(config, scene, render_fn, params, mesh):
     rgb = np.clip(out["rgb"], 0.0, 1.0)

@@ -37,7 +37,7 @@ from etils import epath
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from nerfpod import distributed, render, video
+from nerfpod import distributed, render, video, xla_options
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
 
@@ -318,7 +318,8 @@ def render_orbit(config, scene, model, params, workdir: str, step: int, writer=N
   if todo:
     mesh = local_mesh()
     local_params = to_local(params, mesh)
-    render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+    render_fn = render.make_render_fn(model, mesh, near, far, scene.background,
+                                      xla_options.compiler_options(config))
     start = time.perf_counter()
     # Writing frame i overlaps rendering frame i + 1.
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:

@@ -11,13 +11,15 @@ from nerfpod.nerf import cameras
 OUTPUTS = ("rgb", "depth", "acc", "disparity")
 
 
-def make_render_fn(model, mesh, near: float, far: float, background):
-  """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh."""
+def make_render_fn(model, mesh, near: float, far: float, background, compiler_options: dict | None = None):
+  """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh,
+  compiled with XLA's `compiler_options` (xla_options.compiler_options)."""
   def local(params, origins, directions):
     out = model.apply(params, origins, directions, near, far, jnp.asarray(background))[-1]
     return {k: out[k] for k in OUTPUTS}
   axis = distributed.DATA_AXIS
-  return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(P(), P(axis), P(axis)), out_specs=P(axis)))
+  return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(P(), P(axis), P(axis)), out_specs=P(axis)),
+                 compiler_options=compiler_options)
 
 
 def render_rays(render_fn, params, mesh, origins_Nx3, directions_Nx3, chunk: int) -> dict:

@@ -11,7 +11,7 @@ import optax
 from absl import logging
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import checkpoints, data, distributed, evaluate, orbit, render, scenes
+from nerfpod import checkpoints, data, distributed, evaluate, orbit, render, scenes, xla_options
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 
@@ -66,7 +66,8 @@ def per_ray_uniforms(key, ray_ids, count: int):
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background,
-                    random_background: bool = False, microbatches: int = 1):
+                    random_background: bool = False, microbatches: int = 1,
+                    compiler_options: dict | None = None):
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
@@ -77,6 +78,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   colour, which gives clean depth, opacity and disparity.
   With `microbatches` > 1, each device's rays are processed in that many sequential slices whose gradients
   are averaged (gradient accumulation): the same result in a fraction of the activation memory.
+  `compiler_options`: XLA options to compile the step with (xla_options.compiler_options).
   """
   background = jnp.asarray(background, jnp.float32)
 
@@ -123,7 +125,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
 
   step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
                        out_specs=(P(), P()))
-  return jax.jit(step, donate_argnums=0)
+  return jax.jit(step, donate_argnums=0, compiler_options=compiler_options)
 
 
 class Setup(NamedTuple):
@@ -141,7 +143,8 @@ class Setup(NamedTuple):
     """The jitted train step of this set-up (micro-batches: config.train's unless given)."""
     tc = config.train
     return make_train_step(self.model, self.optimizer, self.mesh, self.near, self.far, self.scene.background,
-                           tc.random_background, tc.microbatches if microbatches is None else microbatches)
+                           tc.random_background, tc.microbatches if microbatches is None else microbatches,
+                           xla_options.compiler_options(config))
 
   def batches(self, config, start_step: int):
     """This host's slices of the global training batches from `start_step` on."""
@@ -162,7 +165,8 @@ def setup(config) -> Setup:
   near, far = ray_bounds(config, scene)
   optimizer = make_optimizer(config.train)
   state = init_state(model, optimizer, config.train.seed, mesh)
-  render_fn = render.make_render_fn(model, mesh, near, far, scene.background)
+  render_fn = render.make_render_fn(model, mesh, near, far, scene.background,
+                                    xla_options.compiler_options(config))
   return Setup(scene, mesh, model, optimizer, near, far, state, render_fn)
 
 

@@ -7,16 +7,16 @@ import pytest
 from jax.sharding import Mesh
 
 from conftest import smoke_config
-from nerfpod import data, distributed, scenes, train
+from nerfpod import data, distributed, scenes, train, xla_options
 from nerfpod.nerf import model as nerf_model
 
 
-def _run_steps(mesh, config, num_steps, optimizer, microbatches=1):
+def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_options=None, hlo=None):
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
   state = train.init_state(model, optimizer, config.train.seed, mesh)
   step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
-                                  microbatches=microbatches)
+                                  microbatches=microbatches, compiler_options=compiler_options)
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
                              slice(0, config.train.batch_size), 0.5, num_steps)
   key = jax.random.key(7)
@@ -25,6 +25,8 @@ def _run_steps(mesh, config, num_steps, optimizer, microbatches=1):
     batch = dict(dataset[step])
     batch.pop("step")
     batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
+    if hlo is not None and step == 0:
+      hlo.append(step_fn.lower(state, batch, key).compile().as_text())
     state, metrics = step_fn(state, batch, key)
     losses.append(float(metrics["loss"]))
   return np.array(losses), jax.device_get(state.params)
@@ -104,3 +106,31 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
   assert loss(transparent, False) < 1e-6 and loss(transparent, True) < 1e-6
   assert loss(white_walls, False) < 1e-6  # on a fixed white background, white walls fit as well
   assert loss(white_walls, True) > 0.1    # on random colours they do not: E[(1 - u)^2] = 1/3
+
+
+@pytest.mark.parametrize("field", ["mlp", "hashgrid"])
+def test_cpu_compiler_options_change_kernels_not_results(field):
+  """nerfpod's CPU default (YNNPACK off) reaches the compiled step and leaves its results unchanged."""
+  config = smoke_config(**{"model.field": field, "model.depth": 3, "model.width": 32, "model.skips": (1,),
+                           "train.batch_size": 128})
+  options = xla_options.compiler_options(config)
+  assert options == dict(xla_options.CPU_WITHOUT_YNNPACK)
+  config.compile.cpu_ynnpack = True
+  assert xla_options.compiler_options(config) == {}
+  mesh = Mesh(np.array(jax.devices()[:2]), (distributed.DATA_AXIS,))
+  sgd = optax.sgd(0.5)
+  hlo_default, hlo_ours = [], []
+  losses_default, params_default = _run_steps(mesh, config, 3, sgd, hlo=hlo_default)
+  losses_ours, params_ours = _run_steps(mesh, config, 3, sgd, compiler_options=options, hlo=hlo_ours)
+  assert "__ynn_fusion" not in hlo_ours[0]
+  if "__ynn_fusion" not in hlo_default[0]:
+    pytest.skip("this jaxlib's XLA no longer hands the step to YNNPACK by default: nothing to compare")
+  np.testing.assert_allclose(losses_ours, losses_default, rtol=1e-5)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_ours, params_default)
+
+
+def test_unknown_compiler_options_fall_back_to_xla_defaults(monkeypatch):
+  unknown = (("xla_cpu_no_such_option_in_any_jaxlib", "1"),)
+  assert not xla_options._accepted(unknown)
+  monkeypatch.setattr(xla_options, "CPU_WITHOUT_YNNPACK", unknown)
+  assert xla_options.compiler_options(smoke_config()) == {}
