@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 
 from nerfpod import data
-from nerfpod.nerf import cameras
 from nerfpod.scenes import procedural
 
 

@@ -30,8 +30,8 @@ def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
 
 
 def test_procedural_rendering_is_exact_for_a_ray_onto_the_sphere_top():
-  centre, radius = np.array([0.45, 0.35, 0.45]), 0.45
-  colour = procedural.render(np.array([[0.45, 0.35, 3.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
+  centre = np.array([0.45, 0.35, 0.45])  # the red sphere's (radius 0.45): the ray hits its top point
+  colour = procedural.render(np.array([[centre[0], centre[1], 3.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
   shade = procedural._AMBIENT + (1 - procedural._AMBIENT) * procedural._LIGHT[2]  # normal +z at the top
   np.testing.assert_allclose(colour, np.array([0.85, 0.2, 0.15]) * shade, rtol=1e-6)
   miss = procedural.render(np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 0.0, 1.0]]))[0]

@@ -2,6 +2,8 @@
 from nerfpod.errors import UserError
 from nerfpod.scenes.base import Scene, Split
 
+__all__ = ["Scene", "Split", "load"]
+
 
 def load(data_config) -> Scene:
   """The scene that `config.data` names: kind 'procedural', 'tiny' (npz) or 'blender' (a scene folder)."""
