@@ -115,8 +115,8 @@ class Checkpoints:
         # also save the first step of every run.
         save_decision_policy=cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
                                                cm.PreemptionCheckpointingPolicy()]))
-    self.manager = ocp.CheckpointManager(checkpoint_dir(workdir), options=options,
-                                         item_names=("state", "data"))
+    self._directory = checkpoint_dir(workdir)
+    self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
     self._sigterm = threading.Event()
     self._previous_handler = None
     self._agree = jax.process_count() > 1 and not read_only
@@ -148,6 +148,12 @@ class Checkpoints:
     checkpoint: a run can come back on another number of hosts or devices.
     """
     step = self.manager.latest_step() if step is None else step
+    # Checked before restoring: orbax would fail half way, with a stack trace and its reads still pending.
+    differences = state_differences(self._directory / str(step) / "state", abstract_state)
+    if differences:
+      raise UserError(f"the checkpoint of step {step} in {self._directory} holds a train state of another "
+                      f"shape than this run's ({differences}): it was written by another model or nerfpod "
+                      f"version; use a new --workdir (or that version).")
     restored = self.manager.restore(step, args=ocp.args.Composite(
         state=ocp.args.StandardRestore(abstract_state), data=ocp.args.JsonRestore()))
     return restored["state"], restored["data"]
@@ -183,6 +189,31 @@ class Checkpoints:
     if self._previous_handler is not None:
       signal.signal(signal.SIGTERM, self._previous_handler)
       self._previous_handler = None
+
+
+def _leaf_shapes(tree) -> dict[str, tuple]:
+  """{"opt_state/0/mu/w": shape, ...}: a tree's leaves by key path, the same for a train state and for the
+  nested dicts orbax's metadata describes it with."""
+  def name(key):
+    return str(getattr(key, "key", getattr(key, "name", getattr(key, "idx", key))))
+  return {"/".join(name(k) for k in path): tuple(getattr(leaf, "shape", ()))
+          for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def state_differences(path, abstract_state, limit: int = 3) -> str:
+  """The first differences between the train state saved at `path` and `abstract_state`, in words; empty
+  where their leaves and shapes agree (or the saved metadata cannot be read)."""
+  try:
+    saved = _leaf_shapes(ocp.PyTreeCheckpointer().metadata(path).item_metadata.tree)
+  except Exception:  # noqa: BLE001 (no readable metadata: nothing to compare)
+    return ""
+  now = _leaf_shapes(abstract_state)
+  differences = [f"{k}: {saved[k]} saved, {now[k]} now" if k in saved and k in now else
+                 f"{k}: {'saved only' if k in saved else 'new'}"
+                 for k in sorted(set(saved) | set(now), key=lambda k: (not k.startswith("params"), k))
+                 if saved.get(k) != now.get(k)]
+  more = f" and {len(differences) - limit} more" if len(differences) > limit else ""
+  return "; ".join(differences[:limit]) + more
 
 
 def abstract_like(tree):

@@ -135,3 +135,22 @@ def test_resuming_a_workdir_of_another_shape_names_the_fields(tmp_path):
   with pytest.raises(UserError, match=r"model\.hashgrid\.hidden_width \(16 -> 8\)"):
     checkpoints.check_compatible(str(tmp_path), changed)
   checkpoints.check_compatible(str(tmp_path), _config_json(**{"train.num_steps": 5}))
+
+
+def test_restoring_a_state_of_another_shape_is_one_sentence_and_keeps_the_checkpoint(tmp_path):
+  """A workdir written by other model code (same config, other parameter tree) is refused with the
+  differing leaves named, instead of orbax's stack trace; the checkpoint stays."""
+  mesh = _mesh(2)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
+    ckpt.save(1, _state(mesh, 1), {"next_step": 1})
+  other = _state(mesh, 1)
+  other["params"]["w"] = jax.device_put(jnp.zeros((4, 2)), NamedSharding(mesh, P()))
+  other["params"]["extra"] = jax.device_put(jnp.zeros(3), NamedSharding(mesh, P()))
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1, read_only=True) as ckpt:
+    with pytest.raises(UserError, match=r"step 1 .*another shape .*\(params/extra: new; "
+                                        r"params/w: \(4, 3\) saved, \(4, 2\) now\).*new --workdir"):
+      ckpt.restore(checkpoints.abstract_like(other))
+    state, _ = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))  # the checkpoint is intact
+  np.testing.assert_array_equal(state["params"]["w"], np.ones((4, 3)))
+  assert checkpoints.state_differences(checkpoints.checkpoint_dir(str(tmp_path)) / "1" / "state",
+                                       checkpoints.abstract_like(_state(mesh, 0))) == ""
