@@ -5,7 +5,7 @@ import jax
 import numpy as np
 from etils import epath
 
-from nerfpod import metrics, render, xla_options
+from nerfpod import distributed, metrics, render, xla_options
 from nerfpod.errors import UserError
 
 
@@ -73,10 +73,7 @@ def evaluate_workdir(config, workdir: str) -> dict:
   """--mode=eval: evaluates workdir's newest checkpoint (no training) and writes eval/metrics.json."""
   from nerfpod import train
   trained = train.load_trained(config, workdir)
-  writer = None
-  if jax.process_index() == 0:
-    import tensorboardX
-    writer = tensorboardX.SummaryWriter(logdir=workdir)
+  writer = distributed.summary_writer(workdir)
   try:
     return evaluate(config, trained.scene, trained.model, trained.state.params, trained.mesh, workdir,
                     trained.step, writer=writer)

@@ -353,18 +353,10 @@ def render_workdir(config, workdir: str) -> dict:
   """--mode=render: the orbit of workdir's newest checkpoint."""
   from nerfpod import train
   trained = train.load_trained(config, workdir)
-  writer = _summary_writer(workdir)
+  writer = distributed.summary_writer(workdir)
   try:
     return render_orbit(config, trained.scene, trained.model, trained.state.params, workdir,
                         trained.step, writer=writer)
   finally:
     if writer is not None:
       writer.close()
-
-
-def _summary_writer(workdir: str):
-  """A TensorBoard writer on process 0 (None elsewhere)."""
-  if jax.process_index() != 0:
-    return None
-  import tensorboardX
-  return tensorboardX.SummaryWriter(logdir=workdir)

@@ -196,10 +196,7 @@ class _Monitor:
   def __init__(self, workdir: str, num_steps: int, batch_size: int):
     self.enabled = jax.process_index() == 0
     self.num_steps, self.batch_size = num_steps, batch_size
-    self.writer = None
-    if self.enabled:
-      import tensorboardX
-      self.writer = tensorboardX.SummaryWriter(logdir=workdir, flush_secs=10)
+    self.writer = distributed.summary_writer(workdir, flush_secs=10)
     self._last = None  # (step, time) of the last console line
 
   def scalars(self, step: int, metrics: dict, lr: float) -> None:
