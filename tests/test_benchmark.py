@@ -16,3 +16,13 @@ def test_throughput_report_and_flops_independent_of_microbatches():
   config.train.microbatches = 4
   four = benchmark.throughput(config, steps=1)
   assert four["flops_per_step"] == pytest.approx(one["flops_per_step"], rel=1e-6)
+
+
+def test_mixed_precision_is_also_measured_against_the_bfloat16_peak():
+  config = smoke_config(**{"train.batch_size": 256, "model.compute_dtype": "bfloat16"})
+  result = benchmark.throughput(config, steps=1)
+  assert result["matmul_peak_flops_bfloat16"] > 0
+  assert result["fraction_of_bfloat16_peak"] == pytest.approx(
+      result["achieved_flops"] / result["matmul_peak_flops_bfloat16"])
+  assert "matmul_peak_flops_bfloat16" not in benchmark.throughput(smoke_config(**{"train.batch_size": 256}),
+                                                                   steps=1)

@@ -6,8 +6,9 @@
 Throughput mode times `--steps` train steps after compilation: rays/s and samples/s, the step's FLOPs as
 XLA counts them (cost analysis of the lowered step, 2 per multiply-add) divided by its time, the float32
 matmul peak measured in the same process (a jitted 2048^3 matmul, best of several under XLA's default
-compile options and the step's), their ratio, the share of time spent loading data, and peak memory (host
-RSS; device memory where the backend reports it).
+compile options and the step's), their ratio (and with `model.compute_dtype=bfloat16`, the same against the
+bfloat16 matmul peak), the share of time spent loading data, and peak memory (host RSS; device memory where
+the backend reports it).
 Quality mode trains the config from scratch and evaluates the held-out split every `--eval_every` steps,
 recording the wall time since the process started (evaluation pauses excluded) at which the mean PSNR first
 reaches 20, 25 and 28 dB. Results print as a JSON line (and go to --out if given).
@@ -31,14 +32,14 @@ _OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file
 THRESHOLDS = (20.0, 25.0, 28.0)
 
 
-def matmul_peak_flops(compiler_options: dict | None = None, n: int = 2048, repeats: int = 5) -> float:
-  """Float32 FLOP/s of a jitted n x n x n matmul on the default device, best of `repeats`, compiled both
+def matmul_peak_flops(compiler_options: dict | None = None, n: int = 2048, repeats: int = 5,
+                      dtype: str = "float32") -> float:
+  """FLOP/s of a jitted n x n x n `dtype` matmul on the default device, best of `repeats`, compiled both
   with XLA's defaults and with `compiler_options` (the step's), whichever is faster: the peak is the
   machine's, not that of the step's compile settings."""
   import jax
-  import jax.numpy as jnp
-  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+  a = jax.random.normal(jax.random.key(0), (n, n), dtype)
+  b = jax.random.normal(jax.random.key(1), (n, n), dtype)
   best = float("inf")
   for options in ({}, compiler_options or {}):
     f = jax.jit(lambda x, y: x @ y, compiler_options=options)
@@ -113,7 +114,8 @@ def throughput(config, steps: int) -> dict:
     jax.block_until_ready(setup.step(batch))
     t2 = time.perf_counter()
     data_s, step_s = data_s + t1 - t0, step_s + t2 - t1
-  peak = matmul_peak_flops(xla_options.compiler_options(config))
+  options = xla_options.compiler_options(config)
+  peak = matmul_peak_flops(options)
   rays = steps * config.train.batch_size
   samples_per_ray = config.render.num_samples + (config.render.num_samples + config.render.num_importance
                                                  if config.render.num_importance else 0)
@@ -122,7 +124,17 @@ def throughput(config, steps: int) -> dict:
           "step_ms": 1e3 * step_s / steps, "data_ms": 1e3 * data_s / steps,
           "data_fraction": data_s / (data_s + step_s), "flops_per_step": flops_per_step,
           "achieved_flops": achieved, "matmul_peak_flops": peak, "fraction_of_peak": achieved / peak,
-          **_peak_memory()}
+          **_compute_dtype_peak(config, options, achieved), **_peak_memory()}
+
+
+def _compute_dtype_peak(config, options: dict, achieved: float) -> dict:
+  """With mixed precision, also the peak of matmuls in the compute dtype (e.g. bfloat16 on TPU/GPU, where
+  it is several times the float32 one) and the ratio to it."""
+  dtype = config.model.compute_dtype
+  if dtype == "float32":
+    return {}
+  peak = matmul_peak_flops(options, dtype=dtype)
+  return {f"matmul_peak_flops_{dtype}": peak, f"fraction_of_{dtype}_peak": achieved / peak}
 
 
 def time_to_quality(config, max_seconds: float, eval_every: int) -> dict:
