@@ -66,15 +66,20 @@ def check_compatible(workdir: str, config_json: dict) -> None:
                     f"logging cadence, checkpoint.*, eval.*, orbit.* and compile.* may change on resuming).")
 
 
+def write_json(path, value, sort_keys: bool = False) -> None:
+  """Writes `value` as indented JSON to `path` (local or gs://) whole or not at all: into PATH.tmp, then
+  renamed; creates the folder."""
+  path = epath.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.parent / f"{path.name}.tmp"
+  tmp.write_text(json.dumps(value, indent=2, sort_keys=sort_keys))
+  tmp.replace(path)
+
+
 def write_config(workdir: str, config_json: dict) -> None:
   """Writes workdir/config.json (the resolved config) whole or not at all; process 0 only."""
-  if jax.process_index() != 0:
-    return
-  directory = epath.Path(workdir)
-  directory.mkdir(parents=True, exist_ok=True)
-  tmp = directory / "config.json.tmp"
-  tmp.write_text(json.dumps(config_json, indent=2, sort_keys=True))
-  tmp.replace(directory / "config.json")
+  if jax.process_index() == 0:
+    write_json(epath.Path(workdir) / "config.json", config_json, sort_keys=True)
 
 
 def checkpoint_dir(workdir: str) -> epath.Path:

@@ -1,11 +1,10 @@
 """Held-out evaluation: render the views of a split, PSNR and SSIM per view and on average."""
-import json
 
 import jax
 import numpy as np
 from etils import epath
 
-from nerfpod import distributed, metrics, render, xla_options
+from nerfpod import checkpoints, distributed, metrics, render, xla_options
 from nerfpod.errors import UserError
 
 
@@ -56,10 +55,7 @@ def evaluate(config, scene, model, params, mesh, workdir: str, step: int, writer
             "mean": {"psnr": float(np.mean([v["psnr"] for v in views])),
                      "ssim": float(np.mean([v["ssim"] for v in views]))}}
   if jax.process_index() == 0:
-    directory = epath.Path(workdir) / "eval"  # a local path or gs://
-    directory.mkdir(parents=True, exist_ok=True)
-    (directory / "metrics.json.tmp").write_text(json.dumps(result, indent=2))
-    (directory / "metrics.json.tmp").replace(directory / "metrics.json")
+    checkpoints.write_json(epath.Path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
     if writer is not None:
       writer.add_scalar(f"eval/{config.eval.split}/psnr", result["mean"]["psnr"], step)
       writer.add_scalar(f"eval/{config.eval.split}/ssim", result["mean"]["ssim"], step)
