@@ -196,6 +196,11 @@ class Checkpoints:
       self._previous_handler = None
 
 
+def _saved_tree(path):
+  """The tree of array metadata (shapes, dtypes) of the pytree item saved at `path`, read without its data."""
+  return ocp.PyTreeCheckpointer().metadata(path).item_metadata.tree
+
+
 def _leaf_shapes(tree) -> dict[str, tuple]:
   """{"opt_state/0/mu/w": shape, ...}: a tree's leaves by key path, the same for a train state and for the
   nested dicts orbax's metadata describes it with."""
@@ -209,7 +214,7 @@ def state_differences(path, abstract_state, limit: int = 3) -> str:
   """The first differences between the train state saved at `path` and `abstract_state`, in words; empty
   where their leaves and shapes agree (or the saved metadata cannot be read)."""
   try:
-    saved = _leaf_shapes(ocp.PyTreeCheckpointer().metadata(path).item_metadata.tree)
+    saved = _leaf_shapes(_saved_tree(path))
   except Exception:  # noqa: BLE001 (no readable metadata: nothing to compare)
     return ""
   now = _leaf_shapes(abstract_state)
@@ -233,9 +238,8 @@ def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:
   if step is None:
     raise UserError(f"workdir {workdir} holds no complete checkpoint.")
   path = checkpoint_dir(workdir) / str(step)
-  checkpointer = ocp.PyTreeCheckpointer()
-  tree = checkpointer.metadata(path / "state").item_metadata.tree
-  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), tree)
-  state = checkpointer.restore(path / "state", args=ocp.args.PyTreeRestore(restore_args=restore_args))
+  restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), _saved_tree(path / "state"))
+  state = ocp.PyTreeCheckpointer().restore(path / "state",
+                                           args=ocp.args.PyTreeRestore(restore_args=restore_args))
   position = ocp.Checkpointer(ocp.JsonCheckpointHandler()).restore(path / "data")
   return state, position, step
