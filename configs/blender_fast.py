@@ -13,7 +13,6 @@ def get_config(arg: str | None = None):
   c = default.get_config()
   c.data.kind = "blender"
   c.data.path = f"data/nerf_synthetic/{args['scene']}"  # a folder with transforms_{train,val,test}.json
-  c.model.field = "hashgrid"
   c.model.use_viewdirs = True
   g = c.model.hashgrid
   g.num_levels, g.log2_table_size, g.max_resolution = 16, 19, 2048

@@ -20,14 +20,15 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   c.model = ml_collections.ConfigDict()
   c.model.field = "hashgrid"      # 'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)
-  c.model.num_frequencies = 6     # mlp: positional-encoding frequencies L of points; 0 switches it off
-  c.model.depth = 8               # mlp: number of hidden layers
-  c.model.width = 256             # mlp: units per hidden layer
-  c.model.skips = (4,)            # mlp: after these (0-based) layers the encoded input is concatenated again
   c.model.use_viewdirs = False    # feed the view direction to the colour head (view-dependent effects)
-  c.model.viewdir_frequencies = 4  # mlp: positional-encoding frequencies of view directions
-  c.model.density_activation = "relu"  # mlp: 'relu' (paper), 'softplus' or 'exp'
   c.model.compute_dtype = "float32"    # matmul dtype: 'bfloat16' for mixed precision on TPU/GPU
+  c.model.mlp = ml_collections.ConfigDict()  # NeRF's MLP: the Tiny NeRF tutorial's by default
+  c.model.mlp.num_frequencies = 6  # positional-encoding frequencies L of points; 0 switches it off
+  c.model.mlp.depth = 8           # number of hidden layers
+  c.model.mlp.width = 256         # units per hidden layer
+  c.model.mlp.skips = (4,)        # after these (0-based) layers the encoded input is concatenated again
+  c.model.mlp.viewdir_frequencies = 4  # positional-encoding frequencies of view directions
+  c.model.mlp.density_activation = "relu"  # 'relu' (paper), 'softplus' or 'exp'
   c.model.hashgrid = ml_collections.ConfigDict()
   c.model.hashgrid.bound = 1.5            # the field lives in the box [-bound, bound]^3, world units
   c.model.hashgrid.num_levels = 8         # resolution levels of the grid
@@ -93,7 +94,7 @@ def shrink_for_smoke(c: ml_collections.ConfigDict) -> None:
   """Shrinks any config to seconds (tests, CI): tiny images, models, batches, runs, evals and orbits."""
   c.data.image_size = 32
   c.data.downscale = max(c.data.downscale, 8) if c.data.kind == "blender" else c.data.downscale
-  c.model.depth, c.model.width, c.model.skips = 3, 32, (1,)
+  c.model.mlp.depth, c.model.mlp.width, c.model.mlp.skips = 3, 32, (1,)
   c.model.hashgrid.num_levels = 4
   c.model.hashgrid.log2_table_size = 12
   c.model.hashgrid.max_resolution = 64

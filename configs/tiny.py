@@ -15,14 +15,8 @@ def get_config(arg: str | None = None):
   c.data.kind = "tiny"
   c.data.path = "data/tiny_nerf_data.npz"  # the tutorial's npz (download: see README)
   c.data.pixel_center = 0.0       # the tutorial's rays pass through pixel corners
-  c.model.field = "mlp"
-  c.model.num_frequencies = 6
-  c.model.depth = 8
-  c.model.width = 256
-  c.model.skips = (4,)
-  c.model.use_viewdirs = False
+  c.model.field = "mlp"           # the default MLP is the tutorial's: PE L=6, 8x256, skip at layer 4
   c.render.num_samples = 256
-  c.render.num_importance = 0
   c.render.last_delta = 1e10      # the tutorial's infinite last interval
   c.train.num_steps = 1000
   c.train.batch_size = 10_000
@@ -35,7 +29,6 @@ def get_config(arg: str | None = None):
   c.train.log_every = 25
   c.train.image_every = 250
   c.checkpoint.every_steps = 250
-  c.eval.split = "test"           # frames 100-105
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

@@ -12,15 +12,12 @@ def get_config(arg: str | None = None):
   c = default.get_config()
   c.data.kind = "tiny"
   c.data.path = args["path"]      # tiny_nerf_data.npz
-  c.data.pixel_center = 0.5       # Blender renders the pixel centres (the original code's 0.0 costs ~1.5 dB here)
-  c.model.field = "hashgrid"
   c.model.use_viewdirs = True
   c.train.num_steps = 4000
   c.train.batch_size = 1024
   c.train.log_every = 100
   c.train.image_every = 1000
   c.checkpoint.every_steps = 1000
-  c.eval.split = "test"           # frames 100-105
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

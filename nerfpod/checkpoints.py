@@ -24,6 +24,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from etils import epath
 
+from nerfpod import schema
 from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
@@ -31,19 +32,10 @@ RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", 
                      "orbit.", "compile.")
 
 
-def _flatten(tree, prefix=""):
-  out = {}
-  for key, value in tree.items():
-    if isinstance(value, dict):
-      out.update(_flatten(value, f"{prefix}{key}."))
-    else:
-      out[f"{prefix}{key}"] = value
-  return out
-
-
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
-  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed."""
-  a, b = _flatten(saved), _flatten(current)
+  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
+  The saved config may use earlier names of fields (schema.LEGACY_NAMES)."""
+  a, b = schema.migrate_flat(schema.flatten(saved)), schema.flatten(current)
   differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
   return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
                                           for p in RESUMABLE_CHANGES)]
@@ -57,7 +49,7 @@ def check_compatible(workdir: str, config_json: dict) -> None:
   saved = json.loads(path.read_text())
   differing = incompatible_fields(saved, config_json)
   if differing:
-    was, now = _flatten(saved), _flatten(config_json)
+    was, now = schema.migrate_flat(schema.flatten(saved)), schema.flatten(config_json)
     shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
                       for k in differing[:6])
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
@@ -224,11 +216,6 @@ def state_differences(path, abstract_state, limit: int = 3) -> str:
                  if saved.get(k) != now.get(k)]
   more = f" and {len(differences) - limit} more" if len(differences) > limit else ""
   return "; ".join(differences[:limit]) + more
-
-
-def abstract_like(tree):
-  """ShapeDtypeStructs with shardings: what StandardRestore needs to place a restored tree."""
-  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), tree)
 
 
 def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:

@@ -4,6 +4,8 @@ import os
 
 import ml_collections
 
+from nerfpod.errors import UserError
+
 
 def sibling_module(this_file: str, name: str):
   """The config module configs/<name>.py, found next to `this_file` (works wherever the repo is)."""
@@ -20,11 +22,14 @@ def sibling_config(this_file: str, name: str, arg: str | None = None) -> ml_coll
 
 
 def parse_arg(arg: str | None, **defaults) -> dict:
-  """'scene=lego,smoke' -> {'scene': 'lego', 'smoke': True} on top of defaults; unknown keys are refused."""
+  """'scene=lego,smoke' -> {'scene': 'lego', 'smoke': True} on top of defaults; unknown keys are refused
+  with a UserError (not a ValueError, which ml_collections would wrap in a printed traceback)."""
   out = dict(defaults)
   for item in filter(None, (arg or "").split(",")):
     key, _, value = item.partition("=")
     if key not in defaults:
-      raise ValueError(f"unknown config argument {key!r}; known: {sorted(defaults)}")
+      known = ", ".join(f"{k}=..." if isinstance(v, str) else k for k, v in defaults.items())
+      raise UserError(f"unknown config argument {key!r} after the config file's colon; it takes: {known} "
+                      f"(e.g. --config=configs/blender.py:scene=lego,smoke).")
     out[key] = value if value else True
   return out

@@ -103,11 +103,3 @@ def to_host(tree):
   if all(x.is_fully_addressable for x in jax.tree.leaves(tree)):
     return jax.device_get(tree)
   return multihost_utils.process_allgather(tree, tiled=True)
-
-
-def summary_writer(workdir: str, **kwargs):
-  """A TensorBoard writer of `workdir` on process 0, None on the others: only process 0 writes events."""
-  if jax.process_index() != 0:
-    return None
-  import tensorboardX
-  return tensorboardX.SummaryWriter(logdir=workdir, **kwargs)

@@ -1,14 +1,16 @@
 """nerfpod's entry point: `python -m nerfpod.main --config=configs/default.py --workdir=DIR`.
 
-Parses flags, starts the multi-host runtime where there is one, and runs the mode: `train` (the default:
-train_and_evaluate, which trains, evaluates and renders the orbit), `eval` or `render` (from the workdir's
-newest checkpoint). A user's mistake is printed as one sentence with exit code 2.
+Parses flags, checks the whole config (nerfpod.schema) before JAX starts, starts the multi-host runtime where
+there is one, and runs the mode (nerfpod.modes): `train` (the default: train_and_evaluate, which trains,
+evaluates and renders the orbit), `eval` or `render` (from the workdir's newest checkpoint). A user's
+mistake is printed as one sentence per problem with exit code 2.
 """
 import sys
 
 from absl import app, flags, logging
 from ml_collections import config_flags
 
+from nerfpod import schema
 from nerfpod.errors import UserError
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
@@ -33,6 +35,12 @@ _MODE = flags.DEFINE_enum("mode", "train", ["train", "eval", "render"],
 flags.mark_flags_as_required(["config", "workdir"])
 
 
+def _fail(error: UserError):
+  for message in getattr(error, "messages", None) or [str(error)]:
+    print(f"nerfpod: error: {message}", file=sys.stderr, flush=True)
+  sys.exit(2)
+
+
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
@@ -44,28 +52,29 @@ def main(argv):
       config.keys()  # the value is a lazy proxy until first touched
     except OSError as e:  # ml_collections reports a config file that failed to load on first access
       raise UserError(f"could not load the --config file ({' '.join(str(e).split())}).") from None
+    for old in schema.migrate(config):  # a config file of an earlier version
+      print(f"nerfpod: note: config field {old} is now {schema.LEGACY_NAMES[old]}", file=sys.stderr)
+    schema.validate(config)  # every mistake, before JAX starts: no process waits for a peer in vain
     from nerfpod import distributed  # imports jax; no JAX call happens before initialize
     distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
                            heartbeat_timeout_seconds=_HEARTBEAT.value,
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
-    if _MODE.value == "eval":
-      from nerfpod import evaluate
-      evaluate.evaluate_workdir(config, _WORKDIR.value)
-    elif _MODE.value == "render":
-      from nerfpod import orbit
-      orbit.render_workdir(config, _WORKDIR.value)
-    else:
-      from nerfpod import train
-      train.train_and_evaluate(config, _WORKDIR.value)
+    from nerfpod import modes
+    {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
+     "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)
   except UserError as e:
-    print(f"nerfpod: error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
+    _fail(e)
 
 
 def _parse_flags(argv):
-  """absl's parsing, with a bad --config or override (unknown key, wrong type) reported in one sentence."""
+  """absl's parsing, with a bad --config or override (unknown key, wrong type) reported in one sentence.
+  Overrides that use an earlier name of a field (LEGACY_NAMES) are renamed first."""
+  argv = schema.rewrite_legacy_flags(argv)
+  sys.argv[:] = argv  # ml_collections reads the overrides off sys.argv when it parses --config
   try:
     return flags.FLAGS(argv)
+  except UserError as e:  # raised by a config file's get_config (e.g. an unknown argument after the colon)
+    _fail(e)
   except flags.Error as e:
     message = str(e)
   except (AttributeError, KeyError, TypeError, ValueError, FileNotFoundError) as e:

@@ -1,4 +1,8 @@
-"""Rendering whole images with a trained model, split in chunks over every device of every host."""
+"""The renderer: images of a trained model, its rays split in chunks over the devices of a mesh.
+
+"Render" in nerfpod means this: pixels of the trained field (evaluation, previews, orbit frames, the
+viewer). The volume-rendering arithmetic itself is nerf/compositing.py; config.render holds its settings.
+"""
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +15,7 @@ from nerfpod.nerf import cameras
 OUTPUTS = ("rgb", "depth", "acc", "disparity")
 
 
-def make_render_fn(model, mesh, near: float, far: float, background, compiler_options: dict | None = None):
+def make_renderer(model, mesh, near: float, far: float, background, compiler_options: dict | None = None):
   """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh,
   compiled with XLA's `compiler_options` (xla_options.compiler_options)."""
   def local(params, origins, directions):
@@ -22,7 +26,7 @@ def make_render_fn(model, mesh, near: float, far: float, background, compiler_op
                  compiler_options=compiler_options)
 
 
-def render_rays(render_fn, params, mesh, origins_Nx3, directions_Nx3, chunk: int) -> dict:
+def render_rays(renderer, params, mesh, origins_Nx3, directions_Nx3, chunk: int) -> dict:
   """Renders N rays in chunks of `chunk` rays (a multiple of the mesh's device count) sharded over `mesh`.
 
   On a mesh over every host, every process passes the same rays, feeds only its own share of each chunk
@@ -36,16 +40,16 @@ def render_rays(render_fn, params, mesh, origins_Nx3, directions_Nx3, chunk: int
   pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - n, axis=0)]) if padded > n else x
   origins, directions = pad(origins_Nx3), pad(directions_Nx3)
   rows = distributed.local_slice(chunk, mesh)
-  pieces = [render_fn(params, *distributed.to_global(
+  pieces = [renderer(params, *distributed.to_global(
       mesh, (origins[start:start + chunk][rows], directions[start:start + chunk][rows])))
             for start in range(0, padded, chunk)]
   pieces = distributed.to_host(pieces)
   return {k: np.concatenate([p[k] for p in pieces])[:n] for k in OUTPUTS}
 
 
-def render_image(render_fn, params, mesh, c2w, intr: cameras.Intrinsics, pixel_center: float,
+def render_image(renderer, params, mesh, c2w_4x4, intr: cameras.Intrinsics, pixel_center: float,
                  chunk: int) -> dict:
   """One full image: rgb (H, W, 3), depth, acc and disparity (H, W), float32 NumPy."""
-  origins, directions = cameras.image_rays(c2w, intr, pixel_center)
-  out = render_rays(render_fn, params, mesh, origins.reshape(-1, 3), directions.reshape(-1, 3), chunk)
+  origins, directions = cameras.image_rays(c2w_4x4, intr, pixel_center)
+  out = render_rays(renderer, params, mesh, origins.reshape(-1, 3), directions.reshape(-1, 3), chunk)
   return {k: v.reshape((intr.height, intr.width) + v.shape[1:]) for k, v in out.items()}

@@ -1,6 +1,6 @@
 """Rendered channels to viewable media: a colour map, mp4 and gif writers, a PNG contact sheet.
 
-Everything here takes plain NumPy frames; nerfpod.orbit reads them from the archive. Depth and disparity
+Everything here takes plain NumPy frames; nerfpod.archive reads them from an archive. Depth and disparity
 are colour-mapped with turbo, near things warm and far things cold, over one value range for the whole
 video (so colours do not flicker from frame to frame).
 """
@@ -29,6 +29,11 @@ def turbo(x) -> np.ndarray:
   x = np.clip(np.asarray(x, np.float64), _TURBO_FIT_START, 1.0)
   powers = x[..., None] ** np.arange(6)
   return np.clip(powers @ _TURBO.T, 0.0, 1.0)
+
+
+def depth_image(depth_HxW, near: float, far: float) -> np.ndarray:
+  """Depth mapped to [0, 1] between the ray bounds (near white, far black), for TensorBoard."""
+  return np.clip((far - np.asarray(depth_HxW)) / (far - near), 0.0, 1.0)
 
 
 def to_uint8(image) -> np.ndarray:
@@ -169,8 +174,8 @@ def output_paths(out_dir: str, prefix: str, formats) -> dict:
   return paths
 
 
-def export(read_frame, num_frames: int, near: float, far: float, out_dir: str, prefix: str, fps: float,
-           formats=("mp4", "png")) -> tuple[list[str], np.ndarray]:
+def write_media(read_frame, num_frames: int, near: float, far: float, out_dir: str, prefix: str, fps: float,
+                formats=("mp4", "png")) -> tuple[list[str], np.ndarray]:
   """Writes the videos and contact sheet of frames read_frame(0 .. num_frames-1) (dicts of channels).
 
   Frames are streamed: one frame is in memory at a time, plus the contact sheet's few. Each file is written

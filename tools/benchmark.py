@@ -4,8 +4,9 @@
   python -m tools.benchmark --config=configs/tiny_fast.py:path=... --quality --max_seconds=600
 
 Throughput mode times `--steps` train steps after compilation: rays/s and samples/s, the step's FLOPs as
-XLA counts them (cost analysis of the lowered step, 2 per multiply-add) divided by its time, the float32
-matmul peak measured in the same process (a jitted 2048^3 matmul, best of several under XLA's default
+XLA counts them (cost analysis of the lowered step, 2 per multiply-add; over all devices) divided by its
+time and the device count (FLOP/s per device), the float32 matmul peak of one device measured in the same
+process (a jitted 2048^3 matmul, best of several under XLA's default
 compile options and the step's), their ratio (and with `model.compute_dtype=bfloat16`, the same against the
 bfloat16 matmul peak), the share of time spent loading data, and peak memory (host RSS; device memory where
 the backend reports it).
@@ -60,21 +61,21 @@ def _peak_memory() -> dict:
   return out
 
 
-class _Setup:
-  """The trainer's pieces for `config` (train.setup), a batch stream from step 0 and the step."""
+class _Trainer:
+  """A config's components (nerfpod.components), its train step and a batch stream from step 0."""
 
   def __init__(self, config):
-    from nerfpod import distributed, train
+    from nerfpod import components, distributed, train
     self.config = config
-    self.setup = train.setup(config)
-    self.scene, self.mesh, self.state = self.setup.scene, self.setup.mesh, self.setup.state
-    self.step_fn = self.setup.train_step(config)
+    self.comps = components.build(config)
+    self.state = self.comps.init_state()
+    self.step_fn = train.train_step(self.comps)
     # The same step without micro-batches, only ever lowered: XLA's cost analysis counts a loop body
     # once, so the FLOPs of a step with a micro-batch scan are read off this one.
-    self.unlooped_step_fn = self.setup.train_step(config, microbatches=1)
-    self.batches = self.setup.batches(config, 0)
-    self.key = train.rays_key(config.train.seed)
-    self._to_global = lambda local: distributed.to_global(self.mesh, local)
+    self.unlooped_step_fn = train.train_step(self.comps, microbatches=1)
+    self.batches = self.comps.batches(0)
+    self.key = components.rays_key(config.train.seed)
+    self._to_global = lambda local: distributed.to_global(self.comps.mesh, local)
 
   def next_batch(self):
     local = next(self.batches)
@@ -85,33 +86,35 @@ class _Setup:
     self.state, metrics = self.step_fn(self.state, batch, self.key)
     return metrics
 
+  def flops_per_step(self, batch) -> float:
+    """The whole step's FLOPs over all devices as XLA counts them (2 per multiply-add), whatever the
+    micro-batching. (XLA's cost analysis of a sharded step counts one device's share.)"""
+    cost = self.unlooped_step_fn.lower(self.state, batch, self.key).cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost.get("flops", float("nan"))) * self.comps.mesh.size
+
   def heldout_psnr(self) -> float:
     import numpy as np
     from nerfpod import evaluate, metrics
-    split = self.scene.split(self.config.eval.split)
+    split = self.comps.scene.split(self.config.eval.split)
     return float(np.mean([metrics.psnr(np.clip(out["rgb"], 0, 1), split.images[index])
-                          for index, out in evaluate.render_views(self.config, self.scene,
-                                                                  self.setup.render_fn,
-                                                                  self.state.params, self.mesh)]))
+                          for index, out in evaluate.render_views(self.comps, self.state.params)]))
 
 
 def throughput(config, steps: int) -> dict:
   import jax
   from nerfpod import xla_options
-  setup = _Setup(config)
-  batch = setup.next_batch()
-  cost = setup.unlooped_step_fn.lower(setup.state, batch, setup.key).cost_analysis()
-  cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-  flops_per_step = float(cost.get("flops", float("nan")))
+  trainer = _Trainer(config)
+  flops_per_step = trainer.flops_per_step(trainer.next_batch())
   for _ in range(3):  # warm-up
-    jax.block_until_ready(setup.step(setup.next_batch()))
+    jax.block_until_ready(trainer.step(trainer.next_batch()))
   data_s = step_s = 0.0
   for _ in range(steps):
     t0 = time.perf_counter()
-    batch = setup.next_batch()
+    batch = trainer.next_batch()
     jax.block_until_ready(batch)
     t1 = time.perf_counter()
-    jax.block_until_ready(setup.step(batch))
+    jax.block_until_ready(trainer.step(batch))
     t2 = time.perf_counter()
     data_s, step_s = data_s + t1 - t0, step_s + t2 - t1
   options = xla_options.compiler_options(config)
@@ -119,7 +122,7 @@ def throughput(config, steps: int) -> dict:
   rays = steps * config.train.batch_size
   samples_per_ray = config.render.num_samples + (config.render.num_samples + config.render.num_importance
                                                  if config.render.num_importance else 0)
-  achieved = flops_per_step * steps / step_s
+  achieved = flops_per_step * steps / step_s / trainer.comps.mesh.size  # per device, as the peak is
   return {"rays_per_s": rays / (data_s + step_s), "samples_per_s": rays * samples_per_ray / (data_s + step_s),
           "step_ms": 1e3 * step_s / steps, "data_ms": 1e3 * data_s / steps,
           "data_fraction": data_s / (data_s + step_s), "flops_per_step": flops_per_step,
@@ -139,15 +142,15 @@ def _compute_dtype_peak(config, options: dict, achieved: float) -> dict:
 
 def time_to_quality(config, max_seconds: float, eval_every: int) -> dict:
   import jax
-  setup = _Setup(config)
+  trainer = _Trainer(config)
   paused = 0.0  # time spent in the benchmark's own evaluations
   reached, history = {}, []
   for step in range(1, config.train.num_steps + 1):
-    jax.block_until_ready(setup.step(setup.next_batch()))
+    jax.block_until_ready(trainer.step(trainer.next_batch()))
     elapsed = time.perf_counter() - _START - paused
     if step % eval_every == 0 or step == config.train.num_steps or elapsed > max_seconds:
       t = time.perf_counter()
-      psnr = setup.heldout_psnr()
+      psnr = trainer.heldout_psnr()
       paused += time.perf_counter() - t
       history.append({"step": step, "seconds": round(elapsed, 1), "psnr": round(psnr, 2)})
       print(json.dumps(history[-1]), flush=True)

@@ -11,15 +11,15 @@ import argparse
 import os
 import sys
 
-from nerfpod import orbit, video
+from nerfpod import archive, video
 from nerfpod.errors import UserError
 
 
 def find_archive(path: str) -> str:
   """The archive that `path` names: the folder itself, or a workdir's renders/orbit.zarr."""
-  if orbit.is_url(path):  # gs://...: no cheap existence checks; a workdir unless it names a .zarr
-    return path if path.rstrip("/").endswith(".zarr") else orbit.join(path, orbit.ARCHIVE)
-  in_workdir = os.path.join(path, orbit.ARCHIVE)
+  if archive.is_url(path):  # gs://...: no cheap existence checks; a workdir unless it names a .zarr
+    return path if path.rstrip("/").endswith(".zarr") else archive.join(path, archive.ORBIT)
+  in_workdir = os.path.join(path, archive.ORBIT)
   if not os.path.exists(os.path.join(path, "zarr.json")) and os.path.isdir(in_workdir):
     return in_workdir
   if not os.path.exists(path):
@@ -27,17 +27,16 @@ def find_archive(path: str) -> str:
   return path
 
 
-def export(path: str, out_dir: str | None = None, fps: float | None = None,
-           formats=("mp4", "gif", "png")) -> list[str]:
-  """Writes the files of the archive at (or in the workdir) `path`; returns their paths."""
+def write_files(path: str, out_dir: str | None = None, fps: float | None = None,
+                formats=("mp4", "gif", "png")) -> list[str]:
+  """Exports the archive at (or in the workdir) `path` (archive.Archive.export); returns the files' paths."""
   try:
     formats = video.check_formats(formats)
   except ValueError as e:
     raise UserError(f"{e}.") from e
   if fps is not None and fps <= 0:
     raise UserError(f"--fps={fps} must be a positive number of frames per second.")
-  archive = orbit.Archive.open(find_archive(path))
-  files, _ = archive.export(out_dir, fps, formats)
+  files, _ = archive.Archive.open(find_archive(path)).export(out_dir, fps, formats)
   return files
 
 
@@ -56,7 +55,7 @@ def run(argv=None) -> None:
   """Console-script entry point (`nerfpod-export`)."""
   args = parse_args(sys.argv[1:] if argv is None else argv)
   try:
-    files = export(args.path, args.out, args.fps, args.formats.split(","))
+    files = write_files(args.path, args.out, args.fps, args.formats.split(","))
   except UserError as e:
     print(f"nerfpod-export: error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)

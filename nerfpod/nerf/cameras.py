@@ -26,11 +26,6 @@ class Intrinsics:
     """Square pixels, principal point at the image centre (the Blender and Tiny NeRF cameras)."""
     return cls(int(width), int(height), float(focal), float(focal), width / 2.0, height / 2.0)
 
-  def scaled(self, factor: float) -> "Intrinsics":
-    """The same camera with its image resampled by `factor` (0.5 halves the resolution)."""
-    return Intrinsics(int(round(self.width * factor)), int(round(self.height * factor)),
-                      self.fx * factor, self.fy * factor, self.cx * factor, self.cy * factor)
-
 
 def pixel_directions(intr: Intrinsics, rows, cols, pixel_center: float = 0.5) -> np.ndarray:
   """Camera-space ray directions (z = -1) through pixels (rows, cols); any matching shapes -> (..., 3)."""
@@ -39,14 +34,14 @@ def pixel_directions(intr: Intrinsics, rows, cols, pixel_center: float = 0.5) ->
   return np.stack([x, y, -np.ones_like(x)], axis=-1)
 
 
-def rays_for_pixels(c2w_Nx3x4: np.ndarray, intr: Intrinsics, rows, cols,
+def rays_for_pixels(c2w: np.ndarray, intr: Intrinsics, rows, cols,
                     pixel_center: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-  """World-space rays through pixels (rows, cols) of cameras c2w (broadcast together).
+  """World-space rays through pixels (rows, cols) of cameras c2w (..., 3 or 4, 4), broadcast together.
 
   Returns (origins, directions), float32, shape (..., 3). Directions are not normalised: their camera-space
   z is -1, so a point at ray parameter t lies at depth t in front of the camera.
   """
-  c2w = np.asarray(c2w_Nx3x4, np.float64)[..., :3, :4]
+  c2w = np.asarray(c2w, np.float64)[..., :3, :4]
   dirs_cam = pixel_directions(intr, rows, cols, pixel_center)
   directions = np.einsum("...ij,...j->...i", c2w[..., :3, :3], dirs_cam)
   origins = np.broadcast_to(c2w[..., :3, 3], directions.shape)

@@ -7,13 +7,13 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def positional_encoding(x_Nx3, num_frequencies: int, include_input: bool = True):
+def positional_encoding(x_Nx3, num_frequencies: int):
   """[x, sin(2^0 x), cos(2^0 x), ..., sin(2^(L-1) x), cos(2^(L-1) x)], the Tiny NeRF tutorial's layout.
 
   num_frequencies = 0 switches the encoding off (the raw coordinates, the tutorial's comparison).
-  Output width: 3 * (include_input + 2 L).
+  Output width: 3 * (1 + 2 L).
   """
-  parts = [x_Nx3] if include_input or num_frequencies == 0 else []
+  parts = [x_Nx3]
   for k in range(num_frequencies):
     parts += [jnp.sin(2.0**k * x_Nx3), jnp.cos(2.0**k * x_Nx3)]
   return jnp.concatenate(parts, axis=-1)
@@ -23,13 +23,12 @@ def positional_encoding(x_Nx3, num_frequencies: int, include_input: bool = True)
 _PRIMES = (1, 2654435761, 805459861)
 
 
-def hash_indices(corners_Nx3, table_size: int):
-  """Instant-NGP's spatial hash of integer grid corners: XOR of coordinate * prime, modulo the table size.
-
-  uint32 arithmetic wraps around, as in the reference implementation. Returns int32 indices in
-  [0, table_size).
+def hash_indices(corners, table_size: int):
+  """Instant-NGP's spatial hash of integer grid corners (..., 3): XOR of coordinate * prime, modulo the
+  table size. uint32 arithmetic wraps around, as in the reference implementation. Returns int32 indices
+  (...) in [0, table_size).
   """
-  c = corners_Nx3.astype(jnp.uint32)
+  c = corners.astype(jnp.uint32)
   h = c[..., 0] * jnp.uint32(_PRIMES[0])
   h = h ^ (c[..., 1] * jnp.uint32(_PRIMES[1]))
   h = h ^ (c[..., 2] * jnp.uint32(_PRIMES[2]))
@@ -59,12 +58,13 @@ def trilinear_corners_and_weights(x_Nx3, resolution: int):
   return corners, jnp.prod(w, axis=-1)
 
 
-def grid_indices(corners_Nx8x3, resolution: int, table_size: int):
-  """Table rows of grid corners: dense (one row per vertex) where the level fits, else the spatial hash."""
+def grid_indices(corners, resolution: int, table_size: int):
+  """Table rows (...) of grid corners (..., 3): dense (one row per vertex) where the level fits, else the
+  spatial hash."""
   side = resolution + 1
   if side**3 <= table_size:
-    return corners_Nx8x3[..., 0] * side * side + corners_Nx8x3[..., 1] * side + corners_Nx8x3[..., 2]
-  return hash_indices(corners_Nx8x3, table_size)
+    return corners[..., 0] * side * side + corners[..., 1] * side + corners[..., 2]
+  return hash_indices(corners, table_size)
 
 
 def _symmetric_uniform(scale):
@@ -79,11 +79,11 @@ class HashGridEncoding(nn.Module):
   the level's grid fits and by the spatial hash beyond; features are trilinearly interpolated and the levels
   concatenated: output width num_levels * features_per_level.
   """
-  num_levels: int = 16
-  features_per_level: int = 2
-  log2_table_size: int = 19
-  base_resolution: int = 16
-  max_resolution: int = 2048
+  num_levels: int
+  features_per_level: int
+  log2_table_size: int
+  base_resolution: int
+  max_resolution: int
 
   @nn.compact
   def __call__(self, x_Nx3):

@@ -15,17 +15,18 @@ class MLPField(nn.Module):
   Points are positionally encoded, then `depth` dense layers of `width` with ReLU; the encoded input is
   concatenated back after each (0-based) layer index in `skips` (the tutorial's 8x256, whose input rejoins
   after layer `i % 4 == 0 and i > 0`, is skips=(4,)). Without view directions one linear head gives
-  (rgb, sigma), as in the Tiny NeRF tutorial. With them (the paper): sigma from the trunk, then a linear bottleneck of `width`
-  concatenated with the encoded direction, one layer of width/2 and the rgb head.
+  (rgb, sigma), as in the Tiny NeRF tutorial. With them (the paper): sigma from the trunk, then a linear
+  bottleneck of `width` concatenated with the encoded direction, one layer of width/2 and the rgb head.
   """
-  depth: int = 8
-  width: int = 256
-  skips: Sequence[int] = (4,)
-  num_frequencies: int = 6
-  use_viewdirs: bool = False
-  viewdir_frequencies: int = 4
-  density_activation: str = "relu"
-  dtype: jnp.dtype = jnp.float32  # matmul dtype: bfloat16 for mixed precision, params stay float32
+  # Sizes and switches come from config.model (configs/default.py documents each); no defaults here.
+  depth: int
+  width: int
+  skips: Sequence[int]
+  num_frequencies: int
+  use_viewdirs: bool
+  viewdir_frequencies: int
+  density_activation: str
+  dtype: jnp.dtype  # matmul dtype: bfloat16 for mixed precision, params stay float32
 
   @nn.compact
   def __call__(self, points_Nx3, viewdirs_Nx3=None):
@@ -54,16 +55,17 @@ class HashGridField(nn.Module):
   Density is exp of the first output of the density MLP (Instant-NGP's "trunc_exp" forward); the colour MLP
   takes the remaining features and, with view directions, their degree-4 spherical-harmonic encoding.
   """
-  bound: float = 1.5
-  num_levels: int = 16
-  features_per_level: int = 2
-  log2_table_size: int = 19
-  base_resolution: int = 16
-  max_resolution: int = 2048
-  hidden_width: int = 64
-  geo_features: int = 15
-  use_viewdirs: bool = True
-  dtype: jnp.dtype = jnp.float32
+  # Sizes and switches come from config.model.hashgrid and config.model; no defaults here.
+  bound: float
+  num_levels: int
+  features_per_level: int
+  log2_table_size: int
+  base_resolution: int
+  max_resolution: int
+  hidden_width: int
+  geo_features: int
+  use_viewdirs: bool
+  dtype: jnp.dtype
 
   @nn.compact
   def __call__(self, points_Nx3, viewdirs_Nx3=None):
@@ -85,17 +87,13 @@ class HashGridField(nn.Module):
     return nn.sigmoid(dense(3, "rgb")(c).astype(jnp.float32)), sigma
 
 
-def make_field(model_config, dtype=jnp.float32) -> nn.Module:
-  """The field named by `model.field` ('mlp' or 'hashgrid') with its config."""
+def make_field(model_config, dtype, name: str | None = None) -> nn.Module:
+  """The field named by `model.field` ('mlp' or 'hashgrid'), sized by config.model.mlp or .hashgrid."""
   if model_config.field == "mlp":
-    return MLPField(depth=model_config.depth, width=model_config.width, skips=tuple(model_config.skips),
-                    num_frequencies=model_config.num_frequencies, use_viewdirs=model_config.use_viewdirs,
-                    viewdir_frequencies=model_config.viewdir_frequencies,
-                    density_activation=model_config.density_activation, dtype=dtype)
+    mlp = dict(model_config.mlp)
+    return MLPField(**dict(mlp, skips=tuple(mlp["skips"])), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
+                    name=name)
   if model_config.field == "hashgrid":
-    g = model_config.hashgrid
-    return HashGridField(bound=g.bound, num_levels=g.num_levels, features_per_level=g.features_per_level,
-                         log2_table_size=g.log2_table_size, base_resolution=g.base_resolution,
-                         max_resolution=g.max_resolution, hidden_width=g.hidden_width,
-                         geo_features=g.geo_features, use_viewdirs=model_config.use_viewdirs, dtype=dtype)
-  raise ValueError(f"unknown model.field {model_config.field!r}")
+    return HashGridField(**dict(model_config.hashgrid), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
+                         name=name)
+  raise ValueError(f"unknown model.field {model_config.field!r}")  # nerfpod.schema refuses it first

@@ -99,8 +99,6 @@ def load(root: str, downscale: int = 1, splits=SPLITS) -> Scene:
   if not os.path.isfile(os.path.join(root, "transforms_train.json")):
     raise UserError(f"{root} has no transforms_train.json; set --config.data.path to a NeRF synthetic scene "
                     f"folder.")
-  if int(downscale) < 1:
-    raise UserError(f"data.downscale must be a positive integer, got {downscale}.")
   loaded = {s: load_split(root, s, int(downscale)) for s in splits
             if os.path.isfile(os.path.join(root, f"transforms_{s}.json"))}
   name = os.path.basename(os.path.normpath(root))

@@ -1,4 +1,4 @@
-"""The built-in scene: a few coloured solids on a plate, rendered exactly, so the default job needs no data.
+"""The built-in scene: a few coloured solids on a plate, ray-traced exactly, so the default job needs no data.
 
 Everything is generated from a fixed seed in well under a second: ray-surface intersection against a sphere,
 a box, a cylinder and a thin round plate, Lambertian shading under one directional light plus ambient light,
@@ -78,8 +78,8 @@ def _objects():
   ]
 
 
-def render(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
-  """Exact colours of rays (..., 3): the nearest surface's shaded albedo, or the background.
+def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
+  """Exact colours of rays (..., 3), by ray tracing: the nearest surface's shaded albedo, or the background.
 
   With return_alpha, also whether each ray hits a surface (1.0) or not (0.0), like an RGBA render's alpha.
   """
@@ -116,7 +116,7 @@ def load(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test
   splits = {}
   for seed, (name, n) in enumerate((("train", num_train), ("val", num_val), ("test", num_test))):
     poses = hemisphere_poses(n, seed=seed)
-    rendered = [render(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
-    images, alphas = np.stack([r[0] for r in rendered]), np.stack([r[1] for r in rendered])
+    traced = [trace(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
+    images, alphas = np.stack([r[0] for r in traced]), np.stack([r[1] for r in traced])
     splits[name] = Split(images, poses, intr, tuple(f"{name}_{i}" for i in range(n)), alphas=alphas)
   return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0))

@@ -1,0 +1,136 @@
+"""The shared set-up: what training, evaluation, orbit rendering and the tools build from a config.
+
+`build(config)` loads the scene (a missing held-out split fails now, not after training), makes the device
+mesh, the model, the optimiser, the ray bounds, the train state's shapes and placement (`jax.eval_shape`
+of the initialisation: nothing is computed until a run needs real parameters) and the compiled renderer.
+Every mode starts from these same pieces, so a checkpoint written by one mode restores in any other.
+
+Randomness is a function of (seed, what): the parameters and the rays draw from their own streams, folded
+into the seed; the train step folds in the step on top.
+"""
+import dataclasses
+from typing import Any
+
+import flax
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import Mesh
+
+from nerfpod import data, distributed, render, scenes, xla_options
+from nerfpod.errors import UserError
+from nerfpod.nerf import model as nerf_model
+
+# Tags folded into the seed so that each use of randomness has its own stream.
+_PARAMS_STREAM, _RAYS_STREAM = 0, 1
+
+
+@flax.struct.dataclass
+class TrainState:
+  step: jax.Array  # scalar int32: optimiser steps taken
+  params: Any
+  opt_state: Any
+
+
+def learning_rate_schedule(train_config) -> optax.Schedule:
+  """Linear warm-up to lr_init, then log-linear decay to lr_final at the last step (the original NeRF's)."""
+  tc = train_config
+  decay_steps = max(1, tc.num_steps - tc.lr_warmup_steps)
+  decay = optax.exponential_decay(tc.lr_init, decay_steps, tc.lr_final / tc.lr_init)
+  if tc.lr_warmup_steps <= 0:
+    return decay
+  warmup = optax.linear_schedule(0.0, tc.lr_init, tc.lr_warmup_steps)
+  return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
+
+
+def make_optimizer(train_config) -> optax.GradientTransformation:
+  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0)."""
+  tc = train_config
+  adam = optax.adam(learning_rate_schedule(tc), eps=tc.adam_eps)
+  return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if tc.grad_clip > 0 else adam
+
+
+def ray_bounds(config, scene) -> tuple[float, float]:
+  """render.near/far where given (>= 0), else the scene's own."""
+  near = config.render.near if config.render.near >= 0 else scene.near
+  far = config.render.far if config.render.far >= 0 else scene.far
+  if not 0 <= near < far:
+    raise UserError(f"the rays would run from near={near:g} to far={far:g} (render.near/far or the scene's "
+                    f"bounds); set --config.render.near and --config.render.far with 0 <= near < far.")
+  return float(near), float(far)
+
+
+def rays_key(seed: int) -> jax.Array:
+  """The key of the rays' randomness (stratified jitter, random backgrounds); the step folds in the step."""
+  return jax.random.fold_in(jax.random.key(seed), _RAYS_STREAM)
+
+
+def _initializer(model, optimizer):
+  """key -> the initial TrainState (parameters from the key, optimiser state for them)."""
+  def init(key):
+    rays = jnp.zeros((2, 3), jnp.float32), jnp.ones((2, 3), jnp.float32)
+    params = model.init(key, *rays, 2.0, 6.0, jnp.zeros(3))
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
+  return init
+
+
+@dataclasses.dataclass(frozen=True)
+class Components:
+  """A config's scene, mesh, model, optimiser, ray bounds, state shapes and compiled renderer."""
+  config: Any
+  scene: scenes.Scene
+  mesh: Mesh
+  model: nerf_model.NeRF
+  optimizer: optax.GradientTransformation
+  near: float
+  far: float
+  state_shapes: TrainState  # jax.ShapeDtypeStruct leaves, replicated over `mesh`: what a restore fills
+  renderer: Any             # (params, origins, directions) -> rgb/depth/acc/disparity, compiled on `mesh`
+
+  @property
+  def compiler_options(self) -> dict:
+    return xla_options.compiler_options(self.config)
+
+  def init_state(self) -> TrainState:
+    """The initial train state, created directly replicated on every device of the mesh."""
+    return initial_state(self.model, self.optimizer, self.config.train.seed, self.mesh)
+
+  def make_renderer(self, mesh: Mesh):
+    """The renderer compiled for another mesh (e.g. this process's own devices, for orbit frames)."""
+    return render.make_renderer(self.model, mesh, self.near, self.far, self.scene.background,
+                                self.compiler_options)
+
+  def batches(self, start_step: int):
+    """This host's slices of the global training batches from `start_step` on."""
+    tc = self.config.train
+    dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
+                               distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
+                               max(tc.num_steps, 1))
+    return data.iterator(dataset, start_step)
+
+
+def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:
+  """The initial train state of `model` and `optimizer` from `seed`, created replicated over `mesh`."""
+  key = jax.random.fold_in(jax.random.key(seed), _PARAMS_STREAM)
+  return jax.jit(_initializer(model, optimizer), out_shardings=distributed.replicated(mesh))(key)
+
+
+def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
+  """The train state's leaves as ShapeDtypeStructs replicated over `mesh`, without computing anything."""
+  shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
+  sharding = distributed.replicated(mesh)
+  return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
+
+
+def build(config, mesh: Mesh | None = None) -> Components:
+  """The pieces every mode needs (`mesh`: default, every device of every host)."""
+  scene = scenes.load(config.data)
+  scene.split(config.eval.split)
+  mesh = distributed.make_mesh() if mesh is None else mesh
+  model = nerf_model.from_config(config)
+  near, far = ray_bounds(config, scene)
+  optimizer = make_optimizer(config.train)
+  renderer = render.make_renderer(model, mesh, near, far, scene.background,
+                                  xla_options.compiler_options(config))
+  return Components(config, scene, mesh, model, optimizer, near, far, state_shapes(model, optimizer, mesh),
+                    renderer)

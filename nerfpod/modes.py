@@ -1,0 +1,82 @@
+"""The run: what each `--mode` does, in order. Train, then evaluate, then render the orbit; or one alone.
+
+    train_and_evaluate(config, workdir)   --mode=train (the default)
+    evaluate_workdir(config, workdir)     --mode=eval: the workdir's newest checkpoint -> eval/metrics.json
+    render_workdir(config, workdir)       --mode=render: its orbit -> renders/orbit.zarr and the videos
+
+Each checks the whole config first (nerfpod.schema; a mistake is a UserError before any work) and builds
+the shared pieces once (nerfpod.components). Calls flow one way: this module calls train, evaluate and
+orbit, which call the components below them, and none of them calls back up here.
+"""
+import json
+
+import jax
+
+from nerfpod import checkpoints, components, evaluate, monitor, orbit, schema, train
+from nerfpod.errors import UserError
+
+
+def _prepare(config, workdir: str, trained: bool = False) -> components.Components:
+  """Checks the config (with this run's device count) and a resumed workdir's, then builds the pieces.
+  `trained`: the workdir must hold a checkpoint (evaluation, rendering)."""
+  schema.validate(config, jax.device_count())
+  if trained and checkpoints.latest_step(workdir) is None:
+    raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
+                    f"the default) or pass the --workdir of a trained run.")
+  checkpoints.check_compatible(workdir, json.loads(config.to_json_best_effort()))
+  return components.build(config)
+
+
+def train_and_evaluate(config, workdir: str) -> dict | None:
+  """Trains (resuming from workdir's newest checkpoint), evaluates the held-out views, renders the orbit.
+
+  Returns the metrics written to workdir/eval/metrics.json, or None when a SIGTERM (preemption) stopped
+  training: the state was then saved at a step all processes agreed on, and nothing else is done.
+  """
+  comps = _prepare(config, workdir)
+  watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size)
+  try:
+    trained = train.train(comps, workdir, watch)
+    if trained is None:
+      return None
+    state, step = trained
+    result = evaluate.evaluate(comps, state.params, workdir, step, writer=watch.writer)
+    if config.orbit.render_after_training:
+      orbit.render_orbit(comps, state.params, workdir, step, writer=watch.writer)
+  finally:
+    watch.close()
+  return result
+
+
+def restore_trained(config, workdir: str) -> tuple[components.Components, object, int]:
+  """(components, parameters, step) of workdir's newest checkpoint, restored read-only onto this run's
+  mesh: what --mode=eval and --mode=render start from."""
+  comps = _prepare(config, workdir, trained=True)
+  with checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
+                               read_only=True) as ckpt:
+    state, _ = ckpt.restore(comps.state_shapes)
+  step = int(jax.device_get(state.step))
+  if jax.process_index() == 0:
+    print(f"nerfpod: restored step {step} of {workdir}", flush=True)
+  return comps, state.params, step
+
+
+def _from_newest_checkpoint(config, workdir: str, work):
+  """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint."""
+  comps, params, step = restore_trained(config, workdir)
+  writer = monitor.summary_writer(workdir)
+  try:
+    return work(comps, params, workdir, step, writer=writer)
+  finally:
+    if writer is not None:
+      writer.close()
+
+
+def evaluate_workdir(config, workdir: str) -> dict:
+  """--mode=eval: evaluates workdir's newest checkpoint (no training) and writes eval/metrics.json."""
+  return _from_newest_checkpoint(config, workdir, evaluate.evaluate)
+
+
+def render_workdir(config, workdir: str) -> dict:
+  """--mode=render: the orbit of workdir's newest checkpoint, into the archive and videos."""
+  return _from_newest_checkpoint(config, workdir, orbit.render_orbit)

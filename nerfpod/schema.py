@@ -1,0 +1,309 @@
+"""The one config schema: every field of every config, its type and range, and the rules between fields.
+
+`validate(config)` checks a whole config at start-up, before any work, for every mode alike: it raises one
+ConfigError listing every mistake, one sentence each, naming the field and a valid value. The entry point
+runs it before JAX starts (a mistake costs nobody a device), and again with the device count once JAX runs.
+No module checks config fields on its own; a config that passed here is used as it is.
+
+Renamed fields: `LEGACY_NAMES` maps the names of earlier versions to today's, so that old overrides
+(`--config.model.num_frequencies=0`), users' own config files and old workdirs' config.json keep working.
+
+This module imports no JAX (nor anything that does): checking a config takes milliseconds.
+"""
+import dataclasses
+import math
+from typing import Any, Callable
+
+from nerfpod import scenes
+from nerfpod.errors import UserError
+
+# Earlier names of fields, and where they live now. The MLP's settings moved under model.mlp.
+LEGACY_NAMES = {f"model.{name}": f"model.mlp.{name}" for name in (
+    "num_frequencies", "depth", "width", "skips", "viewdir_frequencies", "density_activation")}
+
+
+class ConfigError(UserError):
+  """Every mistake found in a config, one sentence each."""
+
+  def __init__(self, messages: list[str]):
+    super().__init__(" ".join(messages))
+    self.messages = list(messages)
+
+
+@dataclasses.dataclass(frozen=True)
+class Field:
+  """What a config field may hold: `accepts(value)` says whether it is valid, `means` says what is."""
+  accepts: Callable[[Any], bool]
+  means: str    # "an integer >= 1", ...: completes "must be ..."
+  example: Any  # a valid value, shown in the message
+  bad: tuple = ()  # invalid values that a command line can give (for the tests that walk every field)
+
+  def message(self, name: str, value) -> str | None:
+    if self.accepts(value):
+      return None
+    return (f"{name}={_show(value)} is not valid: it must be {self.means} "
+            f"(e.g. --config.{name}={_show(self.example)}).")
+
+
+def _show(value) -> str:
+  if isinstance(value, bool):
+    return str(value).lower()
+  if isinstance(value, (tuple, list)):
+    return "'(" + ",".join(map(str, value)) + (",)'" if len(value) == 1 else ")'")
+  if isinstance(value, str):
+    return value if value else "''"
+  return str(value)
+
+
+def _is_int(value) -> bool:
+  return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+  return (isinstance(value, (int, float)) and not isinstance(value, bool)) and math.isfinite(value)
+
+
+def integer(low: int | None = None, high: int | None = None, example: int | None = None) -> Field:
+  def accepts(v):
+    return _is_int(v) and (low is None or v >= low) and (high is None or v <= high)
+  if low is not None and high is not None:
+    means = f"an integer from {low} to {high}"
+  elif low is not None:
+    means = f"an integer >= {low}"
+  else:
+    means = "an integer"
+  bad = tuple(v for v in (None if low is None else low - 1, None if high is None else high + 1) if v is not None)
+  return Field(accepts, means, example if example is not None else low if low is not None else 0, bad)
+
+
+def number(low: float | None = None, high: float | None = None, above: float | None = None,
+           example: float | None = None) -> Field:
+  """A finite number in [low, high] and > above (each where given)."""
+  def accepts(v):
+    return (_is_number(v) and (low is None or v >= low) and (high is None or v <= high)
+            and (above is None or v > above))
+  parts = []
+  if above is not None:
+    parts.append(f"> {above:g}")
+  if low is not None:
+    parts.append(f">= {low:g}")
+  if high is not None:
+    parts.append(f"<= {high:g}")
+  means = "a finite number" + (" " + " and ".join(parts) if parts else "")
+  if example is None:
+    example = low if low is not None else above + 1.0 if above is not None else 0.0
+  bad = tuple(v for v in (None if low is None else low - 1.0, None if high is None else high + 1.0, above)
+              if v is not None) + (float("nan"),)
+  return Field(accepts, means, example, bad)
+
+
+def boolean() -> Field:
+  return Field(lambda v: isinstance(v, bool), "true or false", True)
+
+
+def choice(*values: str) -> Field:
+  return Field(lambda v: v in values, "one of " + ", ".join(repr(v) for v in values), values[0], ("nope",))
+
+
+def text() -> Field:
+  return Field(lambda v: isinstance(v, str), "a string", "")
+
+
+def integers(low: int = 0) -> Field:
+  return Field(lambda v: isinstance(v, (tuple, list)) and all(_is_int(i) and i >= low for i in v),
+               f"a tuple of integers >= {low}", (low,), ((low - 1,),))
+
+
+FIELDS: dict[str, Field] = {
+    "data.kind": choice(*scenes.KINDS),
+    "data.path": text(),
+    "data.downscale": integer(1),
+    "data.image_size": integer(2, example=100),
+    "data.pixel_center": number(0.0, 1.0, example=0.5),
+
+    "model.field": choice("mlp", "hashgrid"),
+    "model.use_viewdirs": boolean(),
+    "model.compute_dtype": choice("float32", "bfloat16"),
+    "model.mlp.num_frequencies": integer(0, 30, example=10),
+    "model.mlp.depth": integer(1, example=8),
+    "model.mlp.width": integer(1, example=256),
+    "model.mlp.skips": integers(0),
+    "model.mlp.viewdir_frequencies": integer(0, 30, example=4),
+    "model.mlp.density_activation": choice("relu", "softplus", "exp"),
+    "model.hashgrid.bound": number(above=0.0, example=1.5),
+    "model.hashgrid.num_levels": integer(1, example=16),
+    "model.hashgrid.features_per_level": integer(1, example=2),
+    "model.hashgrid.log2_table_size": integer(4, 30, example=19),
+    "model.hashgrid.base_resolution": integer(1, example=16),
+    "model.hashgrid.max_resolution": integer(1, example=2048),
+    "model.hashgrid.hidden_width": integer(1, example=64),
+    "model.hashgrid.geo_features": integer(0, example=15),
+
+    "render.num_samples": integer(1, example=64),
+    "render.num_importance": integer(0),
+    "render.last_delta": number(0.0, example=1e10),
+    "render.near": number(example=2.0),
+    "render.far": number(example=6.0),
+
+    "train.num_steps": integer(0, example=1000),
+    "train.batch_size": integer(1, example=4096),
+    "train.microbatches": integer(1),
+    "train.lr_init": number(above=0.0, example=5e-4),
+    "train.lr_final": number(above=0.0, example=5e-5),
+    "train.lr_warmup_steps": integer(0),
+    "train.adam_eps": number(above=0.0, example=1e-15),
+    "train.random_background": boolean(),
+    "train.grad_clip": number(0.0),
+    "train.seed": integer(0),
+    "train.log_every": integer(1, example=100),
+    "train.image_every": integer(0, example=500),
+
+    "compile.cpu_ynnpack": boolean(),
+
+    "checkpoint.every_steps": integer(1, example=500),
+    "checkpoint.max_to_keep": integer(1, example=3),
+
+    "eval.split": choice("test", "val", "train"),
+    "eval.max_views": integer(0),
+    "eval.chunk": integer(1, example=4096),
+
+    "orbit.render_after_training": boolean(),
+    "orbit.num_frames": integer(1, example=120),
+    "orbit.elevation": number(-90.0, 90.0, example=-30.0),
+    "orbit.radius": number(above=0.0, example=4.0),
+    "orbit.width": integer(0),
+    "orbit.height": integer(0),
+    "orbit.focal": number(0.0),
+    "orbit.chunk": integer(1, example=4096),
+    "orbit.fps": number(above=0.0, example=30.0),
+}
+
+
+def _rules(c: dict) -> list[str]:
+  """Mistakes between fields (each field alone being valid)."""
+  out = []
+  if c["data.kind"] != "procedural" and not c["data.path"]:
+    out.append(f"data.kind={c['data.kind']} reads its scene from data.path, which is empty: pass "
+               f"--config.data.path=FILE_OR_FOLDER.")
+  if c["data.kind"] == "tiny" and c["data.downscale"] != 1:
+    out.append(f"data.downscale={c['data.downscale']} is not supported for the 100x100 Tiny NeRF data: "
+               f"leave it at 1 (--config.data.downscale=1).")
+  if c["render.num_importance"] > 0 and c["render.num_samples"] < 3:
+    out.append(f"render.num_samples={c['render.num_samples']} is too few for hierarchical sampling "
+               f"(render.num_importance={c['render.num_importance']}): the fine samples are drawn from the "
+               f"coarse ones' interior weights, so use at least 3 (e.g. --config.render.num_samples=64).")
+  near, far = c["render.near"], c["render.far"]
+  if near >= 0 and far >= 0 and not near < far:
+    out.append(f"render.near={near:g} must be less than render.far={far:g} (e.g. --config.render.near=2 "
+               f"--config.render.far=6; negative values take the scene's own bounds).")
+  if any(s >= c["model.mlp.depth"] - 1 for s in c["model.mlp.skips"]):
+    out.append(f"model.mlp.skips={_show(c['model.mlp.skips'])} names layers after which the input rejoins, "
+               f"so each must be below model.mlp.depth - 1 = {c['model.mlp.depth'] - 1} "
+               f"(e.g. --config.model.mlp.skips='(4,)' with depth 8).")
+  if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
+    out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
+               f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")
+  return out
+
+
+def device_rules(c: dict, device_count: int) -> list[str]:
+  """Mistakes that depend on the number of devices the run has."""
+  batch, micro = c["train.batch_size"], c["train.microbatches"]
+  if batch % device_count:
+    return [f"train.batch_size={batch} does not split over {device_count} devices; make it a multiple of "
+            f"{device_count} (e.g. --config.train.batch_size={max(1, batch // device_count) * device_count})."]
+  if batch % (device_count * micro):
+    return [f"train.batch_size={batch} does not split into train.microbatches={micro} equal slices on each "
+            f"of {device_count} devices; make the batch a multiple of {device_count * micro} or use fewer "
+            f"micro-batches (e.g. --config.train.microbatches=1)."]
+  return []
+
+
+def flatten(tree, prefix: str = "") -> dict:
+  """{"a.b.c": leaf} of a nested dict or ConfigDict."""
+  out = {}
+  for key, value in tree.items():
+    if hasattr(value, "items"):
+      out.update(flatten(value, f"{prefix}{key}."))
+    else:
+      out[f"{prefix}{key}"] = value
+  return out
+
+
+def migrate_flat(flat: dict) -> dict:
+  """A flattened config (e.g. an old workdir's config.json) with earlier names renamed to today's."""
+  return {LEGACY_NAMES.get(k, k): v for k, v in flat.items()}
+
+
+def migrate(config) -> list[str]:
+  """Moves fields of `config` (a ConfigDict) that carry an earlier name to today's, in place; returns the
+  earlier names found. (A user's own config file may still set e.g. c.model.depth.)"""
+  flat = flatten(config)
+  moved = [old for old in LEGACY_NAMES if old in flat]
+  if not moved:
+    return []
+  locked = config.is_locked
+  if locked:
+    config.unlock()
+  for old in moved:
+    *parents, leaf = old.split(".")
+    node = config
+    for p in parents:
+      node = node[p]
+    value = node[leaf]
+    del node[leaf]
+    *new_parents, new_leaf = LEGACY_NAMES[old].split(".")
+    node = config
+    for p in new_parents:
+      if p not in node:
+        node[p] = type(config)()
+      node = node[p]
+    node[new_leaf] = value
+  if locked:
+    config.lock()
+  return moved
+
+
+def rewrite_legacy_flags(argv: list[str]) -> list[str]:
+  """Command-line overrides with earlier field names (--config.model.depth=3) renamed to today's."""
+  out = []
+  for arg in argv:
+    for old, new in LEGACY_NAMES.items():
+      flag = f"--config.{old}"
+      if arg == flag or arg.startswith(flag + "="):
+        arg = f"--config.{new}" + arg[len(flag):]
+        break
+    out.append(arg)
+  return out
+
+
+def problems(config, device_count: int | None = None) -> list[str]:
+  """Every mistake in `config`, one sentence each; empty if it is valid."""
+  flat = flatten(config)
+  out = []
+  for name in sorted(set(flat) - set(FIELDS)):
+    out.append(f"{name} is not a config field nerfpod knows; remove it (its fields are those of "
+               f"configs/default.py).")
+  for name in FIELDS:
+    if name not in flat:
+      out.append(f"the config lacks the field {name}; derive configs from configs/default.py, which has "
+                 f"every field.")
+  if out:
+    return out
+  for name, field in FIELDS.items():
+    message = field.message(name, flat[name])
+    if message:
+      out.append(message)
+  if out:  # the rules assume every field is valid on its own
+    return out
+  out += _rules(flat)
+  if not out and device_count is not None:
+    out += device_rules(flat, device_count)
+  return out
+
+
+def validate(config, device_count: int | None = None) -> None:
+  """Raises ConfigError with every mistake in `config` (device_count: also check the batch's split)."""
+  found = problems(config, device_count)
+  if found:
+    raise ConfigError(found)
