@@ -1,8 +1,14 @@
-"""Real nerfpod processes for tests: N processes x M simulated CPU devices on 127.0.0.1.
+"""The one harness for tests that start processes: real nerfpod runs of N processes x M simulated CPU devices
+on 127.0.0.1, started directly or through launch/local.py, and stand-in processes for launcher tests.
 
-Imported by tests (start, wait, signal, always clean up), and run as a script it is one such process:
-`python tests/procs.py <nerfpod.main flags>` runs nerfpod.main and, when NERFPOD_TEST_RECORD is set to a
-folder, also records which rays the data pipeline loaded on this process (process_<index>.npz there).
+    with procs.Run(workdir, overrides, num_processes=2, devices_per_process=4) as run:
+      run.wait_ok(timeout)                 # or wait_for(...), signal(...), kill(...)
+    result = procs.run_main(*args)         # one process to its end: a CompletedProcess (stdout, stderr)
+
+Run as a script, this file is one such process: `python tests/procs.py <nerfpod.main flags>` runs
+nerfpod.main and, when NERFPOD_TEST_RECORD is set to a folder, also records which rays the data pipeline
+loaded on this process (process_<index>.npz there); with NERFPOD_TEST_STAND_IN set it is a stand-in that
+only prints what it was given and does what that variable says (launcher tests, no JAX).
 """
 import os
 import pathlib
@@ -23,20 +29,44 @@ FAST_FAILURE_FLAGS = ("--heartbeat_timeout_seconds=30", "--shutdown_timeout_seco
 
 
 def overrides_to_flags(overrides: dict) -> list[str]:
-  out = []
-  for key, value in overrides.items():
-    out.append(f"--config.{key}={value}")
-  return out
+  return [f"--config.{key}={value}" for key, value in overrides.items()]
+
+
+def environment(devices_per_process: int, **extra: str) -> dict:
+  """The environment of a test process: simulated CPU devices, the shared compilation cache, the repo on
+  the path, and none of the multi-process variables of whoever runs the tests."""
+  env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(devices_per_process), JAX_PLATFORMS="cpu",
+             PYTHONUNBUFFERED="1", PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
+             JAX_COMPILATION_CACHE_DIR=str(COMPILATION_CACHE), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+  for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "XLA_FLAGS",
+               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN"):
+    env.pop(name, None)
+  env.update(extra)
+  return env
+
+
+def run_main(*args: str, devices_per_process: int = 1, timeout: float = 300,
+             env: dict | None = None) -> subprocess.CompletedProcess:
+  """`python -m nerfpod.main ARGS` as one process in the repo root, to its end; stdout and stderr apart."""
+  return subprocess.run([sys.executable, "-m", "nerfpod.main", *args], cwd=REPO,
+                        env=environment(devices_per_process, **(env or {})), capture_output=True, text=True,
+                        timeout=timeout)
 
 
 class Run:
   """One run of `num_processes` processes; a context manager that kills whatever still runs on exit."""
 
-  def __init__(self, workdir, overrides: dict, num_processes: int = 1, devices_per_process: int = 8,
-               extra_flags=(), record_dir=None, log_dir=None, config="configs/default.py:smoke",
-               via_launcher: bool = False):
-    """Starts the processes. via_launcher: through launch/local.py (one child here, the launcher, whose
-    output is process 0's), else each process directly (so that a test can signal any one of them)."""
+  def __init__(self, workdir, overrides: dict | None = None, num_processes: int = 1,
+               devices_per_process: int = 8, extra_flags=(), record_dir=None, log_dir=None,
+               config="configs/default.py:smoke", via_launcher: bool = False, launcher_flags=(),
+               stand_in: str | None = None):
+    """Starts the processes.
+
+    via_launcher: through launch/local.py (one child here, the launcher, whose output is process 0's),
+    else each process directly (so that a test can signal any one of them). stand_in: the processes are
+    stand-ins doing what it says, comma-separated per process: 'exit:N' or 'wait' (until SIGTERM, then
+    exit 0); `config`, `overrides` and `workdir` are then only passed on.
+    """
     import portpicker
     self.workdir = pathlib.Path(workdir)
     self.log_dir = pathlib.Path(log_dir or self.workdir.parent / f"{self.workdir.name}-logs")
@@ -44,26 +74,25 @@ class Run:
     self.procs: list[subprocess.Popen] = []
     self.logs: list[pathlib.Path] = []
     self.started = time.monotonic()
-    flags = [f"--config={config}", f"--workdir={self.workdir}", *overrides_to_flags(overrides)]
+    flags = [f"--config={config}", f"--workdir={self.workdir}", *overrides_to_flags(overrides or {})]
     if num_processes > 1 and not via_launcher:
       port = portpicker.pick_unused_port()
       flags += [f"--coordinator_address=127.0.0.1:{port}", f"--num_processes={num_processes}"]
-    if num_processes > 1:
+    if num_processes > 1 and stand_in is None:
       flags += FAST_FAILURE_FLAGS
     flags += list(extra_flags)  # last, so that they win over the above
-    env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(devices_per_process), JAX_PLATFORMS="cpu",
-               PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO), JAX_COMPILATION_CACHE_DIR=str(COMPILATION_CACHE),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
-    for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "XLA_FLAGS"):
-      env.pop(name, None)
+    extra = {}
     if record_dir is not None:
-      env["NERFPOD_TEST_RECORD"] = str(record_dir)
+      extra["NERFPOD_TEST_RECORD"] = str(record_dir)
+    if stand_in is not None:
+      extra["NERFPOD_TEST_STAND_IN"] = stand_in
+    env = environment(devices_per_process, **extra)
     attempt = len(list(self.log_dir.glob("run*_process_0.log")))
+    self.launcher_log_dir = self.log_dir / f"run{attempt}"  # via the launcher: processes 1..'s logs
     if via_launcher:
-      argvs = [[sys.executable, str(REPO / "launch" / "local.py"), f"--num_processes={num_processes}",
-                f"--devices_per_process={devices_per_process}", f"--log_dir={self.log_dir / f'run{attempt}'}",
-                "--grace_s=10", "--", *flags]]
-      env["PYTHONPATH"] = os.pathsep.join([str(REPO), str(REPO / "tests")])
+      argvs = [[sys.executable, str(REPO / "launch" / "local.py"), "--module=procs",
+                f"--num_processes={num_processes}", f"--devices_per_process={devices_per_process}",
+                f"--log_dir={self.launcher_log_dir}", "--grace_s=10", *launcher_flags, "--", *flags]]
     else:
       argvs = [[sys.executable, str(REPO / "tests" / "procs.py"), *flags]
                + ([f"--process_id={index}"] if num_processes > 1 else []) for index in range(num_processes)]
@@ -93,6 +122,11 @@ class Run:
 
   def output(self, index: int = 0) -> str:
     return self.logs[index].read_text(errors="replace")
+
+  def launched_log(self, index: int) -> str:
+    """Via the launcher: process `index`'s output (process 0's is the launcher's own, output(0))."""
+    path = self.launcher_log_dir / f"process_{index}.log"
+    return path.read_text(errors="replace") if path.exists() else ""
 
   def wait(self, timeout: float) -> list[int]:
     """Return codes of all processes; fails (after killing them all) if any runs past `timeout` seconds."""
@@ -156,13 +190,13 @@ def _record_loaded_rays(folder: str) -> None:
   atexit.register(save)
 
 
-def _fake_process(actions: str) -> None:
+def _stand_in(actions: str) -> None:
   """A stand-in for nerfpod.main in launcher tests (no JAX): prints what it was given, then does what
   `actions` (comma-separated, one per process) says for its process id: 'exit:N' or 'wait' (until SIGTERM,
   then exit 0)."""
   index = int(next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0"))
   action = actions.split(",")[index]
-  print(f"fake process {index} ready: JAX_NUM_CPU_DEVICES={os.environ.get('JAX_NUM_CPU_DEVICES')} "
+  print(f"stand-in process {index} ready: JAX_NUM_CPU_DEVICES={os.environ.get('JAX_NUM_CPU_DEVICES')} "
         f"args={' '.join(sys.argv[1:])}", flush=True)
   if action.startswith("exit:"):
     sys.exit(int(action.split(":")[1]))
@@ -172,8 +206,8 @@ def _fake_process(actions: str) -> None:
 
 
 if __name__ == "__main__":
-  if os.environ.get("NERFPOD_TEST_FAKE"):
-    _fake_process(os.environ["NERFPOD_TEST_FAKE"])
+  if os.environ.get("NERFPOD_TEST_STAND_IN"):
+    _stand_in(os.environ["NERFPOD_TEST_STAND_IN"])
   sys.path.insert(0, str(REPO))
   if os.environ.get("NERFPOD_TEST_RECORD"):
     _record_loaded_rays(os.environ["NERFPOD_TEST_RECORD"])

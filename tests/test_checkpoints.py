@@ -23,6 +23,11 @@ def _state(mesh, value: float):
   return jax.device_put(tree, NamedSharding(mesh, P()))
 
 
+def _abstract(tree):
+  """ShapeDtypeStructs with shardings: what a restore fills (components.state_shapes for a train state)."""
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), tree)
+
+
 def _mesh(count: int) -> Mesh:
   return Mesh(np.array(jax.devices()[:count]), (distributed.DATA_AXIS,))
 
@@ -35,7 +40,7 @@ def test_saves_every_n_steps_keeps_the_newest_and_restores_state_and_position(tm
   assert saved == [2, 4, 6]  # every 2 steps, and no extra save of a run's first step
   assert checkpoints.finished_steps(str(tmp_path)) == [4, 6]
   with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
-    state, position = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))
+    state, position = ckpt.restore(_abstract(_state(mesh, 0)))
   assert position == {"next_step": 6}
   np.testing.assert_array_equal(state["params"]["b"], np.arange(5.0) * 6)
 
@@ -52,7 +57,7 @@ def test_a_save_cut_off_half_way_is_never_the_latest(tmp_path):
   assert checkpoints.latest_step(str(tmp_path)) == 10
   with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
     assert ckpt.latest_step() == 10
-    state, position = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))
+    state, position = ckpt.restore(_abstract(_state(mesh, 0)))
     assert position == {"next_step": 10} and int(state["step"]) == 10
     # The run goes on and writes step 20 properly over the leftovers.
     assert ckpt.save(20, _state(mesh, 20), {"next_step": 20})
@@ -70,7 +75,7 @@ def test_read_only_restore_leaves_a_save_under_way_and_sigterm_alone(tmp_path):
   handler = signal.getsignal(signal.SIGTERM)
   with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3, read_only=True) as ckpt:
     assert signal.getsignal(signal.SIGTERM) is handler
-    state, position = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))
+    state, position = ckpt.restore(_abstract(_state(mesh, 0)))
   assert position == {"next_step": 10} and int(state["step"]) == 10
   assert (directory / "20.orbax-checkpoint-tmp").exists()
 
@@ -81,7 +86,7 @@ def test_restores_onto_a_mesh_of_another_size(tmp_path, devices):
     ckpt.save(3, _state(_mesh(8), 3.5), {"next_step": 3})
   smaller = _mesh(devices)
   with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
-    state, _ = ckpt.restore(checkpoints.abstract_like(_state(smaller, 0)))
+    state, _ = ckpt.restore(_abstract(_state(smaller, 0)))
   w = state["params"]["w"]
   assert w.sharding == NamedSharding(smaller, P()) and len(w.sharding.device_set) == devices
   np.testing.assert_array_equal(w, np.full((4, 3), 3.5))
@@ -149,8 +154,8 @@ def test_restoring_a_state_of_another_shape_is_one_sentence_and_keeps_the_checkp
   with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1, read_only=True) as ckpt:
     with pytest.raises(UserError, match=r"step 1 .*another shape .*\(params/extra: new; "
                                         r"params/w: \(4, 3\) saved, \(4, 2\) now\).*new --workdir"):
-      ckpt.restore(checkpoints.abstract_like(other))
-    state, _ = ckpt.restore(checkpoints.abstract_like(_state(mesh, 0)))  # the checkpoint is intact
+      ckpt.restore(_abstract(other))
+    state, _ = ckpt.restore(_abstract(_state(mesh, 0)))  # the checkpoint is intact
   np.testing.assert_array_equal(state["params"]["w"], np.ones((4, 3)))
   assert checkpoints.state_differences(checkpoints.checkpoint_dir(str(tmp_path)) / "1" / "state",
-                                       checkpoints.abstract_like(_state(mesh, 0))) == ""
+                                       _abstract(_state(mesh, 0))) == ""

@@ -2,14 +2,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nerfpod.nerf.rendering import volume_render
+from nerfpod.nerf.compositing import composite
 
 
 def test_constant_density_transmittance_is_exponential():
   sigma, n = 0.7, 200
   t = jnp.linspace(2.0, 6.0, n)[None]
   directions = jnp.array([[0.0, 0.0, -2.0]])  # |d| = 2: world distance is twice the t interval
-  out = volume_render(jnp.ones((1, n, 3)), jnp.full((1, n), sigma), t, directions)
+  out = composite(jnp.ones((1, n, 3)), jnp.full((1, n), sigma), t, directions, last_delta=1e10)
   weights = np.asarray(out["weights"][0])
   transmittance = 1.0 - np.concatenate([[0.0], np.cumsum(weights)[:-1]])
   np.testing.assert_allclose(transmittance, np.exp(-sigma * 2.0 * (np.asarray(t[0]) - 2.0)), rtol=1e-4, atol=1e-6)
@@ -21,7 +21,7 @@ def test_weights_sum_to_accumulated_opacity_and_colour_is_weighted_mean():
   rgb = jnp.asarray(rng.uniform(0, 1, (5, 32, 3)), jnp.float32)
   t = jnp.sort(jnp.asarray(rng.uniform(2, 6, (5, 32)), jnp.float32), -1)
   d = jnp.asarray(rng.normal(size=(5, 3)), jnp.float32)
-  out = volume_render(rgb, sigma, t, d, last_delta=0.3, background_3=jnp.array([0.2, 0.5, 1.0]))
+  out = composite(rgb, sigma, t, d, last_delta=0.3, background=jnp.array([0.2, 0.5, 1.0]))
   np.testing.assert_allclose(out["weights"].sum(-1), out["acc"], rtol=1e-6)
   assert np.all((np.asarray(out["acc"]) >= 0) & (np.asarray(out["acc"]) <= 1))
   expected = (out["weights"][..., None] * rgb).sum(1) + (1 - out["acc"][:, None]) * jnp.array([0.2, 0.5, 1.0])
@@ -30,8 +30,8 @@ def test_weights_sum_to_accumulated_opacity_and_colour_is_weighted_mean():
 
 
 def test_infinite_last_interval_makes_any_density_opaque():
-  out = volume_render(jnp.ones((1, 4, 3)), jnp.array([[0.0, 0.0, 0.0, 1e-3]]), jnp.array([[2.0, 3, 4, 5]]),
-                      jnp.array([[0.0, 0, -1]]))
+  out = composite(jnp.ones((1, 4, 3)), jnp.array([[0.0, 0.0, 0.0, 1e-3]]), jnp.array([[2.0, 3, 4, 5]]),
+                  jnp.array([[0.0, 0, -1]]), last_delta=1e10)
   np.testing.assert_allclose(out["acc"], 1.0)
   np.testing.assert_allclose(out["depth"], 5.0)
 
@@ -50,7 +50,6 @@ def test_rendered_colour_matches_fine_riemann_sum_of_the_integral(num_samples):
   # NeRF's quadrature on stratified midpoints, the last interval closed at `far`.
   edges = np.linspace(near, far, num_samples + 1)
   t = 0.5 * (edges[1:] + edges[:-1])
-  out = volume_render(jnp.asarray(colour_fn(t))[None], jnp.asarray(sigma_fn(t))[None],
-                      jnp.asarray(t)[None], jnp.array([[0.0, 0.0, -1.0]]),
-                      last_delta=float(far - t[-1]))
+  out = composite(jnp.asarray(colour_fn(t))[None], jnp.asarray(sigma_fn(t))[None],
+                  jnp.asarray(t)[None], jnp.array([[0.0, 0.0, -1.0]]), last_delta=float(far - t[-1]))
   np.testing.assert_allclose(np.asarray(out["rgb"][0]), reference, atol=2e-3)

@@ -5,6 +5,7 @@ import pytest
 
 from conftest import REPO
 from nerfpod.config_util import sibling_config
+from nerfpod.errors import UserError
 
 CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast"]
 CONTRACT = ["data.path", "data.downscale", "train.num_steps", "train.seed", "checkpoint.every_steps",
@@ -29,7 +30,7 @@ def test_config_loads_with_the_contract_names(name, arg):
 
 def test_config_arguments_are_parsed_and_unknown_ones_refused():
   assert sibling_config(str(REPO / "configs" / "x.py"), "blender", "scene=chair").data.path.endswith("chair")
-  with pytest.raises(ValueError, match="unknown config argument 'scen'"):
+  with pytest.raises(UserError, match="unknown config argument 'scen'"):
     sibling_config(str(REPO / "configs" / "x.py"), "blender", "scen=chair")
 
 
@@ -40,3 +41,15 @@ def test_every_field_of_the_default_config_has_a_comment():
                  and "ConfigDict()" not in line]
   assert len(assignments) > 40
   assert [line for line in assignments if "#" not in line] == []
+
+
+def test_tiny_config_is_the_tutorials_model_and_blender_the_papers():
+  tiny = sibling_config(str(REPO / "configs" / "x.py"), "tiny")
+  assert (tiny.model.field, tiny.model.use_viewdirs) == ("mlp", False)
+  assert (tiny.model.mlp.num_frequencies, tiny.model.mlp.depth, tiny.model.mlp.width,
+          tuple(tiny.model.mlp.skips)) == (6, 8, 256, (4,))
+  assert (tiny.render.num_samples, tiny.render.num_importance, tiny.train.lr_init) == (256, 0, 5e-4)
+  blender = sibling_config(str(REPO / "configs" / "x.py"), "blender")
+  assert (blender.model.mlp.num_frequencies, blender.model.mlp.viewdir_frequencies, blender.model.mlp.depth,
+          blender.model.mlp.width, blender.model.use_viewdirs) == (10, 4, 8, 256, True)
+  assert (blender.render.num_samples, blender.render.num_importance) == (64, 128)

@@ -26,20 +26,26 @@ def test_global_batches_do_not_depend_on_the_number_of_hosts(split):
       many = _global_batch(split, step, processes)
       for key in one:
         np.testing.assert_array_equal(many[key], one[key])
-  np.testing.assert_array_equal(_global_batch(split, 0, 4)["ray_ids"], np.arange(64))
 
 
-def test_each_host_loads_only_its_own_disjoint_rows(split):
+def test_each_host_loads_only_its_own_disjoint_rows_and_names_them_by_global_row(split):
+  whole = data.LocalRayBatch(split, 3, 64, slice(0, 64), 0.5).map(2)
   per_host = [data.LocalRayBatch(split, 3, 64, slice(p * 16, (p + 1) * 16), 0.5).map(2) for p in range(4)]
   assert all(len(b["rgb"]) == 16 for b in per_host)
   ids = np.concatenate([b["ray_ids"] for b in per_host])
-  assert len(set(ids.tolist())) == 64
+  assert sorted(ids.tolist()) == list(range(64))  # disjoint, and together the whole batch
+  # A ray's id is its row in the global batch (the step's per-ray randomness is drawn from it): a host's
+  # rays are the global batch's rows at its ids, not its first rows.
+  for b in per_host:
+    for key in ("origins", "directions", "rgb"):
+      np.testing.assert_array_equal(b[key], whole[key][b["ray_ids"]])
+  assert not np.array_equal(per_host[1]["origins"], whole["origins"][:16])
 
 
 def test_batches_are_exact_rays_of_random_pixels_from_all_images(split):
   batch = data.LocalRayBatch(split, 0, 4096, slice(0, 4096), 0.5).map(7)
   # The procedural scene is rendered exactly: the batch's colours are its rays' true colours.
-  np.testing.assert_allclose(procedural.render(batch["origins"], batch["directions"]), batch["rgb"], atol=1e-5)
+  np.testing.assert_allclose(procedural.trace(batch["origins"], batch["directions"]), batch["rgb"], atol=1e-5)
   flat = data.global_pixel_indices(0, 7, 4096, split.images.size // 3)
   images = np.unique(flat // (16 * 16))
   assert len(images) > 90  # drawn from (almost) all 100 images, not one image per step
@@ -59,7 +65,7 @@ def test_sequence_depends_on_seed_and_step_only_and_resumes_anywhere(split):
 
 def test_batches_carry_alpha_where_the_data_have_it(split):
   batch = data.LocalRayBatch(split, 0, 512, slice(0, 512), 0.5).map(1)
-  _, alpha = procedural.render(batch["origins"], batch["directions"], return_alpha=True)
+  _, alpha = procedural.trace(batch["origins"], batch["directions"], return_alpha=True)
   np.testing.assert_array_equal(batch["alpha"], alpha)
   assert 0 < alpha.mean() < 1
   np.testing.assert_array_equal(batch["rgb"][alpha == 0], 1.0)  # background rays are white

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import smoke_config
-from nerfpod import evaluate, metrics, render, train
+from nerfpod import metrics, modes, render
 from nerfpod.errors import UserError
 
 OVERRIDES = {"train.num_steps": 3, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 2,
@@ -40,7 +40,7 @@ def test_psnr_and_ssim_closed_forms_at_scale_and_against_a_reference_implementat
 def workdir(tmp_path_factory):
   """A smoke run of 3 steps: checkpoint, eval/metrics.json and TensorBoard events (no orbit)."""
   directory = tmp_path_factory.mktemp("run")
-  result = train.train_and_evaluate(smoke_config(**OVERRIDES), str(directory))
+  result = modes.train_and_evaluate(smoke_config(**OVERRIDES), str(directory))
   return directory, result
 
 
@@ -52,14 +52,13 @@ def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
   assert [v["index"] for v in written["views"]] == [0, 1]  # eval.max_views=2 of the 8 test views
   # Recompute every view from the checkpoint with the plain renderer and the metrics module.
   config = smoke_config(**OVERRIDES)
-  trained = train.load_trained(config, str(directory))
-  assert trained.step == 3
-  near, far = train.ray_bounds(config, trained.scene)
-  render_fn = render.make_render_fn(trained.model, trained.mesh, near, far, trained.scene.background)
-  split = trained.scene.split("test")
+  comps, params, step = modes.restore_trained(config, str(directory))
+  assert step == 3
+  renderer = render.make_renderer(comps.model, comps.mesh, 2.0, 6.0, comps.scene.background)
+  split = comps.scene.split("test")
   for view in written["views"]:
-    out = render.render_image(render_fn, trained.state.params, trained.mesh, split.poses[view["index"]],
-                              split.intrinsics, config.data.pixel_center, 512)
+    out = render.render_image(renderer, params, comps.mesh, split.poses[view["index"]], split.intrinsics,
+                              config.data.pixel_center, 512)
     rgb = np.clip(out["rgb"], 0, 1)
     assert view["psnr"] == pytest.approx(metrics.psnr(rgb, split.images[view["index"]]), abs=1e-4)
     assert view["ssim"] == pytest.approx(metrics.ssim(rgb, split.images[view["index"]]), abs=1e-5)
@@ -71,12 +70,12 @@ def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
 def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, tmp_path):
   directory, _ = workdir
   config = smoke_config(**dict(OVERRIDES, **{"eval.split": "val", "eval.max_views": 1, "eval.chunk": 64}))
-  result = evaluate.evaluate_workdir(config, str(directory))
+  result = modes.evaluate_workdir(config, str(directory))
   written = json.loads((directory / "eval" / "metrics.json").read_text())
   assert written == result and written["split"] == "val" and written["step"] == 3
   assert [v["index"] for v in written["views"]] == [0]
   assert _scalars(directory, "eval/val/ssim") == {3: pytest.approx(written["mean"]["ssim"], rel=1e-6)}
   with pytest.raises(UserError, match="holds no checkpoint"):
-    evaluate.evaluate_workdir(config, str(tmp_path / "empty"))
-  with pytest.raises(UserError, match="no 'nope' split"):
-    evaluate.evaluate_workdir(smoke_config(**dict(OVERRIDES, **{"eval.split": "nope"})), str(directory))
+    modes.evaluate_workdir(config, str(tmp_path / "empty"))
+  with pytest.raises(UserError, match=r"eval.split=nope is not valid: it must be one of 'test', 'val'"):
+    modes.evaluate_workdir(smoke_config(**dict(OVERRIDES, **{"eval.split": "nope"})), str(directory))

@@ -3,6 +3,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
+from nerfpod import archive as archives
 from nerfpod import orbit, video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
@@ -24,12 +25,12 @@ def _frame(index: int, num_frames: int, height: int, width: int) -> dict:
           "disparity": (acc / depth).astype(np.float32)}
 
 
-def _archive(path, num_frames: int, height: int, width: int, frames=None) -> orbit.Archive:
+def _archive(path, num_frames: int, height: int, width: int, frames=None) -> archives.Archive:
   intr = cameras.Intrinsics.from_focal(width, height, 20.0)
   attributes = {"num_frames": num_frames, "step": 1, "scene": "synthetic", "near": NEAR, "far": FAR,
-                "fps": 10.0, "intrinsics": orbit._intrinsics_json(intr),
+                "fps": 10.0, "intrinsics": archives.intrinsics_json(intr),
                 "poses": orbit.orbit_poses(num_frames, -30, 4).astype(float).tolist(), "config": {}}
-  archive = orbit.Archive.create(str(path), attributes)
+  archive = archives.Archive.create(str(path), attributes)
   for i in range(num_frames) if frames is None else frames:
     archive.write_frame(i, _frame(i, num_frames, height, width), process_index=0)
   return archive
@@ -65,8 +66,8 @@ def test_depth_and_disparity_colours_show_near_warm_and_far_cold():
 def test_exported_videos_have_every_frame_at_the_archive_size(tmp_path, height, width):
   num_frames = 6
   _archive(tmp_path / "orbit.zarr", num_frames, height, width)
-  files = export_tool.export(str(tmp_path / "orbit.zarr"), str(tmp_path / "out"), fps=12,
-                             formats=["mp4", "gif", "png"])
+  files = export_tool.write_files(str(tmp_path / "orbit.zarr"), str(tmp_path / "out"), fps=12,
+                                 formats=["mp4", "gif", "png"])
   assert sorted(p.rsplit("/", 1)[1] for p in files) == sorted(
       [f"orbit_{c}.{f}" for c in video.CHANNELS for f in ("mp4", "gif")] + ["orbit_sheet.png"])
   even = (height + height % 2, width + width % 2)  # H.264 (yuv420p) needs even sizes: odd ones are padded
@@ -95,16 +96,16 @@ def test_exported_videos_have_every_frame_at_the_archive_size(tmp_path, height, 
 
 def test_export_finds_the_archive_in_a_workdir_and_defaults_to_its_folder(tmp_path):
   _archive(tmp_path / "renders" / "orbit.zarr", 3, 8, 8)
-  files = export_tool.export(str(tmp_path), formats=["png"])
+  files = export_tool.write_files(str(tmp_path), formats=["png"])
   assert files == [str(tmp_path / "renders" / "orbit_sheet.png")]
   assert not list((tmp_path / "renders").glob("*partial*"))
 
 
 def test_missing_or_partial_archives_are_refused_naming_the_missing_frames(tmp_path, capsys):
   with pytest.raises(UserError, match="does not exist"):
-    export_tool.export(str(tmp_path / "nowhere"))
+    export_tool.write_files(str(tmp_path / "nowhere"))
   with pytest.raises(UserError, match="no orbit archive"):
-    export_tool.export(str(tmp_path))
+    export_tool.write_files(str(tmp_path))
   _archive(tmp_path / "orbit.zarr", 5, 8, 8, frames=[0, 2, 4])
   with pytest.raises(SystemExit) as exit_info:
     export_tool.run([str(tmp_path / "orbit.zarr")])
@@ -113,4 +114,4 @@ def test_missing_or_partial_archives_are_refused_naming_the_missing_frames(tmp_p
   assert "incomplete: 2 of 5 frames are missing (1, 3)" in message and "--mode=render" in message
   assert not list(tmp_path.glob("orbit_*"))
   with pytest.raises(UserError, match="unknown export format"):
-    export_tool.export(str(tmp_path / "orbit.zarr"), formats=["avi"])
+    export_tool.write_files(str(tmp_path / "orbit.zarr"), formats=["avi"])

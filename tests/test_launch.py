@@ -4,65 +4,46 @@ import shlex
 import signal
 import subprocess
 import sys
-import time
 
 import pytest
 
+import procs
 from procs import REPO
 
 LOCAL = REPO / "launch" / "local.py"
 TPU_POD = REPO / "launch" / "tpu_pod.py"
 
 
-def _launch_fake(tmp_path, actions: str, *launcher_flags: str):
-  """launch/local.py with stand-in processes doing `actions`; its output goes to tmp_path/launcher.log."""
-  env = dict(os.environ, NERFPOD_TEST_FAKE=actions, PYTHONPATH=str(REPO / "tests"))
-  out = open(tmp_path / "launcher.log", "wb")
-  proc = subprocess.Popen([sys.executable, str(LOCAL), "--module=procs", f"--log_dir={tmp_path / 'logs'}",
-                           *launcher_flags, "--", "--config=x.py", "--workdir=/tmp/w"],
-                          cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
-  out.close()
-  return proc
-
-
-def _wait_for_text(path, text, proc, timeout=30.0):
-  deadline = time.monotonic() + timeout
-  while not (path.exists() and text in path.read_text()):
-    assert proc.poll() is None, f"the launcher exited early, status {proc.returncode}"
-    assert time.monotonic() < deadline, f"no {text!r} in {path}"
-    time.sleep(0.05)
+def _launch_stand_ins(tmp_path, actions: str, num_processes: int, devices_per_process: int, *launcher_flags):
+  """launch/local.py starting stand-in processes that do `actions` (procs.Run's stand_in), no JAX."""
+  return procs.Run(tmp_path / "w", num_processes=num_processes, devices_per_process=devices_per_process,
+                   config="x.py", via_launcher=True, launcher_flags=launcher_flags, stand_in=actions,
+                   log_dir=tmp_path / "logs")
 
 
 def test_local_launcher_starts_every_process_with_its_id_and_stops_all_when_one_fails(tmp_path):
-  proc = _launch_fake(tmp_path, "wait,exit:3,wait", "--num_processes=3", "--devices_per_process=2",
-                      "--grace_s=1")
-  try:
-    code = proc.wait(timeout=30)
-  finally:
-    proc.kill()
-  out = (tmp_path / "launcher.log").read_text()
-  assert code == 3, out  # the status of the process that failed, not of those stopped after it
+  with _launch_stand_ins(tmp_path, "wait,exit:3,wait", 3, 2, "--grace_s=1") as run:
+    codes = run.wait(timeout=30)
+  out = run.output(0)
+  assert codes == [3], out  # the status of the process that failed, not of those stopped after it
   assert "process 1 exited with status 3" in out
-  first = next(line for line in out.splitlines() if line.startswith("fake process 0 ready"))
+  first = next(line for line in out.splitlines() if line.startswith("stand-in process 0 ready"))
   assert "JAX_NUM_CPU_DEVICES=2" in first
-  assert "--config=x.py --workdir=/tmp/w --coordinator_address=127.0.0.1:" in first
+  assert f"--config=x.py --workdir={tmp_path / 'w'} --coordinator_address=127.0.0.1:" in first
   assert "--num_processes=3 --process_id=0" in first
   # Processes 1.. write to the log folder, not to the launcher's output.
-  assert "fake process 1" not in out
-  assert "--process_id=2" in (tmp_path / "logs" / "process_2.log").read_text()
+  assert "stand-in process 1" not in out
+  assert "--process_id=2" in run.launched_log(2)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "Ctrl-C"])
 def test_local_launcher_passes_sigterm_or_ctrl_c_on_as_sigterm_and_exits_0_when_all_do(tmp_path, sig):
-  proc = _launch_fake(tmp_path, "wait,wait", "--num_processes=2", "--devices_per_process=1")
-  try:
-    _wait_for_text(tmp_path / "launcher.log", "fake process 0 ready", proc)
-    _wait_for_text(tmp_path / "logs" / "process_1.log", "fake process 1 ready", proc)
-    proc.send_signal(sig)  # the stand-ins exit 0 on SIGTERM only
-    code = proc.wait(timeout=30)
-  finally:
-    proc.kill()
-  assert code == 0, (tmp_path / "launcher.log").read_text()
+  with _launch_stand_ins(tmp_path, "wait,wait", 2, 1) as run:
+    run.wait_for(lambda: "stand-in process 0 ready" in run.output(0)
+                 and "stand-in process 1 ready" in run.launched_log(1), 30, "both stand-ins ready")
+    run.signal(0, sig)  # the stand-ins exit 0 on SIGTERM only
+    codes = run.wait(timeout=30)
+  assert codes == [0], run.output(0)
 
 
 def test_local_launcher_refuses_bad_counts():

@@ -1,19 +1,9 @@
 """The entry point as a user runs it: one command, a workdir with config, events and metrics."""
 import json
-import os
-import subprocess
-import sys
 
 import pytest
 
-from conftest import REPO
-
-
-def run_main(*args, timeout=300, env=None):
-  """`python -m nerfpod.main ARGS` in the repo root on one CPU device; returns the CompletedProcess."""
-  environment = {**os.environ, "JAX_NUM_CPU_DEVICES": "1", **(env or {})}
-  return subprocess.run([sys.executable, "-m", "nerfpod.main", *args], cwd=REPO, env=environment,
-                        capture_output=True, text=True, timeout=timeout)
+from procs import run_main
 
 
 @pytest.fixture(scope="module")
@@ -67,18 +57,12 @@ def test_unknown_config_key_is_refused_clearly(tmp_path):
 ])
 def test_bad_input_exits_non_zero_with_one_sentence(tmp_path, args, message):
   result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *args,
-                    env={"JAX_NUM_CPU_DEVICES": "8"})
+                    devices_per_process=8)
   if message is None:  # 100 rays over 8 devices
     message = "does not split over 8 devices"
   assert result.returncode == 2, result.stderr[-2000:]
   assert message in result.stderr and "Traceback" not in result.stderr
   assert len([l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]) == 1
-
-
-def test_bad_eval_settings_are_refused_before_training(tmp_path):
-  result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", "--config.eval.chunk=0")
-  assert result.returncode == 2 and "eval.chunk=0 must be a positive number of rays" in result.stderr
-  assert "step " not in result.stdout and not (tmp_path / "checkpoints").exists()
 
 
 def test_missing_config_file_is_refused_clearly(tmp_path):

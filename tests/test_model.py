@@ -17,9 +17,16 @@ def _rays(n=64, seed=0):
   return jnp.asarray(eye, jnp.float32), jnp.asarray(directions, jnp.float32)
 
 
+def _mlp_field(**sizes):
+  """An MLPField sized like the smoke config's MLP, with `sizes` overriding."""
+  attributes = dict(smoke_config().model.mlp, use_viewdirs=False, dtype=jnp.float32)
+  attributes.update(sizes)
+  return fields.MLPField(**attributes)
+
+
 def _hierarchical(field="mlp", dtype="float32", importance=24):
-  config = smoke_config(**{"model.field": field, "model.depth": 3, "model.width": 32, "model.skips": (1,),
-                           "model.use_viewdirs": True, "render.num_samples": 16,
+  config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
+                           "model.mlp.skips": (1,), "model.use_viewdirs": True, "render.num_samples": 16,
                            "render.num_importance": importance, "model.compute_dtype": dtype})
   model = nerf_model.from_config(config)
   origins, directions = _rays()
@@ -62,7 +69,7 @@ def test_fine_loss_sends_no_gradient_to_the_coarse_network_through_sample_positi
 
 
 def test_view_directions_change_colour_but_not_density():
-  field = fields.MLPField(depth=3, width=32, skips=(1,), use_viewdirs=True)
+  field = _mlp_field(depth=3, width=32, skips=(1,), use_viewdirs=True)
   points = jax.random.normal(jax.random.key(0), (10, 3))
   dirs_a = jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (10, 1))
   dirs_b = jnp.tile(jnp.array([[1.0, 0.0, 0.0]]), (10, 1))
@@ -74,7 +81,7 @@ def test_view_directions_change_colour_but_not_density():
 
 
 def test_tutorial_mlp_has_the_tutorial_shapes():
-  field = fields.MLPField(depth=8, width=256, skips=(4,), num_frequencies=6)
+  field = _mlp_field(depth=8, width=256, skips=(4,), num_frequencies=6)
   params = jax.eval_shape(field.init, jax.random.key(0), jnp.zeros((1, 3)))["params"]
   assert params["trunk_0"]["kernel"].shape == (39, 256)
   assert params["trunk_5"]["kernel"].shape == (256 + 39, 256)  # input rejoins after layer 4

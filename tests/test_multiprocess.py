@@ -4,6 +4,7 @@ resume after SIGKILL, elastic restore, preemption by SIGTERM, a dead peer, and a
 Every run is the same 24-step job; its uninterrupted result on 1 process x 8 devices (this pytest process)
 is the reference every other run must end at.
 """
+import os
 import random
 import re
 from signal import SIGTERM
@@ -15,8 +16,10 @@ import pytest
 
 import procs
 from conftest import smoke_config
-from nerfpod import checkpoints, data, distributed, scenes, train
+from nerfpod import checkpoints, data, distributed, modes, scenes
 from nerfpod.errors import UserError
+
+pytestmark = pytest.mark.slow
 
 NUM_STEPS = 24
 OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.every_steps": 6,
@@ -31,6 +34,9 @@ OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.
 SAME_SUMS = {"rel_tol": 1e-5, "outliers": 0.0}
 OTHER_SUMS = {"rel_tol": 1e-2, "outliers": 0.01}
 RUN_TIMEOUT = 120  # seconds any one run may take on a loaded 2-core machine
+# Random moments of interruption are drawn from this seed (NERFPOD_TEST_SEED to replay a failure); every
+# assertion message that depends on one names the seed.
+SEED = int(os.environ.get("NERFPOD_TEST_SEED", random.SystemRandom().randrange(2**31)))
 # The same job, checkpointed every 2 steps: as each save waits for the previous one to finish, the run
 # moves at the pace of its saves, which leaves time to interrupt it after a checkpoint and before its end.
 # (Checkpoint settings may change between a run and its resumption; they do not touch the trajectory.)
@@ -54,7 +60,7 @@ def assert_params_close(workdir, reference, rel_tol, outliers):
 def reference(tmp_path_factory):
   """Final parameters of the uninterrupted job on 1 process x 8 devices."""
   workdir = tmp_path_factory.mktemp("reference")
-  train.train_and_evaluate(smoke_config(**OVERRIDES), str(workdir))
+  modes.train_and_evaluate(smoke_config(**OVERRIDES), str(workdir))
   state, _, step = checkpoints.read_numpy(str(workdir))
   assert step == NUM_STEPS
   return {"workdir": workdir, "params": state["params"]}
@@ -97,13 +103,13 @@ def test_sigkill_at_any_moment_then_restart_ends_with_the_same_parameters(refere
   workdir = tmp_path / "run"
   with procs.Run(workdir, THROTTLED) as run:
     run.wait_for(lambda: checkpoints.latest_step(str(workdir)) is not None, RUN_TIMEOUT, "a checkpoint")
-    time.sleep(random.uniform(0.0, 0.3))  # mid-step, mid-save, whichever it is now
+    time.sleep(random.Random(SEED).uniform(0.0, 0.3))  # mid-step, mid-save, whichever it is now
     run.kill()
   stopped_at = checkpoints.latest_step(str(workdir))
-  assert stopped_at is not None and stopped_at < NUM_STEPS, "the run was not cut short"
+  assert stopped_at is not None and stopped_at < NUM_STEPS, f"the run was not cut short (seed {SEED})"
   with procs.Run(workdir, OVERRIDES) as again:
     again.wait_ok(RUN_TIMEOUT)
-  assert f"steps {stopped_at}..{NUM_STEPS}" in again.output(0), again.tails()
+  assert f"steps {stopped_at}..{NUM_STEPS}" in again.output(0), f"seed {SEED}: " + again.tails()
   # Same devices as the reference: the same computations, so (all but) the same bits.
   assert_params_close(workdir, reference["params"], rel_tol=1e-6, outliers=0.0)
 
@@ -112,10 +118,8 @@ def test_sigterm_to_one_host_saves_an_agreed_step_then_resumes_on_another_topolo
   workdir = tmp_path / "pod"
   with procs.Run(workdir, THROTTLED, num_processes=2, devices_per_process=4) as pod:
     pod.wait_for(lambda: "step      1/" in pod.output(0), RUN_TIMEOUT, "first training step")
-    sent = time.monotonic()
     pod.signal(1, SIGTERM)  # what a TPU VM gets before maintenance, here on one host only
-    pod.wait_ok(60)
-    assert time.monotonic() - sent < 60
+    pod.wait_ok(RUN_TIMEOUT)  # (that it stopped early, at an agreed step, is asserted below)
   lines = [l for l in pod.output(0).splitlines() if l.startswith("nerfpod: preempted")]
   assert len(lines) == 1, pod.tails()
   agreed = checkpoints.latest_step(str(workdir))

@@ -29,12 +29,12 @@ def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
   assert not np.allclose(a.splits["train"].poses[:8], a.splits["test"].poses)  # held out is new
 
 
-def test_procedural_rendering_is_exact_for_a_ray_onto_the_sphere_top():
+def test_procedural_ray_tracing_is_exact_for_a_ray_onto_the_sphere_top():
   centre = np.array([0.45, 0.35, 0.45])  # the red sphere's (radius 0.45): the ray hits its top point
-  colour = procedural.render(np.array([[centre[0], centre[1], 3.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
+  colour = procedural.trace(np.array([[centre[0], centre[1], 3.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
   shade = procedural._AMBIENT + (1 - procedural._AMBIENT) * procedural._LIGHT[2]  # normal +z at the top
   np.testing.assert_allclose(colour, np.array([0.85, 0.2, 0.15]) * shade, rtol=1e-6)
-  miss = procedural.render(np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 0.0, 1.0]]))[0]
+  miss = procedural.trace(np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 0.0, 1.0]]))[0]
   np.testing.assert_array_equal(miss, 1.0)
 
 
@@ -111,9 +111,9 @@ def test_blender_bad_input_gets_one_clear_sentence(tmp_path, corrupt, message):
 
 
 def test_dispatch_refuses_unknown_kinds_and_missing_paths():
-  cfg = ml_collections.ConfigDict({"kind": "colmap", "path": "x", "downscale": 1, "image_size": 8,
+  cfg = ml_collections.ConfigDict({"kind": "nope", "path": "", "downscale": 1, "image_size": 8,
                                    "pixel_center": 0.5})
-  with pytest.raises(UserError, match="unknown data.kind 'colmap'"):
+  with pytest.raises(UserError, match="unknown data.kind 'nope'"):  # the kind is named, not the missing path
     scenes.load(cfg)
   cfg.kind, cfg.path = "tiny", ""
   with pytest.raises(UserError, match="needs a data path"):

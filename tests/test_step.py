@@ -7,14 +7,14 @@ import pytest
 from jax.sharding import Mesh
 
 from conftest import smoke_config
-from nerfpod import data, distributed, scenes, train, xla_options
+from nerfpod import components, data, distributed, scenes, train, xla_options
 from nerfpod.nerf import model as nerf_model
 
 
 def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_options=None, hlo=None):
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
-  state = train.init_state(model, optimizer, config.train.seed, mesh)
+  state = components.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
                                   microbatches=microbatches, compiler_options=compiler_options)
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
@@ -34,9 +34,9 @@ def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_opti
 
 @pytest.mark.parametrize("field,importance", [("mlp", 8), ("hashgrid", 0)])
 def test_eight_devices_match_one_device(field, importance):
-  config = smoke_config(**{"model.field": field, "model.depth": 3, "model.width": 32, "model.skips": (1,),
-                           "model.use_viewdirs": True, "render.num_importance": importance,
-                           "train.batch_size": 128})
+  config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
+                           "model.mlp.skips": (1,), "model.use_viewdirs": True,
+                           "render.num_importance": importance, "train.batch_size": 128})
   assert jax.device_count() == 8
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   eight = distributed.make_mesh()
@@ -52,8 +52,8 @@ def test_eight_devices_match_one_device(field, importance):
 
 
 def test_microbatches_accumulate_to_the_same_step():
-  config = smoke_config(**{"model.field": "mlp", "model.depth": 2, "model.width": 16, "model.skips": (),
-                           "train.batch_size": 128})
+  config = smoke_config(**{"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
+                           "model.mlp.skips": (), "train.batch_size": 128})
   one = Mesh(np.array(jax.devices()[:2]), (distributed.DATA_AXIS,))
   sgd = optax.sgd(0.5)
   losses_1, params_1 = _run_steps(one, config, 2, sgd)
@@ -65,7 +65,7 @@ def test_microbatches_accumulate_to_the_same_step():
 def test_adam_step_on_eight_devices_follows_the_same_loss_trajectory():
   config = smoke_config(**{"train.batch_size": 128})
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  optimizer = train.make_optimizer(config.train)
+  optimizer = components.make_optimizer(config.train)
   losses_1, _ = _run_steps(one, config, 4, optimizer)
   losses_8, _ = _run_steps(distributed.make_mesh(), config, 4, optimizer)
   np.testing.assert_allclose(losses_8, losses_1, rtol=1e-4)
@@ -88,7 +88,7 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
   mesh = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   model = nerf_model.from_config(config)
   optimizer = optax.sgd(0.0)  # only the loss matters here
-  params = jax.device_get(train.init_state(model, optimizer, 0, mesh).params)
+  params = jax.device_get(components.initial_state(model, optimizer, 0, mesh).params)
   rays = {"origins": np.tile([[0.0, 0.0, 4.0]], (64, 1)).astype(np.float32),
           "directions": np.tile([[0.0, 0.0, -1.0]], (64, 1)).astype(np.float32),
           "rgb": np.ones((64, 3), np.float32), "alpha": np.zeros(64, np.float32),  # white background rays
@@ -96,7 +96,7 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
 
   def loss(params, random_background):
     step = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, (1.0, 1.0, 1.0), random_background)
-    state = train.TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
+    state = components.TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
     state = jax.device_put(jax.device_get(state), distributed.replicated(mesh))  # fresh: the step donates it
     _, metrics = step(state, jax.device_put(rays, distributed.batch_sharding(mesh)), jax.random.key(0))
     return float(metrics["loss"])
@@ -111,8 +111,8 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
 @pytest.mark.parametrize("field", ["mlp", "hashgrid"])
 def test_cpu_compiler_options_change_kernels_not_results(field):
   """nerfpod's CPU default (YNNPACK off) reaches the compiled step and leaves its results unchanged."""
-  config = smoke_config(**{"model.field": field, "model.depth": 3, "model.width": 32, "model.skips": (1,),
-                           "train.batch_size": 128})
+  config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
+                           "model.mlp.skips": (1,), "train.batch_size": 128})
   options = xla_options.compiler_options(config)
   assert options == dict(xla_options.CPU_WITHOUT_YNNPACK)
   config.compile.cpu_ynnpack = True

@@ -1,0 +1,87 @@
+"""The shared set-up: the learning-rate schedule and gradient clipping against hand-computed values, the
+state's shapes without an initialisation, and the renderer's chunking."""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.sharding import Mesh
+
+from conftest import smoke_config
+from nerfpod import components, distributed, render
+from nerfpod.nerf import cameras
+
+
+def test_learning_rate_warms_up_linearly_then_decays_log_linearly_to_its_final_value():
+  tc = smoke_config(**{"train.num_steps": 110, "train.lr_warmup_steps": 10, "train.lr_init": 1e-2,
+                       "train.lr_final": 1e-4}).train
+  schedule = components.learning_rate_schedule(tc)
+  for step, want in [(0, 0.0), (5, 5e-3), (10, 1e-2), (60, math.sqrt(1e-2 * 1e-4)), (110, 1e-4)]:
+    assert float(schedule(step)) == pytest.approx(want, rel=1e-5, abs=1e-12), step
+  # 35 of the 100 decay steps: lr_init * (lr_final / lr_init) ** (35 / 100).
+  assert float(schedule(45)) == pytest.approx(1e-2 * (1e-2) ** 0.35, rel=1e-5)
+  no_warmup = components.learning_rate_schedule(smoke_config(**{"train.num_steps": 100,
+                                                                "train.lr_warmup_steps": 0}).train)
+  assert float(no_warmup(0)) == pytest.approx(tc.lr_init)
+
+
+def test_gradient_clipping_scales_the_global_norm_to_the_limit_before_adam():
+  grads = {"a": jnp.array([3.0, 0.0]), "b": jnp.array([[4.0]])}  # global norm 5
+  # A huge epsilon makes Adam's first step linear in the gradient, -lr * g / (|g| + eps) per entry (its
+  # moments are then g and g^2), so the clipping to norm 2.5 (every entry halved) shows in the step.
+  lr, eps = 0.1, 1e3
+  def first_step(grad_clip):
+    tc = smoke_config(**{"train.grad_clip": grad_clip, "train.lr_warmup_steps": 0, "train.lr_init": lr,
+                         "train.lr_final": lr, "train.adam_eps": eps}).train
+    optimizer = components.make_optimizer(tc)
+    params = jax.tree.map(jnp.zeros_like, grads)
+    return optimizer.update(grads, optimizer.init(params), params)[0]
+  for grad_clip, scale in ((2.5, 0.5), (10.0, 1.0), (0.0, 1.0)):  # 10: above the norm; 0: no clipping
+    updates = first_step(grad_clip)
+    for name, g in grads.items():
+      g = np.asarray(g) * scale
+      np.testing.assert_allclose(updates[name], -lr * g / (np.abs(g) + eps), rtol=1e-5, err_msg=name)
+
+
+def test_state_shapes_are_those_of_the_initial_state_without_computing_it():
+  config = smoke_config()
+  comps = components.build(config)
+  state = comps.init_state()
+  got = jax.tree.map(lambda s: (s.shape, s.dtype, s.sharding), comps.state_shapes)
+  want = jax.tree.map(lambda x: (x.shape, x.dtype, x.sharding), state)
+  assert got == want
+  assert all(isinstance(s, jax.ShapeDtypeStruct) for s in jax.tree.leaves(comps.state_shapes))
+
+
+@pytest.mark.parametrize("num_rays,chunk", [(100, 24), (37, 8), (5, 64), (64, 64)])
+def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_rays(num_rays, chunk):
+  config = smoke_config()
+  mesh = Mesh(np.array(jax.devices()[:4]), (distributed.DATA_AXIS,))
+  comps = components.build(config, mesh)
+  params = comps.init_state().params
+  rng = np.random.default_rng(0)
+  origins = rng.normal(size=(num_rays, 3)).astype(np.float32)
+  origins = 4.0 * origins / np.linalg.norm(origins, axis=-1, keepdims=True)
+  directions = (-origins + rng.normal(scale=0.3, size=origins.shape)).astype(np.float32)
+  chunked = render.render_rays(comps.renderer, params, mesh, origins, directions, chunk)
+  padded = -(-num_rays // 4) * 4  # one call: every ray at once (padded to split over the 4 devices)
+  pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - num_rays, 0)])
+  whole = jax.device_get(comps.renderer(params, *distributed.to_global(mesh, (pad(origins), pad(directions)))))
+  for name in render.OUTPUTS:
+    assert chunked[name].shape[0] == num_rays
+    np.testing.assert_allclose(chunked[name], whole[name][:num_rays], rtol=1e-5, atol=1e-6, err_msg=name)
+
+
+def test_render_image_is_its_rays_in_row_major_order():
+  config = smoke_config()
+  comps = components.build(config)
+  params = comps.init_state().params
+  intr = cameras.Intrinsics.from_focal(6, 5, 8.0)
+  pose = cameras.look_at(np.array([0.0, -4.0, 1.0]))
+  image = render.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 16)
+  origins, directions = cameras.image_rays(pose, intr, 0.5)
+  rays = render.render_rays(comps.renderer, params, comps.mesh, origins.reshape(-1, 3),
+                            directions.reshape(-1, 3), 16)
+  assert image["rgb"].shape == (5, 6, 3) and image["depth"].shape == (5, 6)
+  np.testing.assert_array_equal(image["rgb"].reshape(-1, 3), rays["rgb"])

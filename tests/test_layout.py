@@ -1,0 +1,92 @@
+"""The house: calls flow one way, downward through the layers the README's layout section shows, with no
+import circle; every module imports on its own."""
+import ast
+import concurrent.futures
+import subprocess
+import sys
+
+import pytest
+
+from conftest import REPO
+
+# Each module of the package and its floor: a module may import only modules on lower floors. (The
+# README's layout section draws the same house.)
+FLOORS = {
+    "errors": 0,
+    "nerf": 0, "nerf.cameras": 1, "nerf.sampling": 1, "nerf.encodings": 1, "nerf.compositing": 1,
+    "nerf.fields": 2, "nerf.model": 3,
+    "metrics": 1, "xla_options": 1, "config_util": 1,
+    "scenes.base": 2, "scenes.procedural": 3, "scenes.tiny": 3, "scenes.blender": 3, "scenes": 4,
+    "schema": 5, "video": 1, "monitor": 1,
+    "distributed": 2, "data": 5, "checkpoints": 6, "archive": 2, "render": 3,
+    "components": 7,
+    "train": 8, "evaluate": 8, "orbit": 8,
+    "modes": 9,
+    "main": 10,
+}
+
+
+def _modules() -> dict:
+  package = REPO / "nerfpod"
+  out = {}
+  for path in sorted(package.rglob("*.py")):
+    parts = path.relative_to(package).with_suffix("").parts
+    name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+    out[name or "__init__"] = path
+  out.pop("__init__")
+  return out
+
+
+def _is_module(dotted: str) -> bool:
+  path = REPO / dotted.replace(".", "/")
+  return path.with_suffix(".py").exists() or (path / "__init__.py").exists()
+
+
+def _imports(path) -> set[str]:
+  """nerfpod modules that the file imports anywhere (top level or inside functions), without 'nerfpod.'."""
+  found = set()
+  for node in ast.walk(ast.parse(path.read_text())):
+    if isinstance(node, ast.Import):
+      found |= {a.name for a in node.names if a.name.startswith("nerfpod.")}
+    elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "nerfpod":
+      # `from nerfpod.x import y` imports module x.y where y is a module, else module x.
+      found |= {f"{node.module}.{a.name}" if _is_module(f"{node.module}.{a.name}") else node.module
+                for a in node.names}
+  return {name.removeprefix("nerfpod.") for name in found if name != "nerfpod"}
+
+
+def test_every_module_has_a_floor():
+  assert set(_modules()) == set(FLOORS)
+
+
+def test_calls_flow_downward_only_and_there_is_no_circle():
+  modules = _modules()
+  graph = {name: _imports(path) - {name} for name, path in modules.items()}
+  upward = [f"{name} (floor {FLOORS[name]}) imports {other} (floor {FLOORS[other]})"
+            for name, others in graph.items() for other in sorted(others)
+            if other in FLOORS and FLOORS[other] >= FLOORS[name] and not name.startswith(other + ".")]
+  assert upward == []
+  # Strictly decreasing floors along every import make a circle impossible; say so independently too.
+  remaining = dict(graph)
+  while remaining:
+    leaves = [n for n, deps in remaining.items() if not (deps & set(remaining)) - {n}]
+    assert leaves, f"import circle among {sorted(remaining)}"
+    for n in leaves:
+      del remaining[n]
+
+
+def test_the_schema_imports_no_jax():
+  """Checking a config must not start JAX (a mistake is refused before any process waits for a peer)."""
+  code = "import sys; from nerfpod import schema; assert 'jax' not in sys.modules, sorted(sys.modules)"
+  subprocess.run([sys.executable, "-c", code], cwd=REPO, check=True, timeout=60)
+
+
+@pytest.mark.slow
+def test_every_module_imports_on_its_own():
+  def import_alone(name):
+    result = subprocess.run([sys.executable, "-c", f"import nerfpod.{name}"], cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    return name, result.returncode, result.stderr[-1000:]
+  with concurrent.futures.ThreadPoolExecutor(4) as pool:
+    failed = [r for r in pool.map(import_alone, sorted(_modules())) if r[1] != 0]
+  assert failed == []

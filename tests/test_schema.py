@@ -1,0 +1,155 @@
+"""The config schema: every field of every config is checked before any work, one sentence per mistake."""
+import concurrent.futures
+import json
+
+import ml_collections
+import pytest
+
+import procs
+from conftest import REPO, smoke_config
+from nerfpod import scenes, schema
+from nerfpod.config_util import sibling_config
+from nerfpod.errors import UserError
+
+CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast"]
+
+
+@pytest.mark.parametrize("name", CONFIGS)
+@pytest.mark.parametrize("arg", [None, "smoke"])
+def test_every_shipped_config_is_valid_and_every_field_is_in_the_schema(name, arg):
+  config = sibling_config(str(REPO / "configs" / "x.py"), name, arg)
+  assert set(schema.flatten(config)) == set(schema.FIELDS)
+  assert schema.problems(config, device_count=8) == []
+
+
+def _with(config, name, value):
+  """`config` with field `name` set to `value`, whatever its type (as a user's own config file can)."""
+  *parents, leaf = name.split(".")
+  node = config
+  for part in parents:
+    node = node[part]
+  with node.ignore_type():
+    node[leaf] = value
+  return config
+
+
+def _wrong_type(field: schema.Field):
+  """A value of another type than the field takes."""
+  return "x" if field.accepts(field.example) and not isinstance(field.example, str) else 3
+
+
+@pytest.mark.parametrize("name", sorted(schema.FIELDS))
+def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_valid_value(name):
+  field = schema.FIELDS[name]
+  assert field.accepts(field.example), f"{name}: its example {field.example!r} is not valid"
+  for value in field.bad + (_wrong_type(field),):
+    found = schema.problems(_with(smoke_config(), name, value))
+    assert len(found) == 1, (name, value, found)
+    assert found[0].startswith(f"{name}=") and f"--config.{name}=" in found[0], found
+    assert found[0].replace("e.g. ", "").count(". ") == 0 and found[0].endswith(")."), found  # one sentence
+    with pytest.raises(UserError):
+      schema.validate(_with(smoke_config(), name, value))
+
+
+@pytest.mark.parametrize("overrides,message", [
+    ({"data.kind": "blender", "data.path": ""}, "data.kind=blender reads its scene from data.path, which is empty"),
+    ({"data.kind": "tiny", "data.path": "x.npz", "data.downscale": 2}, "data.downscale=2 is not supported"),
+    ({"render.num_importance": 8, "render.num_samples": 2}, "render.num_samples=2 is too few"),
+    ({"render.near": 3.0, "render.far": 2.0}, "render.near=3 must be less than render.far=2"),
+    ({"model.mlp.depth": 3, "model.mlp.skips": (2,)}, "must be below model.mlp.depth - 1 = 2"),
+    ({"model.hashgrid.base_resolution": 32, "model.hashgrid.max_resolution": 16},
+     "model.hashgrid.max_resolution=16 must be at least model.hashgrid.base_resolution=32"),
+])
+def test_fields_that_must_agree_are_one_sentence(overrides, message):
+  found = schema.problems(smoke_config(**overrides))
+  assert len(found) == 1 and message in found[0], found
+
+
+def test_the_batch_must_split_over_the_devices_and_micro_batches():
+  assert schema.problems(smoke_config(**{"train.batch_size": 100}), device_count=8) == [
+      "train.batch_size=100 does not split over 8 devices; make it a multiple of 8 "
+      "(e.g. --config.train.batch_size=96)."]
+  found = schema.problems(smoke_config(**{"train.batch_size": 64, "train.microbatches": 3}), device_count=8)
+  assert len(found) == 1 and "does not split into train.microbatches=3 equal slices" in found[0]
+  assert schema.problems(smoke_config(**{"train.batch_size": 100})) == []  # devices not known yet
+
+
+def test_unknown_and_missing_fields_are_named():
+  config = smoke_config()
+  config.train.lr_final_ = 1.0
+  del config.orbit["fps"]
+  found = schema.problems(config)
+  assert found == ["train.lr_final_ is not a config field nerfpod knows; remove it (its fields are those of "
+                   "configs/default.py).",
+                   "the config lacks the field orbit.fps; derive configs from configs/default.py, which has "
+                   "every field."]
+
+
+def test_the_schema_knows_every_scene_kind():
+  assert schema.FIELDS["data.kind"].accepts("blender")
+  for kind in scenes.KINDS:
+    assert schema.FIELDS["data.kind"].accepts(kind)
+
+
+def test_earlier_field_names_still_work_in_overrides_config_files_and_saved_configs():
+  assert schema.rewrite_legacy_flags(["--config.model.num_frequencies=0", "--config.model.depth", "3",
+                                      "--config.model.depthwise=1", "--workdir=w"]) == [
+      "--config.model.mlp.num_frequencies=0", "--config.model.mlp.depth", "3", "--config.model.depthwise=1",
+      "--workdir=w"]
+  config = smoke_config()
+  with config.model.ignore_type():
+    config.model.depth = 5  # what a user's config file written for an earlier version sets
+  assert schema.migrate(config) == ["model.depth"]
+  assert config.model.mlp.depth == 5 and "depth" not in config.model
+  assert schema.problems(config) == []
+  assert schema.migrate_flat({"model.width": 64, "train.seed": 1}) == {"model.mlp.width": 64, "train.seed": 1}
+
+
+def _run_bad(name: str, value) -> tuple[str, object, object]:
+  shown = schema._show(value).strip("'")
+  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir=/nonexistent/{name}",
+                          f"--config.{name}={shown}", timeout=120)
+  return name, value, result
+
+
+@pytest.mark.slow
+def test_the_command_refuses_every_bad_value_of_every_field_before_any_work(tmp_path):
+  """Exit 2, one `nerfpod: error:` line naming the field, no traceback, nothing trained or written."""
+  cases = [(name, value) for name, field in schema.FIELDS.items() for value in field.bad]
+  # Every field but the booleans and data.path (any string; an empty one is a rule's, tested above), whose
+  # wrong values a command line cannot give: ml_collections refuses those itself.
+  assert {n for n, _ in cases} == {n for n, f in schema.FIELDS.items() if f.bad} and len(cases) > 60
+  with concurrent.futures.ThreadPoolExecutor(4) as pool:
+    results = list(pool.map(lambda case: _run_bad(*case), cases))
+  for name, value, result in results:
+    errors = [l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]
+    assert result.returncode == 2, (name, value, result.stderr[-2000:])
+    assert len(errors) == 1 and name in errors[0], (name, value, result.stderr)
+    assert "Traceback" not in result.stderr and "step " not in result.stdout, (name, value)
+
+
+def test_an_unknown_config_argument_is_one_sentence(tmp_path):
+  result = procs.run_main("--config=configs/blender_fast.py:scene=lego,foo", f"--workdir={tmp_path}")
+  assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+  assert result.stderr.strip().splitlines() == [
+      "nerfpod: error: unknown config argument 'foo' after the config file's colon; it takes: scene=..., "
+      "smoke (e.g. --config=configs/blender.py:scene=lego,smoke)."]
+
+
+def test_config_json_of_a_run_holds_exactly_the_schemas_fields(tmp_path):
+  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}",
+                          "--config.train.num_steps=0", "--config.model.num_frequencies=0",
+                          "--config.orbit.render_after_training=false", timeout=300)
+  assert result.returncode == 0, result.stderr[-2000:]
+  saved = json.loads((tmp_path / "config.json").read_text())
+  assert set(schema.flatten(saved)) == set(schema.FIELDS)
+  assert saved["model"]["mlp"]["num_frequencies"] == 0  # given by its earlier name
+
+
+def test_config_error_lists_every_mistake():
+  config = ml_collections.ConfigDict(smoke_config().to_dict())
+  config.train.log_every = 0
+  config.orbit.fps = -1.0
+  with pytest.raises(schema.ConfigError) as error:
+    schema.validate(config)
+  assert [m.split("=")[0] for m in error.value.messages] == ["train.log_every", "orbit.fps"]
