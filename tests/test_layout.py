@@ -18,7 +18,7 @@ FLOORS = {
     "metrics": 1, "xla_options": 1, "config_util": 1,
     "scenes.base": 2, "scenes.procedural": 3, "scenes.tiny": 3, "scenes.blender": 3, "scenes": 4,
     "schema": 5, "video": 1, "monitor": 1,
-    "distributed": 2, "data": 5, "checkpoints": 6, "archive": 2, "render": 3,
+    "distributed": 2, "camera_path": 2, "data": 5, "checkpoints": 6, "archive": 2, "render": 3,
     "components": 7,
     "train": 8, "evaluate": 8, "orbit": 8,
     "modes": 9,
