@@ -46,6 +46,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
                                   # opaque at the far end: use it only with a fixed background colour)
   c.render.near = -1.0            # ray start, world units; negative: the scene's own bound
   c.render.far = -1.0             # ray end, world units; negative: the scene's own bound
+  c.render.space = "euclidean"    # where the field lives: 'euclidean' (the world), 'ndc' (forward-facing
+                                  # scenes: NDC rays, near/far in [0, 1]), 'contract' (unbounded: mip-NeRF
+                                  # 360's contraction into the ball of radius 2)
+  c.render.spacing = "linear"     # samples even in distance ('linear') or in 1/distance ('inverse')
 
   c.train = ml_collections.ConfigDict()
   c.train.num_steps = 1500        # optimiser steps

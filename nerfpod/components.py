@@ -51,13 +51,28 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
 
 
 def ray_bounds(config, scene) -> tuple[float, float]:
-  """render.near/far where given (>= 0), else the scene's own."""
-  near = config.render.near if config.render.near >= 0 else scene.near
-  far = config.render.far if config.render.far >= 0 else scene.far
+  """render.near/far where given (>= 0), else the scene's own (in NDC space: 0 and 1, the near plane and
+  infinity)."""
+  own_near, own_far = (0.0, 1.0) if config.render.space == "ndc" else (scene.near, scene.far)
+  near = config.render.near if config.render.near >= 0 else own_near
+  far = config.render.far if config.render.far >= 0 else own_far
   if not 0 <= near < far:
     raise UserError(f"the rays would run from near={near:g} to far={far:g} (render.near/far or the scene's "
                     f"bounds); set --config.render.near and --config.render.far with 0 <= near < far.")
+  if config.render.spacing == "inverse" and near <= 0:
+    raise UserError(f"render.spacing=inverse spaces samples evenly in 1 / distance, which needs a near bound "
+                    f"above 0, but the rays start at {near:g}; set --config.render.near (e.g. 0.2).")
   return float(near), float(far)
+
+
+def ndc_camera(config, scene) -> tuple[float, float, float, float] | None:
+  """(fx, fy, width, height) of the camera whose frustum is the NDC cube (render.space='ndc'): the first
+  training camera, in the scene's frame (a forward-facing capture, recentred so that its mean camera sits
+  at the origin looking down -z, has one camera for all frames)."""
+  if config.render.space != "ndc":
+    return None
+  intr = scene.split("train").intrinsics
+  return float(intr.fx), float(intr.fy), float(intr.width), float(intr.height)
 
 
 def rays_key(seed: int) -> jax.Array:
@@ -127,7 +142,7 @@ def build(config, mesh: Mesh | None = None) -> Components:
   scene = scenes.load(config.data)
   scene.split(config.eval.split)
   mesh = distributed.make_mesh() if mesh is None else mesh
-  model = nerf_model.from_config(config)
+  model = nerf_model.from_config(config, ndc_camera(config, scene))
   near, far = ray_bounds(config, scene)
   optimizer = make_optimizer(config.train)
   renderer = render.make_renderer(model, mesh, near, far, scene.background,

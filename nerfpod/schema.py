@@ -144,6 +144,8 @@ FIELDS: dict[str, Field] = {
     "render.last_delta": number(0.0, example=1e10),
     "render.near": number(example=2.0),
     "render.far": number(example=6.0),
+    "render.space": choice("euclidean", "ndc", "contract"),
+    "render.spacing": choice("linear", "inverse"),
 
     "train.num_steps": integer(0, example=1000),
     "train.batch_size": integer(1, example=4096),
@@ -196,6 +198,17 @@ def _rules(c: dict) -> list[str]:
   if near >= 0 and far >= 0 and not near < far:
     out.append(f"render.near={near:g} must be less than render.far={far:g} (e.g. --config.render.near=2 "
                f"--config.render.far=6; negative values take the scene's own bounds).")
+  if c["render.space"] == "ndc" and c["render.spacing"] != "linear":
+    out.append(f"render.spacing={c['render.spacing']} cannot be used with render.space=ndc: NDC rays run "
+               f"from 0 at the near plane and are already even in inverse depth, so use "
+               f"--config.render.spacing=linear.")
+  if c["render.spacing"] == "inverse" and c["render.near"] == 0:
+    out.append("render.near=0 cannot be used with render.spacing=inverse, which is even in 1 / distance: "
+               "give a positive near bound (e.g. --config.render.near=0.2).")
+  if (c["render.space"] == "contract" and c["model.field"] == "hashgrid"
+      and c["model.hashgrid.bound"] != 2):
+    out.append(f"model.hashgrid.bound={c['model.hashgrid.bound']:g} does not cover the contracted space of "
+               f"render.space=contract, the ball of radius 2: use --config.model.hashgrid.bound=2.")
   if any(s >= c["model.mlp.depth"] - 1 for s in c["model.mlp.skips"]):
     out.append(f"model.mlp.skips={_show(c['model.mlp.skips'])} names layers after which the input rejoins, "
                f"so each must be below model.mlp.depth - 1 = {c['model.mlp.depth'] - 1} "

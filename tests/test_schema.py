@@ -59,6 +59,9 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
     ({"model.mlp.depth": 3, "model.mlp.skips": (2,)}, "must be below model.mlp.depth - 1 = 2"),
     ({"model.hashgrid.base_resolution": 32, "model.hashgrid.max_resolution": 16},
      "model.hashgrid.max_resolution=16 must be at least model.hashgrid.base_resolution=32"),
+    ({"render.space": "ndc", "render.spacing": "inverse"}, "render.spacing=inverse cannot be used with render"),
+    ({"render.spacing": "inverse", "render.near": 0.0, "render.far": 10.0}, "render.near=0 cannot be used"),
+    ({"render.space": "contract"}, "model.hashgrid.bound=1.5 does not cover the contracted space"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))
