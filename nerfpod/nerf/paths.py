@@ -1,0 +1,103 @@
+"""Camera paths drawn from a capture's own cameras, so that a video looks at what was captured.
+
+- `spiral`: the original NeRF's forward-facing path (bmild/nerf load_llff.py, render_path_spiral with the
+  arguments load_llff_data gives it): around the average camera, radii the 90th percentile of the camera
+  offsets, two turns, looking at a focus depth drawn from the scene's depth bounds.
+- `ellipse`: mip-NeRF 360's path for 360-degree captures (multinerf camera_utils.generate_ellipse_path):
+  an ellipse in the z = 0 plane through the spread of the cameras, looking at the point nearest to every
+  camera's optical axis, at constant speed, with the world axis nearest the cameras' mean up as up.
+
+Poses are (N, 4, 4) camera-to-world, OpenGL convention (the camera looks down -z, +y up), as every scene
+has them. Pure NumPy, float64.
+"""
+import numpy as np
+
+
+def _normalize(v):
+  return v / np.linalg.norm(v)
+
+
+def view_matrix(back, up, position) -> np.ndarray:
+  """The 4x4 camera-to-world pose at `position` whose +z axis is `back` (it looks down -back) and whose
+  +y is `up` made orthogonal (LLFF's and multinerf's `viewmatrix`)."""
+  z = _normalize(np.asarray(back, np.float64))
+  x = _normalize(np.cross(up, z))
+  y = _normalize(np.cross(z, x))
+  pose = np.eye(4)
+  pose[:3, :4] = np.stack([x, y, z, np.asarray(position, np.float64)], axis=1)
+  return pose
+
+
+def average_pose(poses_Nx4x4) -> np.ndarray:
+  """LLFF's `poses_avg`: at the mean camera position, looking down the normalised sum of the -z axes, up
+  the sum of the +y axes."""
+  poses = np.asarray(poses_Nx4x4, np.float64)
+  return view_matrix(poses[:, :3, 2].sum(0), poses[:, :3, 1].sum(0), poses[:, :3, 3].mean(0))
+
+
+def spiral(poses_Nx4x4, near: float, far: float, num_frames: int = 120, num_turns: float = 2.0,
+           z_rate: float = 0.5) -> np.ndarray:
+  """The original's forward-facing spiral, (num_frames, 4, 4).
+
+  near/far: the smallest and largest depth bound of the capture (LLFF's bds.min() and bds.max(), in the
+  poses' frame). Focus depth 1 / (0.25 / (0.9 near) + 0.75 / (5 far)); radii the 90th percentile of |camera
+  position| per axis (the capture recentred, as LLFF does, so that the average camera is at the origin);
+  the camera circles num_turns times in x, y while bobbing in z at z_rate of that speed.
+  """
+  poses = np.asarray(poses_Nx4x4, np.float64)
+  c2w = average_pose(poses)
+  up = _normalize(poses[:, :3, 1].sum(0))
+  close_depth, inf_depth = 0.9 * near, 5.0 * far
+  focus = 1.0 / (0.25 / close_depth + 0.75 / inf_depth)
+  radii = np.append(np.percentile(np.abs(poses[:, :3, 3]), 90, axis=0), 1.0)
+  out = []
+  for theta in np.linspace(0.0, 2.0 * np.pi * num_turns, num_frames + 1)[:-1]:
+    centre = c2w[:3, :4] @ (np.array([np.cos(theta), -np.sin(theta), -np.sin(theta * z_rate), 1.0]) * radii)
+    back = centre - c2w[:3, :4] @ np.array([0.0, 0.0, -focus, 1.0])
+    out.append(view_matrix(back, up, centre))
+  return np.stack(out)
+
+
+def focus_point(poses_Nx4x4) -> np.ndarray:
+  """The point nearest (least squares) to every camera's optical axis (multinerf `focus_point_fn`)."""
+  poses = np.asarray(poses_Nx4x4, np.float64)
+  directions, origins = poses[:, :3, 2:3], poses[:, :3, 3:4]
+  m = np.eye(3) - directions * np.transpose(directions, [0, 2, 1])
+  mt_m = np.transpose(m, [0, 2, 1]) @ m
+  return (np.linalg.inv(mt_m.mean(0)) @ (mt_m @ origins).mean(0))[:, 0]
+
+
+def ellipse(poses_Nx4x4, num_frames: int = 120, z_variation: float = 0.0, z_phase: float = 0.0) -> np.ndarray:
+  """mip-NeRF 360's ellipse path, (num_frames, 4, 4), for captures oriented with +z up and centred (nerfpod
+  normalises 360-degree captures so). Its axes are the 90th percentile of the cameras' offsets from the
+  focus point in x and y; it lies at height 0 (plus z_variation times an oscillation between the cameras'
+  10th and 90th percentile heights); its angles are resampled so that the camera moves at constant speed.
+  """
+  poses = np.asarray(poses_Nx4x4, np.float64)
+  center = focus_point(poses)
+  offset = np.array([center[0], center[1], 0.0])
+  scale = np.percentile(np.abs(poses[:, :3, 3] - offset), 90, axis=0)
+  low, high = -scale + offset, scale + offset
+  z_low = np.percentile(poses[:, :3, 3], 10, axis=0)
+  z_high = np.percentile(poses[:, :3, 3], 90, axis=0)
+
+  def positions_at(theta):
+    return np.stack([
+        low[0] + (high - low)[0] * (np.cos(theta) * 0.5 + 0.5),
+        low[1] + (high - low)[1] * (np.sin(theta) * 0.5 + 0.5),
+        z_variation * (z_low[2] + (z_high - z_low)[2] * (np.cos(theta + 2 * np.pi * z_phase) * 0.5 + 0.5)),
+    ], -1)
+
+  theta = np.linspace(0.0, 2.0 * np.pi, num_frames + 1)
+  positions = positions_at(theta)
+  # Constant speed: resample the angles by inverting the cumulative arc length (multinerf's
+  # stepfun.sample with weights proportional to each step's length, deterministic, u in [0, 1 - eps]).
+  lengths = np.linalg.norm(positions[1:] - positions[:-1], axis=-1)
+  cdf = np.concatenate([[0.0], np.minimum(1.0, np.cumsum(lengths / lengths.sum())[:-1]), [1.0]])
+  theta = np.interp(np.linspace(0.0, 1.0 - np.finfo(np.float32).eps, num_frames + 1), cdf, theta)
+  positions = positions_at(theta)[:-1]
+  mean_up = poses[:, :3, 1].mean(0)
+  mean_up /= np.linalg.norm(mean_up)
+  axis = np.argmax(np.abs(mean_up))
+  up = np.eye(3)[axis] * np.sign(mean_up[axis])
+  return np.stack([view_matrix(p - center, up, p) for p in positions])
