@@ -80,7 +80,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
 
   c.orbit = ml_collections.ConfigDict()
   c.orbit.render_after_training = True  # render the orbit (archive + videos) when training ends
-  c.orbit.num_frames = 120        # frames over one full turn, azimuth 0..360 degrees (the tutorial's 120)
+  c.orbit.path = "orbit"          # camera path: 'orbit' (the tutorial's circle), 'spiral' (LLFF's, from the
+                                  # capture's cameras), 'ellipse' (mip-NeRF 360's), 'file' (orbit.path_file)
+  c.orbit.path_file = ""          # orbit.path=file: a nerfstudio camera_path.json (its size, fov and fps rule)
+  c.orbit.num_frames = 120        # frames of the path (orbit: over one full turn; spiral: over two turns)
   c.orbit.elevation = -30.0       # degrees, the tutorial's sign: -30 is 30 degrees above the z = 0 plane
   c.orbit.radius = 4.0            # distance of the cameras from the origin they look at, world units
   c.orbit.width = 0               # frame width, pixels; 0: the eval split's

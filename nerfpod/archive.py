@@ -68,6 +68,12 @@ class Archive:
   def intrinsics(self) -> cameras.Intrinsics:
     return cameras.Intrinsics(**self.attributes["intrinsics"])
 
+  def frame_intrinsics(self, index: int) -> cameras.Intrinsics:
+    """Frame `index`'s camera: its own where the path gives each frame one (a camera path file's fov),
+    else the archive's one camera. Every frame has the archive's width and height."""
+    per_frame = self.attributes.get("frame_intrinsics")
+    return cameras.Intrinsics(**per_frame[index]) if per_frame else self.intrinsics
+
   @property
   def poses(self) -> np.ndarray:
     return np.asarray(self.attributes["poses"], np.float32)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import optax
 from jax.sharding import Mesh
 
-from nerfpod import data, distributed, render, scenes, xla_options
+from nerfpod import camera_path, data, distributed, render, scenes, xla_options
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 
@@ -141,6 +141,8 @@ def build(config, mesh: Mesh | None = None) -> Components:
   """The pieces every mode needs (`mesh`: default, every device of every host)."""
   scene = scenes.load(config.data)
   scene.split(config.eval.split)
+  if config.orbit.path == "file":  # a bad camera path file fails now, not after training
+    camera_path.read(config.orbit.path_file)
   mesh = distributed.make_mesh() if mesh is None else mesh
   model = nerf_model.from_config(config, ndc_camera(config, scene))
   near, far = ray_bounds(config, scene)

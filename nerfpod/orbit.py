@@ -1,5 +1,10 @@
 """The orbit: a camera path around the scene, rendered frame by frame into a render archive.
 
+The path is `orbit.path`: 'orbit', the Tiny NeRF tutorial's circle around the origin; 'spiral', the original
+NeRF's forward-facing spiral, and 'ellipse', mip-NeRF 360's path, both drawn from the scene's own cameras
+(nerf/paths.py); 'file', a user's nerfstudio camera_path.json (`orbit.path_file`, nerfpod.camera_path),
+whose cameras, size and frame rate are used as they are.
+
 The archive (nerfpod.archive) is renders/orbit.zarr in the workdir, a local folder or a gs:// URL.
 
 Work split: frame i belongs to process i % P, and each process renders its frames on its own devices only
@@ -14,6 +19,7 @@ Resuming: a render cut off mid-frame leaves that frame incomplete, and the next 
 incomplete frames. An archive of another checkpoint step, camera path or model is replaced, not resumed.
 """
 import concurrent.futures
+import dataclasses
 import json
 import os
 import time
@@ -25,9 +31,9 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from nerfpod import archive as archives
-from nerfpod import distributed, render, video
+from nerfpod import camera_path, distributed, render, video
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras
+from nerfpod.nerf import cameras, paths
 
 
 def orbit_poses(num_frames: int, elevation_deg: float, radius: float) -> np.ndarray:
@@ -55,11 +61,55 @@ def orbit_intrinsics(orbit_config, reference: cameras.Intrinsics) -> cameras.Int
   return cameras.Intrinsics.from_focal(width, height, focal)
 
 
+def scene_poses(scene) -> np.ndarray:
+  """(N, 4, 4) float64: every camera of every split of the scene (the capture, as the paths see it)."""
+  return np.concatenate([np.asarray(split.poses, np.float64) for split in scene.splits.values()])
+
+
+def scene_depth_bounds(scene) -> tuple[float, float]:
+  """The smallest and largest depth bound of the capture: its per-frame bounds where the format has them
+  (LLFF's, in the scene's frame), else the scene's near and far."""
+  bounds = getattr(scene, "bounds", None)
+  if bounds is not None and np.size(bounds):
+    return float(np.min(bounds)), float(np.max(bounds))
+  return float(scene.near), float(scene.far)
+
+
+@dataclasses.dataclass(frozen=True)
+class PathCameras:
+  """The cameras of the path to render: poses, one intrinsics for all frames or one per frame, fps."""
+  poses: np.ndarray  # (N, 4, 4) float32 camera-to-world, OpenGL
+  intrinsics: tuple[cameras.Intrinsics, ...]  # one, or one per frame (a camera path file's own fov each)
+  fps: float
+
+
+def path_cameras(config, scene) -> PathCameras:
+  """The cameras of config.orbit.path for `scene` (see the module's docstring)."""
+  oc = config.orbit
+  if oc.path == "file":
+    path = camera_path.read(oc.path_file)
+    intrinsics = tuple(path.intrinsics(i) for i in range(len(path)))
+    if len(set(intrinsics)) == 1:
+      intrinsics = intrinsics[:1]
+    return PathCameras(path.poses.astype(np.float32), intrinsics, path.fps)
+  intr = orbit_intrinsics(oc, scene.split(config.eval.split).intrinsics)
+  if oc.path == "orbit":
+    poses = orbit_poses(oc.num_frames, oc.elevation, oc.radius)
+  elif oc.path == "spiral":
+    poses = paths.spiral(scene_poses(scene), *scene_depth_bounds(scene), num_frames=oc.num_frames)
+  elif oc.path == "ellipse":
+    poses = paths.ellipse(scene_poses(scene), oc.num_frames)
+  else:
+    raise ValueError(f"unknown orbit.path {oc.path!r}")  # nerfpod.schema refuses it first
+  return PathCameras(poses.astype(np.float32), (intr,), float(oc.fps))
+
+
 def _identity(attributes: dict) -> dict:
   """What must match for an existing archive to be resumed rather than replaced."""
   config = attributes.get("config", {})
   return {k: attributes.get(k) for k in ("step", "scene", "near", "far", "background", "poses", "intrinsics",
-                                         "pixel_center")} | {k: config.get(k) for k in ("model", "render")}
+                                         "frame_intrinsics", "pixel_center")} | {
+                                             k: config.get(k) for k in ("model", "render")}
 
 
 def _barrier(name: str) -> None:
@@ -113,13 +163,16 @@ def archive_attributes(comps, step: int) -> dict:
   """Everything stored beside the frames: the cameras, the checkpoint step, the scene and the config."""
   config, scene = comps.config, comps.scene
   oc = config.orbit
-  intr = orbit_intrinsics(oc, scene.split(config.eval.split).intrinsics)
-  poses = orbit_poses(oc.num_frames, oc.elevation, oc.radius)
-  return {"num_frames": int(oc.num_frames), "step": int(step), "scene": scene.name,
-          "near": float(comps.near), "far": float(comps.far), "background": [float(b) for b in scene.background],
-          "elevation": float(oc.elevation), "radius": float(oc.radius), "fps": float(oc.fps),
-          "pixel_center": float(config.data.pixel_center), "intrinsics": archives.intrinsics_json(intr),
-          "poses": poses.astype(np.float64).tolist(), "config": json.loads(config.to_json_best_effort())}
+  cams = path_cameras(config, scene)
+  attributes = {
+      "num_frames": len(cams.poses), "step": int(step), "scene": scene.name, "path": oc.path,
+      "near": float(comps.near), "far": float(comps.far), "background": [float(b) for b in scene.background],
+      "elevation": float(oc.elevation), "radius": float(oc.radius), "fps": float(cams.fps),
+      "pixel_center": float(config.data.pixel_center), "intrinsics": archives.intrinsics_json(cams.intrinsics[0]),
+      "poses": cams.poses.astype(np.float64).tolist(), "config": json.loads(config.to_json_best_effort())}
+  if len(cams.intrinsics) > 1:
+    attributes["frame_intrinsics"] = [archives.intrinsics_json(intr) for intr in cams.intrinsics]
+  return attributes
 
 
 def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
@@ -152,7 +205,7 @@ def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
       pending = None
       for index in todo:
-        frame = render_frame(renderer, local_params, mesh, archive.poses[index], archive.intrinsics,
+        frame = render_frame(renderer, local_params, mesh, archive.poses[index], archive.frame_intrinsics(index),
                              attributes["pixel_center"], config.orbit.chunk)
         if pending is not None:
           pending.result()
@@ -166,7 +219,7 @@ def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
   _barrier("nerfpod_orbit_frames_written")
   files = []
   if me == 0:
-    files, sheet = archive.export(fps=config.orbit.fps, formats=("mp4", "png"))
+    files, sheet = archive.export(fps=attributes["fps"], formats=("mp4", "png"))
     shown = [f.removeprefix(str(workdir)).lstrip("/") if archives.is_url(f) else os.path.relpath(f, workdir)
              for f in files]
     print(f"orbit: wrote {', '.join(shown)}", flush=True)

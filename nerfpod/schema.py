@@ -170,6 +170,8 @@ FIELDS: dict[str, Field] = {
     "eval.chunk": integer(1, example=4096),
 
     "orbit.render_after_training": boolean(),
+    "orbit.path": choice("orbit", "spiral", "ellipse", "file"),
+    "orbit.path_file": text(),
     "orbit.num_frames": integer(1, example=120),
     "orbit.elevation": number(-90.0, 90.0, example=-30.0),
     "orbit.radius": number(above=0.0, example=4.0),
@@ -198,6 +200,9 @@ def _rules(c: dict) -> list[str]:
   if near >= 0 and far >= 0 and not near < far:
     out.append(f"render.near={near:g} must be less than render.far={far:g} (e.g. --config.render.near=2 "
                f"--config.render.far=6; negative values take the scene's own bounds).")
+  if c["orbit.path"] == "file" and not c["orbit.path_file"]:
+    out.append("orbit.path=file renders the cameras of a camera_path.json, but orbit.path_file is empty: "
+               "pass --config.orbit.path_file=FILE.")
   if c["render.space"] == "ndc" and c["render.spacing"] != "linear":
     out.append(f"render.spacing={c['render.spacing']} cannot be used with render.space=ndc: NDC rays run "
                f"from 0 at the near plane and are already even in inverse depth, so use "

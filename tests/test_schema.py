@@ -62,6 +62,7 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
     ({"render.space": "ndc", "render.spacing": "inverse"}, "render.spacing=inverse cannot be used with render"),
     ({"render.spacing": "inverse", "render.near": 0.0, "render.far": 10.0}, "render.near=0 cannot be used"),
     ({"render.space": "contract"}, "model.hashgrid.bound=1.5 does not cover the contracted space"),
+    ({"orbit.path": "file"}, "orbit.path=file renders the cameras of a camera_path.json, but orbit.path_file"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))
