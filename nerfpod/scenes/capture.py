@@ -172,9 +172,10 @@ def scaled_cameras(cams: Cameras, images: list[np.ndarray], names: list[str], wh
   bad = np.flatnonzero((np.abs(w * factor - cams.width) > factor) | (np.abs(h * factor - cams.height) > factor))
   if bad.size:
     i = int(bad[0])
-    expected = f"{cams.width[i] // factor[i]}x{cams.height[i] // factor[i]}"
+    shrunk = (f" ({cams.width[i] // factor[i]}x{cams.height[i] // factor[i]} shrunk {factor[i]} times)"
+              if factor[i] > 1 else "")
     raise UserError(f"{where}: the image of frame {names[i]!r} is {w[i]}x{h[i]} pixels but its camera is "
-                    f"{cams.width[i]}x{cams.height[i]}, i.e. {expected} at downscale {factor[i]}; use the "
-                    f"images the camera model was made for (or the matching data.downscale).")
+                    f"{cams.width[i]}x{cams.height[i]}{shrunk}; use the images the camera model was made for "
+                    f"(or the matching data.downscale).")
   sx, sy = w / cams.width, h / cams.height
   return Cameras(w, h, cams.fx * sx, cams.fy * sy, cams.cx * sx, cams.cy * sy, cams.distortion.copy())
