@@ -12,11 +12,17 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c = ml_collections.ConfigDict()
 
   c.data = ml_collections.ConfigDict()
-  c.data.kind = "procedural"      # scene format: 'procedural' (built in), 'tiny' (npz) or 'blender' (folder)
+  c.data.kind = "procedural"      # scene format: 'procedural' (built in), 'tiny' (npz), 'blender' (folder),
+  #                                 captures 'llff', 'colmap', 'nerfstudio', or 'auto' (told by data.path's files)
   c.data.path = ""                # the npz file or scene folder; unused by the procedural scene
-  c.data.downscale = 1            # integer factor the images are shrunk by on loading (Blender data)
+  c.data.downscale = 1            # integer factor the images are shrunk by (captures: images_N/ where it exists)
   c.data.image_size = 100         # procedural scene: width and height of its images, pixels
   c.data.pixel_center = 0.5       # where in its pixel a ray passes: 0.5 centre, 0.0 corner (original code)
+  c.data.llffhold = 8             # captures: every Nth frame (from the first) is held out as test and val
+  c.data.orient = "auto"          # captures' rotation: 'llff' avg camera, 'up' mean up -> +z, 'pca', 'none'
+  c.data.center = "auto"          # captures' origin: 'focus' (what cameras look at), 'poses' (their mean), 'none'
+  c.data.scale = 0.0              # captures' scale factor; 0: LLFF near bound at 1/0.75, else farthest camera at 1
+  c.data.space = "auto"           # 'object', 'forward_facing' (LLFF's default), 'unbounded' (COLMAP/nerfstudio's)
 
   c.model = ml_collections.ConfigDict()
   c.model.field = "hashgrid"      # 'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)

@@ -74,6 +74,13 @@ def write_config(workdir: str, config_json: dict) -> None:
     write_json(epath.Path(workdir) / "config.json", config_json, sort_keys=True)
 
 
+def write_scene(workdir: str, scene_json: dict) -> None:
+  """Writes workdir/scene.json (the scene's name, format, space, ray bounds and the capture -> scene
+  similarity, so that renders and exports can be mapped back to a capture's frame); process 0 only."""
+  if jax.process_index() == 0:
+    write_json(epath.Path(workdir) / "scene.json", scene_json)
+
+
 def checkpoint_dir(workdir: str) -> epath.Path:
   workdir = str(workdir)
   return epath.Path(workdir if "://" in workdir else epath.Path(workdir).absolute()) / "checkpoints"

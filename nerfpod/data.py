@@ -11,42 +11,48 @@ import numpy as np
 
 from nerfpod.nerf import cameras
 from nerfpod.scenes import Split
+from nerfpod.scenes.base import to_float
 
 
 def global_pixel_indices(seed: int, step: int, batch_size: int, num_pixels: int) -> np.ndarray:
-  """Flat pixel indices (image * H * W + row * W + col) of global batch `step`."""
+  """Flat pixel indices of global batch `step`: offset of the image + row * W + col (image * H * W + row * W
+  + col where all frames have one size)."""
   return np.random.default_rng([seed, step]).integers(0, num_pixels, size=batch_size, dtype=np.int64)
 
 
 class LocalRayBatch(grain.transforms.Map):
   """step -> this host's slice of the global batch: rays, target colours (and alphas where the data have
-  them) and the rays' positions in the global batch."""
+  them) and the rays' positions in the global batch.
+
+  Frames may differ in size and camera: a flat index picks its frame by the split's pixel offsets, and each
+  ray goes through its own frame's camera (lens distortion included). Colours stay uint8 in memory and
+  become float32 here, for this slice only."""
 
   def __init__(self, split: Split, seed: int, batch_size: int, rows: slice, pixel_center: float):
-    self._images = split.images
+    self._pixels = split.pixels
     self._alphas = split.alphas
     self._poses = split.poses
-    self._intr = split.intrinsics
+    self._cameras = split.cameras
+    self._offsets = split.offsets
     self._seed, self._batch_size, self._rows = seed, batch_size, rows
     self._pixel_center = pixel_center
 
   def map(self, step):
     step = int(step)
-    n, h, w, _ = self._images.shape
-    flat = global_pixel_indices(self._seed, step, self._batch_size, n * h * w)[self._rows]
-    image, pixel = np.divmod(flat, h * w)
-    row, col = np.divmod(pixel, w)
-    origins, directions = cameras.rays_for_pixels(self._poses[image], self._intr, row, col,
-                                                  self._pixel_center)
+    flat = global_pixel_indices(self._seed, step, self._batch_size, int(self._offsets[-1]))[self._rows]
+    image = np.searchsorted(self._offsets, flat, side="right") - 1
+    row, col = np.divmod(flat - self._offsets[image], self._cameras.width[image])
+    origins, directions = cameras.frame_rays(self._poses[image], self._cameras, image, row, col,
+                                             self._pixel_center)
     batch = {
         "origins": origins,
         "directions": directions,
-        "rgb": self._images[image, row, col],
+        "rgb": to_float(self._pixels[flat]),
         "ray_ids": np.arange(self._rows.start, self._rows.stop, dtype=np.int32),
         "step": np.int64(step),
     }
     if self._alphas is not None:
-      batch["alpha"] = self._alphas[image, row, col]
+      batch["alpha"] = to_float(self._alphas[flat])
     return batch
 
 

@@ -13,7 +13,7 @@ def render_views(comps, params):
   split = comps.scene.split(config.eval.split)
   count = len(split) if config.eval.max_views <= 0 else min(len(split), config.eval.max_views)
   for index in range(count):
-    yield index, render.render_image(comps.renderer, params, comps.mesh, split.poses[index], split.intrinsics,
+    yield index, render.render_image(comps.renderer, params, comps.mesh, split.poses[index], split.cameras[index],
                                      config.data.pixel_center, config.eval.chunk)
 
 
@@ -25,11 +25,12 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
   views = []
   for index, out in render_views(comps, params):
     rgb = np.clip(out["rgb"], 0.0, 1.0)
+    truth = split.image(index)
     views.append({"index": index, "name": split.names[index],
-                  "psnr": metrics.psnr(rgb, split.images[index]),
-                  "ssim": metrics.ssim(rgb, split.images[index])})
+                  "psnr": metrics.psnr(rgb, truth),
+                  "ssim": metrics.ssim(rgb, truth)})
     if writer is not None and index < 3:
-      writer.add_image(f"eval/{index}/rgb", np.concatenate([rgb, split.images[index]], 1), step,
+      writer.add_image(f"eval/{index}/rgb", np.concatenate([rgb, truth], 1), step,
                        dataformats="HWC")
       writer.add_image(f"eval/{index}/depth", video.depth_image(out["depth"], comps.near, comps.far)[..., None],
                        step, dataformats="HWC")

@@ -120,6 +120,11 @@ FIELDS: dict[str, Field] = {
     "data.downscale": integer(1),
     "data.image_size": integer(2, example=100),
     "data.pixel_center": number(0.0, 1.0, example=0.5),
+    "data.llffhold": integer(2, example=8),
+    "data.orient": choice("auto", "llff", "up", "pca", "none"),
+    "data.center": choice("auto", "focus", "poses", "none"),
+    "data.scale": number(0.0),
+    "data.space": choice("auto", *scenes.SPACES),
 
     "model.field": choice("mlp", "hashgrid"),
     "model.use_viewdirs": boolean(),

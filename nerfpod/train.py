@@ -107,6 +107,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     else:
       state = comps.init_state()
     checkpoints.write_config(workdir, json.loads(config.to_json_best_effort()))
+    checkpoints.write_scene(workdir, comps.scene.description())
     if jax.process_index() == 0:
       print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
             f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
@@ -140,7 +141,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
         return None
       if tc.image_every and done % tc.image_every == 0:
         out = render.render_image(comps.renderer, state.params, comps.mesh, preview.poses[0],
-                                  preview.intrinsics, config.data.pixel_center, config.eval.chunk)
+                                  preview.cameras[0], config.data.pixel_center, config.eval.chunk)
         monitor.images(done, {"preview/rgb": out["rgb"],
                               "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})
     if pending is not None:

@@ -97,7 +97,7 @@ class _Trainer:
     import numpy as np
     from nerfpod import evaluate, metrics
     split = self.comps.scene.split(self.config.eval.split)
-    return float(np.mean([metrics.psnr(np.clip(out["rgb"], 0, 1), split.images[index])
+    return float(np.mean([metrics.psnr(np.clip(out["rgb"], 0, 1), split.image(index))
                           for index, out in evaluate.render_views(self.comps, self.state.params)]))
 
 

@@ -1,14 +1,45 @@
 """Scene loaders. `load(config.data)` returns a Scene whatever the format."""
+import os
+
 from nerfpod.errors import UserError
-from nerfpod.scenes.base import Scene, Split
+from nerfpod.scenes.base import SPACES, Scene, Split
 
-__all__ = ["KINDS", "Scene", "Split", "load"]
+__all__ = ["CAPTURE_KINDS", "KINDS", "SPACES", "Scene", "Split", "detect", "load"]
 
-KINDS = ("procedural", "tiny", "blender")
+CAPTURE_KINDS = ("llff", "colmap", "nerfstudio")  # real captures: normalised poses, data.orient/center/scale
+KINDS = ("procedural", "tiny", "blender") + CAPTURE_KINDS + ("auto",)
+
+
+def detect(path: str) -> str:
+  """The format of the file or folder at `path`, from what it holds: transforms.json -> nerfstudio, a COLMAP
+  sparse model -> colmap (before an LLFF poses_bounds.npy beside it, as multinerf prefers COLMAP's poses),
+  poses_bounds.npy -> llff, transforms_train.json -> blender, an .npz file -> tiny; a .json file is taken
+  as a nerfstudio transforms file."""
+  if os.path.isfile(path):
+    if path.endswith(".npz"):
+      return "tiny"
+    if path.endswith(".json"):
+      return "nerfstudio"
+  elif os.path.isdir(path):
+    from nerfpod.scenes import colmap
+    if os.path.isfile(os.path.join(path, "transforms.json")):
+      return "nerfstudio"
+    if colmap.model_folder(path) is not None:
+      return "colmap"
+    if os.path.isfile(os.path.join(path, "poses_bounds.npy")):
+      return "llff"
+    if os.path.isfile(os.path.join(path, "transforms_train.json")):
+      return "blender"
+  else:
+    raise UserError(f"data.path {path!r} not found; set --config.data.path to a scene folder or file.")
+  raise UserError(f"cannot tell the format of {path!r}: it holds none of transforms.json, sparse/0/, "
+                  f"poses_bounds.npy, transforms_train.json; set --config.data.kind to one of "
+                  f"{', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
 
 
 def load(data_config) -> Scene:
-  """The scene that `config.data` names: kind 'procedural', 'tiny' (npz) or 'blender' (a scene folder).
+  """The scene that `config.data` names: kind 'procedural', 'tiny' (npz), 'blender' (a scene folder), a real
+  capture ('llff', 'colmap', 'nerfstudio'), or 'auto' (detected from data.path, and printed).
   The config's fields were checked by nerfpod.schema; what is checked here is the data."""
   kind = data_config.kind
   if kind not in KINDS:
@@ -18,8 +49,23 @@ def load(data_config) -> Scene:
     return procedural.load(data_config.image_size, pixel_center=data_config.pixel_center)
   if not data_config.path:
     raise UserError(f"data.kind={kind!r} needs a data path; pass --config.data.path=...")
+  path = data_config.path
+  if kind == "auto":
+    kind = detect(path)
+    print(f"data: {path} holds a {kind} scene (data.kind=auto)", flush=True)
   if kind == "tiny":
     from nerfpod.scenes import tiny
-    return tiny.load(data_config.path)
-  from nerfpod.scenes import blender
-  return blender.load(data_config.path, data_config.downscale)
+    return tiny.load(path)
+  if kind == "blender":
+    from nerfpod.scenes import blender
+    return blender.load(path, data_config.downscale)
+  if not os.path.exists(path):
+    raise UserError(f"data.path {path!r} not found; set --config.data.path to the {kind} capture's folder.")
+  if kind == "llff":
+    from nerfpod.scenes import llff
+    return llff.load(path, data_config)
+  if kind == "colmap":
+    from nerfpod.scenes import colmap
+    return colmap.load(path, data_config)
+  from nerfpod.scenes import nerfstudio
+  return nerfstudio.load(path, data_config)

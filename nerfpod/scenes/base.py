@@ -1,33 +1,133 @@
-"""The one scene type every loader returns: posed images in train / val / test splits."""
+"""The one scene type every loader returns: posed images in train / val / test splits.
+
+Images are kept as uint8, a quarter of float32's memory (a real capture's hundreds of frames fit where they
+would not as floats), in one flat (P, 3) buffer of every frame's pixels, row-major, frame after frame: frames
+of a split may differ in size. Colours become float32 in [0, 1] per batch (`to_float`), and per image for
+evaluation (`Split.image`).
+"""
 import dataclasses
+import functools
 
 import numpy as np
 
 from nerfpod.errors import UserError
-from nerfpod.nerf.cameras import Intrinsics
+from nerfpod.nerf.cameras import Cameras, Intrinsics
+
+SPACES = ("object", "forward_facing", "unbounded")  # what kind of space a scene's rays cross (see Scene)
+
+
+def to_uint8(values) -> np.ndarray:
+  """Colours or alphas in [0, 1] -> uint8, rounded to the nearest of 256 levels."""
+  return np.round(np.clip(np.asarray(values, np.float32), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def to_float(values_uint8: np.ndarray) -> np.ndarray:
+  """uint8 -> float32 in [0, 1] (the exact inverse of to_uint8 on its 256 levels)."""
+  return np.asarray(values_uint8).astype(np.float32) / np.float32(255.0)
 
 
 @dataclasses.dataclass(frozen=True)
 class Split:
-  """Images of one split and the cameras that took them (one intrinsics for the whole split)."""
-  images: np.ndarray      # (N, H, W, 3) float32 in [0, 1], composited on the scene's background
+  """The images of one split and the cameras that took them, one camera per frame."""
+  pixels: np.ndarray      # (P, 3) uint8: every frame's pixels, row-major, frame after frame
   poses: np.ndarray       # (N, 4, 4) float32 camera-to-world, OpenGL convention (camera looks down -z)
-  intrinsics: Intrinsics  # width, height, focal lengths, principal point in pixels
+  cameras: Cameras        # per-frame size, focal lengths, principal point and lens distortion
   names: tuple[str, ...]  # where each frame came from (file path or index), for messages and metrics
-  alphas: np.ndarray | None = None  # (N, H, W) float32 coverage in [0, 1], where the data have it (RGBA)
+  alphas: np.ndarray | None = None  # (P,) uint8 coverage, where the data have it (RGBA)
+  bounds: np.ndarray | None = None  # (N, 2) float32 near/far scene depth per frame, where the format has it
+
+  @classmethod
+  def from_images(cls, images, poses, cameras: Cameras | Intrinsics, names, alphas=None, bounds=None) -> "Split":
+    """A split from per-frame images (an (N, H, W, 3) array or a list of (H_i, W_i, 3) ones), float in
+    [0, 1] or uint8, with alphas likewise; `cameras` one per frame, or one Intrinsics shared by all."""
+    images = list(images)
+    if isinstance(cameras, Intrinsics):
+      cameras = Cameras.repeat(cameras, len(images))
+    def flat(im, channels, name):
+      im = np.asarray(im)
+      if im.dtype != np.uint8:
+        if not np.isfinite(im).all():
+          raise UserError(f"the image of frame {name} contains NaN or infinity; fix or remove that frame.")
+        im = to_uint8(im)
+      return im.reshape(-1, channels)
+    names = tuple(names)
+    pixels = (np.concatenate([flat(im, 3, name) for im, name in zip(images, names)]) if images
+              else np.zeros((0, 3), np.uint8))
+    alpha = None if alphas is None else np.concatenate([flat(a, 1, name)[:, 0] for a, name in zip(alphas, names)])
+    return cls(pixels, np.asarray(poses, np.float32), cameras, names, alpha,
+               None if bounds is None else np.asarray(bounds, np.float32))
 
   def __len__(self) -> int:
-    return len(self.images)
+    return len(self.poses)
+
+  @functools.cached_property
+  def offsets(self) -> np.ndarray:
+    """(N + 1,) int64: frame i's pixels are pixels[offsets[i]:offsets[i + 1]]."""
+    return np.concatenate([[0], np.cumsum(self.cameras.num_pixels)]).astype(np.int64)
+
+  @property
+  def num_pixels(self) -> int:
+    return int(self.offsets[-1])
+
+  @property
+  def intrinsics(self) -> Intrinsics:
+    """The first frame's camera: the reference for sizes and field of view (e.g. the orbit's). Per-frame
+    cameras are `cameras[i]`."""
+    return self.cameras[0]
+
+  def image_uint8(self, index: int) -> np.ndarray:
+    h, w = int(self.cameras.height[index]), int(self.cameras.width[index])
+    return self.pixels[self.offsets[index]:self.offsets[index + 1]].reshape(h, w, 3)
+
+  def image(self, index: int) -> np.ndarray:
+    """Frame `index`'s image, (H, W, 3) float32 in [0, 1]."""
+    return to_float(self.image_uint8(index))
+
+  def alpha(self, index: int) -> np.ndarray | None:
+    """Frame `index`'s alpha, (H, W) float32 in [0, 1], or None where the data have none."""
+    if self.alphas is None:
+      return None
+    h, w = int(self.cameras.height[index]), int(self.cameras.width[index])
+    return to_float(self.alphas[self.offsets[index]:self.offsets[index + 1]].reshape(h, w))
+
+  @property
+  def images(self) -> np.ndarray:
+    """Every image stacked, (N, H, W, 3) float32 (4 bytes a channel: for small scenes and tests). Frames
+    of different sizes have no such array: use `image(i)`."""
+    if len(set(zip(self.cameras.width.tolist(), self.cameras.height.tolist()))) > 1:
+      raise ValueError("the frames of this split differ in size; read them one by one with Split.image(i)")
+    return np.stack([self.image(i) for i in range(len(self))])
+
+  def select(self, indices) -> "Split":
+    """The split of frames `indices` (in that order)."""
+    indices = np.asarray(indices, np.int64)
+    take = lambda buf: None if buf is None else np.concatenate(
+        [buf[self.offsets[i]:self.offsets[i + 1]] for i in indices]) if len(indices) else buf[:0]
+    return Split(take(self.pixels), self.poses[indices], self.cameras.select(indices),
+                 tuple(self.names[i] for i in indices), take(self.alphas),
+                 None if self.bounds is None else self.bounds[indices])
 
 
 @dataclasses.dataclass(frozen=True)
 class Scene:
-  """A scene: its splits, the near/far bounds of its rays and the colour where rays hit nothing."""
+  """A scene: its splits, the near/far bounds of its rays, the colour where rays hit nothing, and where it
+  came from.
+
+  `space` says what the rays cross: "object" (a bounded object seen from around it, the synthetic scenes),
+  "forward_facing" (LLFF captures: everything in front of the cameras, for NDC) or "unbounded" (360-degree
+  captures whose background extends to infinity, for a contracted space). `transform` is the 4x4
+  similarity from the capture's own frame to the scene's (identity for synthetic data): a point X of the
+  capture lies at transform @ X here; it is written to the workdir's scene.json so that renders and exports
+  map back to the capture.
+  """
   name: str
   splits: dict[str, Split]
   near: float
   far: float
   background: tuple[float, float, float]
+  space: str = "object"
+  transform: np.ndarray = dataclasses.field(default_factory=lambda: np.eye(4))
+  kind: str = ""  # the format it was read from (data.kind, or what "auto" found)
 
   def split(self, name: str) -> Split:
     if name not in self.splits:
@@ -35,26 +135,50 @@ class Scene:
                       f"choose one of those, e.g. --config.eval.split={sorted(self.splits)[-1]}.")
     return self.splits[name]
 
+  def description(self) -> dict:
+    """What scene.json records: the scene's name, format, space, ray bounds and capture -> scene transform."""
+    return {"name": self.name, "kind": self.kind, "space": self.space, "near": float(self.near),
+            "far": float(self.far), "capture_to_scene": np.asarray(self.transform, np.float64).tolist()}
+
+
+def capture_scene(name: str, kind: str, images, cams: Cameras, names, framing, where: str) -> Scene:
+  """A real capture's Scene from its frames and their framing (nerfpod.scenes.capture.frame): one split per
+  list of frame indices, black background (captures are opaque)."""
+  full = check_split(Split.from_images(images, framing.poses, cams, names, bounds=framing.bounds), where)
+  splits = {k: full.select(v) for k, v in framing.splits.items()}
+  return Scene(name, splits, near=framing.near, far=framing.far, background=(0.0, 0.0, 0.0), space=framing.space,
+               transform=framing.transform, kind=kind)
+
 
 def check_split(split: Split, where: str) -> Split:
   """Validates shapes, value ranges and finiteness; raises UserError naming the first bad frame."""
-  n = len(split.images)
+  n = len(split.poses)
   if n == 0:
     raise UserError(f"{where} has no frames; a split needs at least one posed image.")
-  h, w = split.intrinsics.height, split.intrinsics.width
-  if split.images.shape != (n, h, w, 3):
-    raise UserError(f"{where}: images have shape {split.images.shape}, expected ({n}, {h}, {w}, 3).")
-  if split.alphas is not None and split.alphas.shape != (n, h, w):
-    raise UserError(f"{where}: alphas have shape {split.alphas.shape}, expected ({n}, {h}, {w}).")
+  cams = split.cameras
+  if len(cams) != n or len(split.names) != n:
+    raise UserError(f"{where}: {n} poses but {len(cams)} cameras and {len(split.names)} names.")
+  if split.pixels.dtype != np.uint8 or split.pixels.shape != (split.num_pixels, 3):
+    raise UserError(f"{where}: the pixel buffer is {split.pixels.dtype} {split.pixels.shape}, expected uint8 "
+                    f"({split.num_pixels}, 3) for the frames' sizes.")
+  if split.alphas is not None and split.alphas.shape != (split.num_pixels,):
+    raise UserError(f"{where}: alphas have shape {split.alphas.shape}, expected ({split.num_pixels},).")
   if split.poses.shape != (n, 4, 4):
     raise UserError(f"{where}: poses have shape {split.poses.shape}, expected ({n}, 4, 4) camera-to-world.")
   bad = np.flatnonzero(~np.isfinite(split.poses).all(axis=(1, 2)))
   if bad.size:
     raise UserError(f"{where}: the pose of frame {split.names[bad[0]]} contains NaN or infinity; "
                     f"fix or remove that frame.")
-  bad = np.flatnonzero(~np.isfinite(split.images).all(axis=(1, 2, 3)))
+  intrinsic = np.stack([cams.fx, cams.fy, cams.cx, cams.cy], 1)
+  bad = np.flatnonzero(~(np.isfinite(intrinsic).all(1) & (cams.fx > 0) & (cams.fy > 0)
+                         & np.isfinite(cams.distortion).all(1)))
   if bad.size:
-    raise UserError(f"{where}: the image of frame {split.names[bad[0]]} contains NaN or infinity.")
-  if not np.isfinite([split.intrinsics.fx, split.intrinsics.fy]).all() or split.intrinsics.fx <= 0:
-    raise UserError(f"{where}: the focal length {split.intrinsics.fx} is not a positive number.")
+    i = bad[0]
+    raise UserError(f"{where}: frame {split.names[i]}'s camera has focal lengths {cams.fx[i]:g}, {cams.fy[i]:g} "
+                    f"(or a principal point or distortion) that are not finite positive numbers.")
+  bad = np.flatnonzero((cams.width < 1) | (cams.height < 1))
+  if bad.size:
+    raise UserError(f"{where}: frame {split.names[bad[0]]} has an empty image.")
+  if split.bounds is not None and (split.bounds.shape != (n, 2) or not np.isfinite(split.bounds).all()):
+    raise UserError(f"{where}: the per-frame near/far bounds are not ({n}, 2) finite numbers.")
   return split

@@ -8,7 +8,7 @@ from PIL import Image
 
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Intrinsics
-from nerfpod.scenes.base import Scene, Split, check_split
+from nerfpod.scenes.base import Scene, Split, check_split, to_uint8
 
 SPLITS = ("train", "val", "test")
 
@@ -27,8 +27,8 @@ def _read_json(path: str) -> dict:
 
 
 def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
-  """An RGBA (or RGB) image composited on white and box-downscaled: float32 (H, W, 4) in [0, 1], the
-  composited colour and the alpha."""
+  """An RGBA (or RGB) image composited on white and box-downscaled: uint8 (H, W, 4), the composited colour
+  and the alpha (filtered as floats, stored as uint8)."""
   if not os.path.isfile(path):
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame from the "
                     f"transforms file.")
@@ -42,7 +42,7 @@ def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
   if downscale > 1:
     h, w = out.shape[0] // downscale, out.shape[1] // downscale
     out = out[:h * downscale, :w * downscale].reshape(h, downscale, w, downscale, 4).mean(axis=(1, 3))
-  return out
+  return to_uint8(out)
 
 
 def load_split(root: str, split: str, downscale: int = 1) -> Split:
@@ -86,9 +86,8 @@ def load_split(root: str, split: str, downscale: int = 1) -> Split:
     raise UserError(f"{path}: camera_angle_x is not a number.") from e
   focal = 0.5 * w / np.tan(0.5 * angle)
   intr = Intrinsics.from_focal(w, h, focal)
-  stacked = np.stack(images)
-  return check_split(Split(np.ascontiguousarray(stacked[..., :3]), poses, intr, tuple(names),
-                           alphas=np.ascontiguousarray(stacked[..., 3])), path)
+  return check_split(Split.from_images([im[..., :3] for im in images], poses, intr, names,
+                                      alphas=[im[..., 3] for im in images]), path)
 
 
 def load(root: str, downscale: int = 1, splits=SPLITS) -> Scene:
@@ -102,4 +101,4 @@ def load(root: str, downscale: int = 1, splits=SPLITS) -> Scene:
   loaded = {s: load_split(root, s, int(downscale)) for s in splits
             if os.path.isfile(os.path.join(root, f"transforms_{s}.json"))}
   name = os.path.basename(os.path.normpath(root))
-  return Scene(name, loaded, near=2.0, far=6.0, background=(1.0, 1.0, 1.0))
+  return Scene(name, loaded, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="blender")

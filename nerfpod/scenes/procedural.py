@@ -118,5 +118,5 @@ def load(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test
     poses = hemisphere_poses(n, seed=seed)
     traced = [trace(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
     images, alphas = np.stack([r[0] for r in traced]), np.stack([r[1] for r in traced])
-    splits[name] = Split(images, poses, intr, tuple(f"{name}_{i}" for i in range(n)), alphas=alphas)
-  return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0))
+    splits[name] = Split.from_images(images, poses, intr, [f"{name}_{i}" for i in range(n)], alphas=alphas)
+  return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="procedural")

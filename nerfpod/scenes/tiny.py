@@ -32,9 +32,10 @@ def load(path: str) -> Scene:
   _, h, w, _ = images.shape
   intr = Intrinsics.from_focal(w, h, focal)
   names = tuple(str(i) for i in range(len(images)))
-  full = check_split(Split(images, poses, intr, names), path)
-  held = slice(NUM_TRAIN, None)
-  train = Split(full.images[:NUM_TRAIN], full.poses[:NUM_TRAIN], intr, names[:NUM_TRAIN])
-  heldout = Split(full.images[held], full.poses[held], intr, names[held])
+  if poses.shape != (len(images), 4, 4):
+    raise UserError(f"{path}: poses have shape {poses.shape}, expected ({len(images)}, 4, 4) camera-to-world.")
+  full = check_split(Split.from_images(images, poses, intr, names), path)
+  train = full.select(np.arange(NUM_TRAIN))
+  heldout = full.select(np.arange(NUM_TRAIN, len(full)))
   return Scene("tiny_lego", {"train": train, "val": heldout, "test": heldout}, near=2.0, far=6.0,
-               background=(0.0, 0.0, 0.0))
+               background=(0.0, 0.0, 0.0), kind="tiny")

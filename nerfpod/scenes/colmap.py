@@ -1,0 +1,114 @@
+"""COLMAP sparse models: sparse/0/{cameras,images,points3D}.{bin,txt} + images/ (or images_N/).
+
+The model is read with the maintained `pycolmap` package (the optional extra `nerfpod[colmap]`), which
+reads both the binary and the text format. Each image brings its own camera (COLMAP shares one between
+images or not; both work) with its model's parameters mapped onto nerfpod's (fx, fy, cx, cy, k1, k2, k3, k4,
+p1, p2): SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV are supported; fisheye and other models
+are refused. Poses are world-to-camera in OpenCV axes; they become camera-to-world OpenGL. Per-frame near/far
+bounds are the 0.1 and 99.9 percentile depths of the 3D points each image observes (LLFF's imgs2poses rule).
+Frames are sorted by image name; every data.llffhold-th is held out as test (and val).
+"""
+import os
+
+import numpy as np
+
+from nerfpod.errors import UserError
+from nerfpod.nerf.cameras import Cameras
+from nerfpod.scenes import capture
+from nerfpod.scenes.base import Scene, capture_scene
+
+# COLMAP model name -> the names of its parameters, in COLMAP's order.
+MODELS = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+}
+MODEL_FILES = ("cameras", "images", "points3D")
+
+
+def model_folder(root: str) -> str | None:
+  """Where the sparse model of a capture folder is: sparse/0/, sparse/ or the folder itself."""
+  for folder in (os.path.join(root, "sparse", "0"), os.path.join(root, "sparse"), root):
+    if all(os.path.isfile(os.path.join(folder, f + ".bin")) for f in MODEL_FILES) or all(
+        os.path.isfile(os.path.join(folder, f + ".txt")) for f in MODEL_FILES):
+      return folder
+  return None
+
+
+def camera_params(model: str, params, width: int, height: int, where: str) -> dict:
+  """A COLMAP camera as {"fx", "fy", "cx", "cy", "k1", ...}; refuses a model nerfpod cannot handle."""
+  if model not in MODELS:
+    raise UserError(f"{where} uses COLMAP's {model} camera model, which nerfpod does not handle (it handles "
+                    f"{', '.join(MODELS)}); undistort the images with `colmap image_undistorter` (it writes "
+                    f"PINHOLE cameras) or re-run COLMAP with one of those models.")
+  names = MODELS[model]
+  if len(params) != len(names):
+    raise UserError(f"{where}: a {model} camera has {len(names)} parameters ({', '.join(names)}), this one "
+                    f"{len(params)}.")
+  out = dict(zip(names, (float(p) for p in params)))
+  if "f" in out:
+    out["fx"] = out["fy"] = out.pop("f")
+  return out
+
+
+def _reconstruction(folder: str):
+  try:
+    import pycolmap
+  except ImportError as e:
+    raise UserError("reading COLMAP models needs the pycolmap package: pip install 'nerfpod[colmap]' "
+                    "(or pip install pycolmap).") from e
+  try:
+    return pycolmap.Reconstruction(folder)
+  except Exception as e:  # pycolmap raises its own error types for unreadable models
+    raise UserError(f"the COLMAP model in {folder} cannot be read ({str(e).strip().splitlines()[-1]}); "
+                    f"re-export it from COLMAP.") from e
+
+
+def _depth_bounds(rec, image, w2c_3x4: np.ndarray) -> np.ndarray | None:
+  ids = [p.point3D_id for p in image.points2D if p.has_point3D()]
+  if not ids:
+    return None
+  xyz = np.array([rec.points3D[i].xyz for i in ids], np.float64)
+  depth = xyz @ w2c_3x4[2, :3] + w2c_3x4[2, 3]
+  depth = depth[depth > 0]
+  if depth.size == 0:
+    return None
+  return np.percentile(depth, [0.1, 99.9])
+
+
+def load(root: str, data_config) -> Scene:
+  folder = model_folder(root)
+  if folder is None:
+    raise UserError(f"{root} holds no COLMAP sparse model (sparse/0/ with cameras, images and points3D as .bin "
+                    f"or .txt); set --config.data.path to the capture folder that holds sparse/.")
+  rec = _reconstruction(folder)
+  images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+  if not images:
+    raise UserError(f"the COLMAP model in {folder} has no registered images; re-run the reconstruction.")
+  downscale = int(data_config.downscale)
+  image_dir, shrink = capture.image_folder(root, downscale)
+  names = [im.name for im in images]
+  paths = [os.path.join(image_dir, n) for n in names]
+  capture.check_files_exist(paths, names, f"the COLMAP model in {folder}")
+  intrinsics, poses, bounds = [], [], []
+  for im in images:
+    cam = rec.cameras[im.camera_id]
+    p = camera_params(cam.model.name, cam.params, cam.width, cam.height,
+                      f"camera {im.camera_id} of image {im.name!r} in {folder}")
+    intrinsics.append((cam.width, cam.height, p["fx"], p["fy"], p["cx"], p["cy"],
+                       [p.get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")]))
+    w2c = np.asarray(im.cam_from_world().matrix(), np.float64)
+    c2w = np.linalg.inv(np.concatenate([w2c, [[0.0, 0.0, 0.0, 1.0]]]))
+    poses.append(c2w @ capture.OPENCV_TO_OPENGL)
+    bounds.append(_depth_bounds(rec, im, w2c))
+  col = lambda i, dtype: np.array([c[i] for c in intrinsics], dtype)
+  cams = Cameras(col(0, np.int64), col(1, np.int64), col(2, np.float64), col(3, np.float64), col(4, np.float64),
+                 col(5, np.float64), np.array([c[6] for c in intrinsics], np.float64))
+  pixels = capture.read_images(paths, names, shrink)
+  cams = capture.scaled_cameras(cams, pixels, names, folder, downscale)
+  # Bounds where every image sees points (an image seeing none leaves the scene without per-frame bounds).
+  bounds = np.array(bounds, np.float64) if all(b is not None for b in bounds) else None
+  framing = capture.frame(np.stack(poses), bounds, names, data_config, "colmap", folder, default_space="unbounded")
+  return capture_scene(os.path.basename(os.path.normpath(root)), "colmap", pixels, cams, names, framing, folder)

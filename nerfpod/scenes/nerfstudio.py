@@ -1,0 +1,160 @@
+"""transforms.json as nerfstudio's ns-process-data and instant-ngp's colmap2nerf.py write it.
+
+Intrinsics fl_x, fl_y, cx, cy, w, h at the top level or per frame (a frame's own win); where fl_x is absent,
+camera_angle_x (and camera_angle_y) give it, as in instant-ngp and multinerf; w and h default to the image's
+size, cx and cy to its centre. Distortion k1, k2, k3, k4, p1, p2 (or nerfstudio's distortion_params) with
+camera_model SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL or OPENCV (instant-ngp writes none: the keys
+alone say it); fisheye and equirectangular cameras are refused. file_path is relative to the JSON's folder
+and has its extension; transform_matrix is camera-to-world OpenGL. Frames are sorted by file path, as
+nerfstudio does. Explicit train_filenames / val_filenames / test_filenames win; otherwise every
+data.llffhold-th frame is held out as test (and val). With data.downscale = N, images come from images_N/
+(nerfstudio's layout) where it exists, else are shrunk on loading. Masks and depth files are not used.
+"""
+import json
+import os
+
+import numpy as np
+
+from nerfpod.errors import UserError
+from nerfpod.nerf.cameras import Cameras, DISTORTION_PARAMS
+from nerfpod.scenes import capture
+from nerfpod.scenes.base import Scene, capture_scene
+
+TRANSFORMS = "transforms.json"
+PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+
+
+def _number(meta: dict, frame: dict, key: str, where: str):
+  value = frame.get(key, meta.get(key))
+  if value is None:
+    return None
+  try:
+    value = float(value)
+  except (TypeError, ValueError) as e:
+    raise UserError(f"{where}: {key} is {value!r}, not a number.") from e
+  return value
+
+
+def _distortion(meta: dict, frame: dict, where: str) -> list[float]:
+  params = frame.get("distortion_params", meta.get("distortion_params"))
+  if params is not None:  # nerfstudio's [k1, k2, k3, k4, p1, p2]
+    if not isinstance(params, list) or len(params) != 6:
+      raise UserError(f"{where}: distortion_params must list 6 numbers (k1, k2, k3, k4, p1, p2).")
+    return [float(v) for v in params]
+  return [_number(meta, frame, k, where) or 0.0 for k in DISTORTION_PARAMS]
+
+
+def _image_path(base: str, file_path: str, downscale: int) -> tuple[str, int]:
+  """(the file to read, factor still to apply): nerfstudio's images_N/ counterpart of images/... where
+  data.downscale = N > 1 and it exists."""
+  path = os.path.normpath(os.path.join(base, file_path))
+  if downscale > 1:
+    parent, name = os.path.split(path)
+    shrunk = os.path.join(parent + f"_{downscale}", name)
+    if os.path.isfile(shrunk):
+      return shrunk, 1
+  return path, downscale
+
+
+def _read_meta(path: str) -> dict:
+  try:
+    with open(path) as f:
+      meta = json.load(f)
+  except json.JSONDecodeError as e:
+    raise UserError(f"{path} is not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); fix or "
+                    f"regenerate the file.") from e
+  if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+    raise UserError(f"{path} needs a non-empty 'frames' list; is it a nerfstudio / instant-ngp transforms file?")
+  return meta
+
+
+def load(path: str, data_config) -> Scene:
+  """`path`: a folder holding transforms.json, or the JSON file itself."""
+  if os.path.isdir(path):
+    path = os.path.join(path, TRANSFORMS)
+  if not os.path.isfile(path):
+    raise UserError(f"{path} not found; set --config.data.path to a folder holding {TRANSFORMS} (or to the file).")
+  meta = _read_meta(path)
+  base = os.path.dirname(path)
+  model = str(meta.get("camera_model", "OPENCV")).upper()
+  if model not in PERSPECTIVE_MODELS or meta.get("is_fisheye"):
+    raise UserError(f"{path} describes {'a fisheye' if meta.get('is_fisheye') else 'a ' + model} camera, which "
+                    f"nerfpod does not handle (it handles {', '.join(PERSPECTIVE_MODELS)}); undistort the images "
+                    f"to a perspective camera first.")
+  frames = []
+  for i, frame in enumerate(meta["frames"]):
+    if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
+      raise UserError(f"{path}: frame {i} needs 'file_path' and 'transform_matrix'.")
+    frames.append(frame)
+  frames.sort(key=lambda f: str(f["file_path"]))
+  names = [str(f["file_path"]) for f in frames]
+  downscale = int(data_config.downscale)
+  located = [_image_path(base, n, downscale) for n in names]
+  capture.check_files_exist([p for p, _ in located], names, path)
+  poses = []
+  for name, frame in zip(names, frames):
+    try:
+      pose = np.asarray(frame["transform_matrix"], np.float64)
+    except (TypeError, ValueError) as e:
+      raise UserError(f"{path}: frame {name!r} has a transform_matrix that is not a 4x4 matrix of numbers.") from e
+    if pose.shape not in ((4, 4), (3, 4)):
+      raise UserError(f"{path}: frame {name!r} has a transform_matrix of shape {pose.shape}, expected 4x4.")
+    poses.append(np.concatenate([pose[:3], [[0.0, 0.0, 0.0, 1.0]]]))
+  poses = np.stack(poses)
+  if not np.isfinite(poses).all():  # before spending time on the images
+    bad = names[int(np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))[0])]
+    raise UserError(f"{path}: the transform_matrix of frame {bad!r} contains NaN or infinity; fix or remove that "
+                    f"frame.")
+  by_factor: dict[int, list[int]] = {}
+  for i, (_, factor) in enumerate(located):
+    by_factor.setdefault(factor, []).append(i)
+  pixels: list = [None] * len(names)
+  for factor, idx in by_factor.items():
+    for i, im in zip(idx, capture.read_images([located[i][0] for i in idx], [names[i] for i in idx], factor)):
+      pixels[i] = im
+  rows = []
+  for name, frame, (file, factor), im in zip(names, frames, located, pixels):
+    where = f"{path}, frame {name!r}"
+    # The camera's size is the full images'; a shrunk image (images_N/ or data.downscale) scales it below.
+    w = _number(meta, frame, "w", where) or im.shape[1] * downscale
+    h = _number(meta, frame, "h", where) or im.shape[0] * downscale
+    fx = _number(meta, frame, "fl_x", where)
+    if fx is None:
+      angle = _number(meta, frame, "camera_angle_x", where)
+      if angle is None:
+        raise UserError(f"{where}: no focal length; give fl_x (and fl_y) or camera_angle_x.")
+      fx = 0.5 * w / np.tan(0.5 * angle)
+    fy = _number(meta, frame, "fl_y", where)
+    angle_y = _number(meta, frame, "camera_angle_y", where)
+    if fy is None:  # square pixels, unless only angles are given and they say otherwise
+      given_fx = _number(meta, frame, "fl_x", where) is not None
+      fy = 0.5 * h / np.tan(0.5 * angle_y) if angle_y is not None and not given_fx else fx
+    cx = _number(meta, frame, "cx", where)
+    cy = _number(meta, frame, "cy", where)
+    rows.append((round(w), round(h), fx, fy, w / 2.0 if cx is None else cx, h / 2.0 if cy is None else cy,
+                 _distortion(meta, frame, where)))
+  col = lambda i, dtype: np.array([r[i] for r in rows], dtype)
+  cams = Cameras(col(0, np.int64), col(1, np.int64), col(2, np.float64), col(3, np.float64), col(4, np.float64),
+                 col(5, np.float64), np.array([r[6] for r in rows], np.float64))
+  cams = capture.scaled_cameras(cams, pixels, names, path, downscale)
+  split_lists = None
+  lists = {s: meta.get(f"{s}_filenames") for s in ("train", "val", "test")}
+  if any(v is not None for v in lists.values()):
+    index = {os.path.normpath(n): i for i, n in enumerate(names)}
+    split_lists = {}
+    for split, files in lists.items():
+      if files is None:
+        continue
+      unknown = [f for f in files if os.path.normpath(str(f)) not in index]
+      if unknown:
+        raise UserError(f"{path}: {split}_filenames names {len(unknown)} file(s) that no frame has (e.g. "
+                        f"{unknown[0]!r}); list the frames' file_path values.")
+      split_lists[split] = np.array(sorted(index[os.path.normpath(str(f))] for f in files), np.int64)
+    if "val" not in split_lists and "test" in split_lists:
+      split_lists["val"] = split_lists["test"]
+    if "test" not in split_lists and "val" in split_lists:
+      split_lists["test"] = split_lists["val"]
+  name = os.path.basename(os.path.normpath(base)) or "capture"
+  framing = capture.frame(poses, None, names, data_config, "nerfstudio", path, default_space="unbounded",
+                          split_lists=split_lists)
+  return capture_scene(name, "nerfstudio", pixels, cams, names, framing, path)
