@@ -67,11 +67,11 @@ def scene_poses(scene) -> np.ndarray:
 
 
 def scene_depth_bounds(scene) -> tuple[float, float]:
-  """The smallest and largest depth bound of the capture: its per-frame bounds where the format has them
+  """The smallest and largest depth bound of the capture: its frames' bounds where the format has them
   (LLFF's, in the scene's frame), else the scene's near and far."""
-  bounds = getattr(scene, "bounds", None)
-  if bounds is not None and np.size(bounds):
-    return float(np.min(bounds)), float(np.max(bounds))
+  bounds = [split.bounds for split in scene.splits.values() if split.bounds is not None]
+  if bounds:
+    return float(min(b.min() for b in bounds)), float(max(b.max() for b in bounds))
   return float(scene.near), float(scene.far)
 
 

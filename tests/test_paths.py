@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import DATA, require
-from nerfpod.nerf import cameras, paths
+from nerfpod.nerf import cameras, paths, poses as pose_math
 
 
 # --- bmild/nerf load_llff.py, verbatim but for the hwf column, which nerfpod keeps apart ---------------------
@@ -117,7 +117,7 @@ def test_spiral_cameras_look_at_the_focus_point_and_turn_twice():
   poses, bds = _forward_facing()
   near, far = bds.min(), bds.max()
   got = paths.spiral(poses, near, far, num_frames=40)
-  average = paths.average_pose(poses)
+  average = pose_math.poses_avg(poses)
   focus = 1.0 / (0.25 / (0.9 * near) + 0.75 / (5.0 * far))
   target = average[:3, :3] @ np.array([0, 0, -focus]) + average[:3, 3]
   intr = cameras.Intrinsics.from_focal(40, 30, 30.0)
@@ -201,7 +201,7 @@ def test_ellipse_equals_multinerfs(z_variation):
 def test_ellipse_looks_at_the_focus_point_upright_at_constant_speed():
   poses = _ring()
   got = paths.ellipse(poses, 90)
-  np.testing.assert_allclose(paths.focus_point(poses), [0.1, -0.05, 0.0], atol=1e-6)  # every axis meets there
+  np.testing.assert_allclose(pose_math.focus_point(poses), [0.1, -0.05, 0.0], atol=1e-6)  # every axis meets there
   intr = cameras.Intrinsics.from_focal(40, 30, 30.0)
   for pose in got:
     xy, depth = cameras.project(np.array([[0.1, -0.05, 0.0]]), pose, intr)

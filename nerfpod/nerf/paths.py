@@ -8,31 +8,15 @@
   camera's optical axis, at constant speed, with the world axis nearest the cameras' mean up as up.
 
 Poses are (N, 4, 4) camera-to-world, OpenGL convention (the camera looks down -z, +y up), as every scene
-has them. Pure NumPy, float64.
+has them. Pure NumPy, float64; the LLFF pose helpers (viewmatrix, poses_avg, focus_point) are nerf/poses.py's.
 """
 import numpy as np
+
+from nerfpod.nerf import poses as pose_math
 
 
 def _normalize(v):
   return v / np.linalg.norm(v)
-
-
-def view_matrix(back, up, position) -> np.ndarray:
-  """The 4x4 camera-to-world pose at `position` whose +z axis is `back` (it looks down -back) and whose
-  +y is `up` made orthogonal (LLFF's and multinerf's `viewmatrix`)."""
-  z = _normalize(np.asarray(back, np.float64))
-  x = _normalize(np.cross(up, z))
-  y = _normalize(np.cross(z, x))
-  pose = np.eye(4)
-  pose[:3, :4] = np.stack([x, y, z, np.asarray(position, np.float64)], axis=1)
-  return pose
-
-
-def average_pose(poses_Nx4x4) -> np.ndarray:
-  """LLFF's `poses_avg`: at the mean camera position, looking down the normalised sum of the -z axes, up
-  the sum of the +y axes."""
-  poses = np.asarray(poses_Nx4x4, np.float64)
-  return view_matrix(poses[:, :3, 2].sum(0), poses[:, :3, 1].sum(0), poses[:, :3, 3].mean(0))
 
 
 def spiral(poses_Nx4x4, near: float, far: float, num_frames: int = 120, num_turns: float = 2.0,
@@ -45,7 +29,7 @@ def spiral(poses_Nx4x4, near: float, far: float, num_frames: int = 120, num_turn
   the camera circles num_turns times in x, y while bobbing in z at z_rate of that speed.
   """
   poses = np.asarray(poses_Nx4x4, np.float64)
-  c2w = average_pose(poses)
+  c2w = pose_math.poses_avg(poses)
   up = _normalize(poses[:, :3, 1].sum(0))
   close_depth, inf_depth = 0.9 * near, 5.0 * far
   focus = 1.0 / (0.25 / close_depth + 0.75 / inf_depth)
@@ -54,17 +38,8 @@ def spiral(poses_Nx4x4, near: float, far: float, num_frames: int = 120, num_turn
   for theta in np.linspace(0.0, 2.0 * np.pi * num_turns, num_frames + 1)[:-1]:
     centre = c2w[:3, :4] @ (np.array([np.cos(theta), -np.sin(theta), -np.sin(theta * z_rate), 1.0]) * radii)
     back = centre - c2w[:3, :4] @ np.array([0.0, 0.0, -focus, 1.0])
-    out.append(view_matrix(back, up, centre))
+    out.append(pose_math.viewmatrix(back, up, centre))
   return np.stack(out)
-
-
-def focus_point(poses_Nx4x4) -> np.ndarray:
-  """The point nearest (least squares) to every camera's optical axis (multinerf `focus_point_fn`)."""
-  poses = np.asarray(poses_Nx4x4, np.float64)
-  directions, origins = poses[:, :3, 2:3], poses[:, :3, 3:4]
-  m = np.eye(3) - directions * np.transpose(directions, [0, 2, 1])
-  mt_m = np.transpose(m, [0, 2, 1]) @ m
-  return (np.linalg.inv(mt_m.mean(0)) @ (mt_m @ origins).mean(0))[:, 0]
 
 
 def ellipse(poses_Nx4x4, num_frames: int = 120, z_variation: float = 0.0, z_phase: float = 0.0) -> np.ndarray:
@@ -74,7 +49,7 @@ def ellipse(poses_Nx4x4, num_frames: int = 120, z_variation: float = 0.0, z_phas
   10th and 90th percentile heights); its angles are resampled so that the camera moves at constant speed.
   """
   poses = np.asarray(poses_Nx4x4, np.float64)
-  center = focus_point(poses)
+  center = pose_math.focus_point(poses, min_spread=0.0)  # multinerf's focus_point_fn
   offset = np.array([center[0], center[1], 0.0])
   scale = np.percentile(np.abs(poses[:, :3, 3] - offset), 90, axis=0)
   low, high = -scale + offset, scale + offset
@@ -100,4 +75,4 @@ def ellipse(poses_Nx4x4, num_frames: int = 120, z_variation: float = 0.0, z_phas
   mean_up /= np.linalg.norm(mean_up)
   axis = np.argmax(np.abs(mean_up))
   up = np.eye(3)[axis] * np.sign(mean_up[axis])
-  return np.stack([view_matrix(p - center, up, p) for p in positions])
+  return np.stack([pose_math.viewmatrix(p - center, up, p) for p in positions])
