@@ -1,0 +1,43 @@
+"""An unbounded 360-degree capture, any of the three formats: `--config=configs/capture.py:path=DIR`.
+
+DIR holds a COLMAP model (sparse/0/ + images/), a nerfstudio / instant-ngp transforms.json, or an LLFF
+poses_bounds.npy (data.kind=auto tells which, and says so). The capture is oriented with +z up, centred on
+what its cameras look at and scaled so the farthest camera is at distance 1; space beyond the unit ball is
+contracted into the ball of radius 2 (mip-NeRF 360), which the hash grid covers, and the samples run from
+0.2 to 1e6 evenly in inverse distance, so the background is modelled rather than painted on a wall; a fine
+pass importance-samples where the coarse one found matter. The video follows mip-NeRF 360's ellipse through
+the capture's cameras. Arguments: `path=DIR`, `downscale=N` (images_N/ where it exists, else shrunk on
+loading; default 4), `smoke` for tests.
+"""
+from nerfpod import config_util
+
+
+def get_config(arg: str | None = None):
+  args = config_util.parse_arg(arg, path="data/capture", downscale="4", smoke=False)
+  default = config_util.sibling_module(__file__, "default")
+  c = default.get_config()
+  c.data.kind = "auto"
+  c.data.path = args["path"]      # a capture folder (or a transforms.json)
+  c.data.downscale = int(args["downscale"])
+  c.data.space = "unbounded"      # near 0.2, far 1e6 in the normalised frame
+  c.render.space = "contract"
+  c.render.spacing = "inverse"
+  c.render.num_samples = 64
+  c.render.num_importance = 32
+  c.model.use_viewdirs = True
+  g = c.model.hashgrid
+  g.bound, g.num_levels, g.log2_table_size, g.max_resolution = 2.0, 12, 19, 1024
+  g.hidden_width, g.geo_features = 64, 15
+  c.train.num_steps = 6000
+  c.train.batch_size = 1024
+  c.train.lr_init, c.train.lr_final = 1e-2, 3e-4
+  c.train.log_every = 200
+  c.train.image_every = 2000
+  c.checkpoint.every_steps = 2000
+  c.eval.chunk = 8192
+  c.orbit.path = "ellipse"        # mip-NeRF 360's, through the capture's cameras
+  c.orbit.chunk = 8192
+  if args["smoke"]:
+    default.shrink_for_smoke(c)
+    c.model.hashgrid.bound = 2.0
+  return c
