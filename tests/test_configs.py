@@ -7,7 +7,7 @@ from conftest import REPO
 from nerfpod.config_util import sibling_config
 from nerfpod.errors import UserError
 
-CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast"]
+CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast", "llff", "capture"]
 CONTRACT = ["data.path", "data.downscale", "train.num_steps", "train.seed", "checkpoint.every_steps",
             "eval.split", "eval.max_views", "orbit.num_frames"]
 
@@ -53,3 +53,15 @@ def test_tiny_config_is_the_tutorials_model_and_blender_the_papers():
   assert (blender.model.mlp.num_frequencies, blender.model.mlp.viewdir_frequencies, blender.model.mlp.depth,
           blender.model.mlp.width, blender.model.use_viewdirs) == (10, 4, 8, 256, True)
   assert (blender.render.num_samples, blender.render.num_importance) == (64, 128)
+
+
+def test_real_capture_configs_pick_their_space_sampling_and_path():
+  llff = sibling_config(str(REPO / "configs" / "x.py"), "llff", "scene=horns")
+  assert llff.data.path.endswith("horns") and (llff.data.kind, llff.data.downscale) == ("llff", 8)
+  assert (llff.render.space, llff.render.spacing, llff.orbit.path) == ("ndc", "linear", "spiral")
+  capture = sibling_config(str(REPO / "configs" / "x.py"), "capture", "path=/x/cup,downscale=2")
+  assert (capture.data.path, capture.data.kind, capture.data.downscale) == ("/x/cup", "auto", 2)
+  assert (capture.render.space, capture.render.spacing, capture.orbit.path) == ("contract", "inverse", "ellipse")
+  assert capture.model.hashgrid.bound == 2.0
+  for smoke in (sibling_config(str(REPO / "configs" / "x.py"), name, "smoke") for name in ("llff", "capture")):
+    assert smoke.render.space in ("ndc", "contract") and smoke.train.num_steps <= 20

@@ -11,7 +11,7 @@ from nerfpod import scenes, schema
 from nerfpod.config_util import sibling_config
 from nerfpod.errors import UserError
 
-CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast"]
+CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast", "llff", "capture"]
 
 
 @pytest.mark.parametrize("name", CONFIGS)
