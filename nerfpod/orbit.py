@@ -62,8 +62,13 @@ def orbit_intrinsics(orbit_config, reference: cameras.Intrinsics) -> cameras.Int
 
 
 def scene_poses(scene) -> np.ndarray:
-  """(N, 4, 4) float64: every camera of every split of the scene (the capture, as the paths see it)."""
-  return np.concatenate([np.asarray(split.poses, np.float64) for split in scene.splits.values()])
+  """(N, 4, 4) float64: every camera of the scene once (the capture, as the paths see it). Frames in
+  several splits (the captures' val and test are the same held-out frames) count once, by name."""
+  poses = {}
+  for split in scene.splits.values():
+    for name, pose in zip(split.names, split.poses):
+      poses.setdefault(name, np.asarray(pose, np.float64))
+  return np.stack(list(poses.values()))
 
 
 def scene_depth_bounds(scene) -> tuple[float, float]:

@@ -3,7 +3,7 @@ file's cameras are its matrices and fovs; another path replaces the archive inst
 import numpy as np
 import pytest
 
-from conftest import smoke_config
+from conftest import DATA, REPO, require, smoke_config
 from nerfpod import archive as archives
 from nerfpod import camera_path, components, orbit, render
 from nerfpod.errors import UserError
@@ -37,7 +37,10 @@ def test_spiral_and_ellipse_are_drawn_from_the_scenes_cameras(path):
   scene = procedural.load(16)
   config = smoke_config(**{"orbit.path": path, "orbit.num_frames": 12})
   cams = orbit.path_cameras(config, scene)
-  everyone = np.concatenate([s.poses for s in scene.splits.values()]).astype(np.float64)
+  names = {}
+  for split in scene.splits.values():
+    names.update(zip(split.names, split.poses.astype(np.float64)))
+  everyone = np.stack(list(names.values()))
   want = (paths.spiral(everyone, scene.near, scene.far, 12) if path == "spiral" else paths.ellipse(everyone, 12))
   np.testing.assert_allclose(cams.poses, want, rtol=1e-6, atol=1e-6)
   assert cams.intrinsics == (orbit.orbit_intrinsics(config.orbit, scene.split("test").intrinsics),)
@@ -75,3 +78,22 @@ def test_a_bad_path_file_fails_before_training(tmp_path):
   config = smoke_config(**{"orbit.path": "file", "orbit.path_file": str(tmp_path / "bad.json")})
   with pytest.raises(UserError, match="camera path .*bad.json: it has no 'render_height'"):
     components.build(config)
+
+
+def test_the_llff_configs_spiral_on_horns_is_the_originals():
+  """The whole way: configs/llff.py's loader (recentring, bounds rescale) and orbit.path=spiral give the
+  original load_llff_data's render_poses for the real horns capture, each frame counted once."""
+  from nerfpod import scenes
+  from nerfpod.config_util import sibling_config
+  from test_paths import load_llff_spiral
+  folder = require(DATA / "llff_horns")
+  config = sibling_config(str(REPO / "configs" / "x.py"), "llff", "scene=horns")
+  config.data.path = str(folder)
+  cams = orbit.path_cameras(config, scenes.load(config.data))
+  raw = np.load(folder / "poses_bounds.npy")
+  poses = raw[:, :-2].reshape([-1, 3, 5])
+  poses = np.concatenate([poses[:, :, 1:2], -poses[:, :, 0:1], poses[:, :, 2:]], 2)
+  _, _, want = load_llff_spiral(poses, raw[:, -2:].copy())
+  assert cams.poses.shape == (120, 4, 4)
+  np.testing.assert_allclose(cams.poses[:, :3, :4], want, atol=1e-4)
+  assert cams.intrinsics[0].width == 252 and cams.intrinsics[0].height == 189
