@@ -14,6 +14,7 @@ from typing import Any
 import flax
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.sharding import Mesh
 
@@ -71,7 +72,14 @@ def ndc_camera(config, scene) -> tuple[float, float, float, float] | None:
   at the origin looking down -z, has one camera for all frames)."""
   if config.render.space != "ndc":
     return None
-  intr = scene.split("train").intrinsics
+  train = scene.split("train")
+  forward = -np.asarray(train.poses, np.float64)[:, :3, 2]
+  if not (forward[:, 2].mean() < -0.9 and (train.poses[:, 2, 3] > -1.0).all()):
+    raise UserError(f"render.space=ndc needs a forward-facing capture framed as LLFF's loader frames it "
+                    f"(cameras looking down -z from in front of the near plane z = -1), but scene "
+                    f"{scene.name!r} ({scene.space}) is not; load an LLFF capture with data.orient=auto, or use "
+                    f"--config.render.space=euclidean (or contract for a 360-degree capture).")
+  intr = train.intrinsics
   return float(intr.fx), float(intr.fy), float(intr.width), float(intr.height)
 
 

@@ -104,3 +104,10 @@ def test_inverse_spacing_is_even_in_inverse_distance(monkeypatch):
   model = _model(monkeypatch, lambda p: -jnp.ones(p.shape[:-1]), "euclidean", "inverse", 9)
   t = np.asarray(jax.jit(model.apply)({}, origins, directions, 0.5, 100.0, jnp.ones(3))[-1]["t"], np.float64)
   np.testing.assert_allclose(1.0 / t, np.broadcast_to(np.linspace(2.0, 0.01, 9), t.shape), rtol=1e-5)
+
+
+def test_ndc_is_refused_for_a_scene_not_framed_as_a_forward_facing_capture():
+  from nerfpod import components
+  from nerfpod.errors import UserError
+  with pytest.raises(UserError, match="render.space=ndc needs a forward-facing capture framed as LLFF"):
+    components.build(smoke_config(**{"render.space": "ndc"}))
