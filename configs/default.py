@@ -60,6 +60,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
   c.train.log_every = 100         # steps between TensorBoard scalars and console lines
   c.train.image_every = 500       # steps between rendered held-out views in TensorBoard; 0: never
+  c.train.max_nonfinite_steps = 20  # stop (exit 2) after this many steps in a row with a non-finite loss or
+                                    # gradient; each such step is skipped, its update never reaches the state
 
   c.compile = ml_collections.ConfigDict()
   c.compile.cpu_ynnpack = False   # CPU: let XLA hand dots to YNNPACK (its default); off, the steps measured
@@ -68,6 +70,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.checkpoint = ml_collections.ConfigDict()
   c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end
   c.checkpoint.max_to_keep = 3    # newest checkpoints kept on disk
+  c.checkpoint.preempted_exit_code = 75  # exit status after a preemption/SIGTERM/Ctrl-C saved a step (75:
+                                         # EX_TEMPFAIL, "run me again"); 0 means finished
 
   c.eval = ml_collections.ConfigDict()
   c.eval.split = "test"           # held-out split the final metrics are computed on

@@ -103,3 +103,39 @@ def to_host(tree):
   if all(x.is_fully_addressable for x in jax.tree.leaves(tree)):
     return jax.device_get(tree)
   return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def ordered_mean(tree, axis_name: str, axis_size: int):
+  """The mean of `tree` over the devices of `axis_name`, inside shard_map, summed in an order that depends on
+  the devices' indices only, not on how they are spread over processes: the same bits on 1 process x 8
+  devices as on 2 x 4 or 8 x 1.
+
+  (jax.lax.pmean leaves the order to the collective's implementation, which differs between devices of one
+  process and devices of several; with Adam's tiny epsilon those round-off differences grow into visibly
+  different hash-grid parameters.) With a power-of-two count: a butterfly of log2(N) exchanges, device i
+  adding its partner i xor 2^k's partial sum in round k. Floating-point addition is commutative, so both
+  partners compute the same bits, and after the last round every device holds the same sum of the same
+  tree of additions. Otherwise: every device gathers all N values and adds them in index order. Either
+  way the result is then made formally device-invariant by a psum in which every device but the first
+  contributes exact zeros (x + 0 = x exactly, in any order).
+  """
+  import jax.numpy as jnp
+  if axis_size == 1:
+    return jax.lax.pmean(tree, axis_name)  # no sum at all; pmean only marks the value device-invariant
+  index = jax.lax.axis_index(axis_name)
+
+  def mean(x):
+    if axis_size & (axis_size - 1) == 0:
+      total, bit = x, 1
+      while bit < axis_size:
+        total = total + jax.lax.ppermute(total, axis_name, [(i, i ^ bit) for i in range(axis_size)])
+        bit <<= 1
+    else:
+      gathered = jax.lax.all_gather(x, axis_name)
+      total = gathered[0]
+      for i in range(1, axis_size):
+        total = total + gathered[i]
+    total = total / axis_size
+    return jax.lax.psum(jnp.where(index == 0, total, jnp.zeros_like(total)), axis_name)
+
+  return jax.tree.map(mean, tree)

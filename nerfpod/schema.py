@@ -157,11 +157,13 @@ FIELDS: dict[str, Field] = {
     "train.seed": integer(0),
     "train.log_every": integer(1, example=100),
     "train.image_every": integer(0, example=500),
+    "train.max_nonfinite_steps": integer(1, example=20),
 
     "compile.cpu_ynnpack": boolean(),
 
     "checkpoint.every_steps": integer(1, example=500),
     "checkpoint.max_to_keep": integer(1, example=3),
+    "checkpoint.preempted_exit_code": integer(3, 125, example=75),
 
     "eval.split": choice("test", "val", "train"),
     "eval.max_views": integer(0),

@@ -1,5 +1,6 @@
 """Training: the sharded train step and the loop (resume, steps, checkpoints, previews, logging)."""
 import json
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -9,6 +10,7 @@ from jax.sharding import PartitionSpec as P
 
 from nerfpod import checkpoints, components, distributed, render, video
 from nerfpod.components import TrainState
+from nerfpod.errors import UserError
 
 
 def per_ray_uniforms(key, ray_ids, count: int):
@@ -23,8 +25,10 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
-  averaged across devices with pmean (every device holds the same number of rays, so that is the global
-  mean) and every device applies the same Adam update to its replica of the parameters.
+  averaged across devices (every device holds the same number of rays, so that is the global mean), in an
+  order that does not depend on the processes (distributed.ordered_mean: any topology of the same device
+  count gives the same bits), and every device applies the same Adam update to its replica of the
+  parameters. A step whose loss, gradient or update is not finite leaves the state as it was.
   With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
   colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
   colour, which gives clean depth, opacity and disparity.
@@ -33,6 +37,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   `compiler_options`: XLA options to compile the step with (xla_options.compiler_options).
   """
   background = jnp.asarray(background, jnp.float32)
+  num_devices = mesh.shape[distributed.DATA_AXIS]
 
   def loss_fn(params, batch, key):
     u_coarse = per_ray_uniforms(jax.random.fold_in(key, 0), batch["ray_ids"], model.num_samples)
@@ -68,16 +73,51 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
     params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
     (loss, mses), grads = accumulate(params, batch, key)
-    grads, loss, mses = jax.lax.pmean((grads, loss, mses), distributed.DATA_AXIS)
+    grads, loss, mses = distributed.ordered_mean((grads, loss, mses), distributed.DATA_AXIS, num_devices)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
+    # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
+    # Adam's moments and count stay as they were; the data moves on) and counted in metrics["skipped"].
+    finite = checkpoints.all_finite((loss, grads, params, opt_state))
+    params, opt_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), (params, opt_state),
+                                     (state.params, state.opt_state))
     metrics = {"loss": loss, "mse": mses[-1], "psnr": -10.0 * jnp.log10(mses[-1]),
-               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.tree.norm(grads)}
+               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.tree.norm(grads),
+               "skipped": 1 - finite.astype(jnp.int32)}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
   step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
                        out_specs=(P(), P()))
   return jax.jit(step, donate_argnums=0, compiler_options=compiler_options)
+
+
+class SkipCount:
+  """Steps skipped for a non-finite loss or gradient: the total (logged as train/skipped) and the current run
+  of them in a row, which stops training at `limit` with one sentence (the state, and so every checkpoint,
+  holds the last good parameters)."""
+
+  def __init__(self, limit: int):
+    self.limit, self.total, self.in_row = limit, 0, 0
+
+  def record(self, step: int, skipped, newest_checkpoint) -> None:
+    """`newest_checkpoint()`: the newest saved step, named when training stops."""
+    if not int(jax.device_get(skipped)):
+      self.in_row = 0
+      return
+    self.total += 1
+    self.in_row += 1
+    if self.in_row == 1 and jax.process_index() == 0:
+      print(f"nerfpod: warning: step {step} had a non-finite loss or gradient; skipped its update",
+            file=sys.stderr, flush=True)
+    if self.in_row >= self.limit:
+      raise UserError(f"training diverged: the last {self.in_row} steps (to step {step}) all had a non-finite "
+                      f"loss or gradient and were skipped (train.max_nonfinite_steps={self.limit}); no "
+                      f"non-finite value was saved, the newest checkpoint is step {newest_checkpoint()}; train again in "
+                      f"a new --workdir with a lower train.lr_init or a train.grad_clip > 0.")
+
+  def with_total(self, metrics: dict) -> dict:
+    """The fetched step metrics with 'skipped' (that step's flag) replaced by the total so far."""
+    return dict(metrics, skipped=self.total)
 
 
 def train_step(comps: components.Components, microbatches: int | None = None):
@@ -119,12 +159,17 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     preview = comps.scene.split(config.eval.split)
 
     pending = None  # metrics of a log step, fetched only after the next step is dispatched
+    skips = SkipCount(tc.max_nonfinite_steps)
+    unchecked = None  # (step, whether it was skipped) of the previous step, read after this one is dispatched
     for step in range(start_step, tc.num_steps):
       local = next(batches)
       assert int(local.pop("step")) == step, "data pipeline out of step with training"
       state, metrics = step_fn(state, distributed.to_global(comps.mesh, local), key)
+      if unchecked is not None:
+        skips.record(*unchecked, ckpt.latest_step)
+      unchecked = (step + 1, metrics["skipped"])
       if pending is not None:
-        monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+        monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
         pending = None
       done = step + 1
       if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
@@ -132,7 +177,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
       ckpt.save(done, state, {"next_step": done})  # every checkpoint.every_steps, and when preempted
       if ckpt.reached_preemption(done):
         if pending is not None:
-          monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+          monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])),
+                          float(schedule(pending[0] - 1)))
         ckpt.close()  # waits until the step is on disk
         if jax.process_index() == 0:
           print(f"nerfpod: preempted: saved step {done} in {checkpoints.checkpoint_dir(workdir)} and "
@@ -143,8 +189,10 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
                                   preview.intrinsics, config.data.pixel_center, config.eval.chunk)
         monitor.images(done, {"preview/rgb": out["rgb"],
                               "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})
+    if unchecked is not None:
+      skips.record(*unchecked, ckpt.latest_step)
     if pending is not None:
-      monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+      monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
     final_step = int(jax.device_get(state.step))
     if ckpt.latest_step() != final_step:
       ckpt.save(final_step, state, {"next_step": final_step}, force=True)

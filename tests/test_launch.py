@@ -46,6 +46,23 @@ def test_local_launcher_passes_sigterm_or_ctrl_c_on_as_sigterm_and_exits_0_when_
   assert codes == [0], run.output(0)
 
 
+def test_local_launcher_exits_with_the_preempted_status_when_the_processes_stopped_at_a_checkpoint(tmp_path):
+  """A process that saved a step and stopped (exit 75) is no failure: its peers are not killed, and the
+  launcher exits 75 (requeue me), even where a peer had already finished (0)."""
+  with _launch_stand_ins(tmp_path, "wait:75,wait:75", 2, 1) as run:
+    run.wait_for(lambda: "stand-in process 0 ready" in run.output(0)
+                 and "stand-in process 1 ready" in run.launched_log(1), 30, "both stand-ins ready")
+    run.signal(0, signal.SIGTERM)
+    codes = run.wait(timeout=30)
+  assert codes == [75], run.output(0)
+  assert "stopped at a checkpoint (exit status 75)" in run.output(0)
+  with _launch_stand_ins(tmp_path, "exit:75,exit:0", 2, 1, "--grace_s=60") as run:
+    codes = run.wait(timeout=30)
+  assert codes == [75] and "exited with status" not in run.output(0), run.output(0)
+  with _launch_stand_ins(tmp_path, "exit:9,exit:9", 2, 1, "--preempted_exit_code=9") as run:
+    assert run.wait(timeout=30) == [9] and "stopped at a checkpoint" in run.output(0)
+
+
 def test_local_launcher_refuses_bad_counts():
   out = subprocess.run([sys.executable, str(LOCAL), "--num_processes=0"], capture_output=True, text=True,
                        timeout=30)
