@@ -50,7 +50,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train = ml_collections.ConfigDict()
   c.train.num_steps = 1500        # optimiser steps
   c.train.batch_size = 1024       # rays per step, over all devices of all hosts
-  c.train.microbatches = 1        # slices each device's rays are processed in (gradient accumulation)
+  c.train.microbatches = 1        # slices each device's rays are processed in (gradient accumulation); 0: as
+                                  # few as fit the memory (XLA's analysis of the compiled step)
   c.train.lr_init = 1e-2          # learning rate at the start (after warm-up)
   c.train.lr_final = 1e-3         # learning rate at the last step (log-linear decay in between)
   c.train.lr_warmup_steps = 50    # linear warm-up from 0, steps
@@ -66,6 +67,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.compile = ml_collections.ConfigDict()
   c.compile.cpu_ynnpack = False   # CPU: let XLA hand dots to YNNPACK (its default); off, the steps measured
                                   # 1.1-1.5x faster on a 2-core CPU (README, Speed). Ignored on TPU/GPU.
+  c.compile.cpu_memory_gib = 3.0  # CPU: memory the train step may use (all of a process's simulated devices
+                                  # together) when train.microbatches=0; accelerators use their own size
 
   c.checkpoint = ml_collections.ConfigDict()
   c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end

@@ -53,6 +53,20 @@ def initialize(coordinator_address: str | None = None, num_processes: int | None
     jax.distributed.initialize(**timeouts)
 
 
+def wait_for_all(name: str, timeout_s: float = 600.0) -> None:
+  """Waits until every process reaches this point (the distributed runtime's barrier; no device work).
+
+  Before the first collective of a program that each process compiled itself: on CPU, the collectives'
+  set-up waits only 30 s for the slowest peer, which a loaded machine compiling at different speeds
+  exceeds; this barrier waits up to `timeout_s`."""
+  if jax.process_count() == 1:
+    return
+  from jax._src import distributed as jax_distributed  # the runtime's client: no public barrier in jax
+  client = jax_distributed.global_state.client
+  if client is not None:
+    client.wait_at_barrier(name, timeout_in_ms=int(timeout_s * 1000))
+
+
 def _on_cloud_tpu_vm() -> bool:
   """True on a Cloud TPU VM (JAX found TPU chips and libtpu at import), where initialize() needs no
   arguments: it reads the pod's workers from the VM's metadata (a single-host VM makes a pod of one)."""

@@ -1,4 +1,5 @@
 """Training: the sharded train step and the loop (resume, steps, checkpoints, previews, logging)."""
+import itertools
 import json
 import sys
 
@@ -121,11 +122,63 @@ class SkipCount:
 
 
 def train_step(comps: components.Components, microbatches: int | None = None):
-  """The jitted train step of a run's components (micro-batches: the config's unless given)."""
+  """The jitted train step of a run's components (micro-batches: the config's unless given; 0: as few as
+  fit the memory budget, see fit_microbatches)."""
   tc = comps.config.train
+  microbatches = tc.microbatches if microbatches is None else microbatches
+  if microbatches == 0:
+    microbatches = fit_microbatches(comps)
   return make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
-                         comps.scene.background, tc.random_background,
-                         tc.microbatches if microbatches is None else microbatches, comps.compiler_options)
+                         comps.scene.background, tc.random_background, microbatches, comps.compiler_options)
+
+
+def step_memory_bytes(compiled) -> int | None:
+  """What one device needs to run a compiled step, from XLA's own buffer assignment: its arguments, outputs
+  and temporaries, less the outputs that reuse (donated) arguments' buffers. None where XLA reports none."""
+  analysis = compiled.memory_analysis()
+  if analysis is None:
+    return None
+  return int(analysis.argument_size_in_bytes + analysis.output_size_in_bytes + analysis.temp_size_in_bytes
+             - analysis.alias_size_in_bytes)
+
+
+def memory_budget_bytes(config) -> int:
+  """The memory one device's train step may use: on accelerators 85% of what the device reports (the rest
+  for the runtime, the renderer, fragmentation); on a CPU, compile.cpu_memory_gib shared by this process's
+  simulated devices."""
+  stats = jax.local_devices()[0].memory_stats() or {}
+  if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
+    return int(0.85 * stats["bytes_limit"])
+  return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
+
+
+def fit_microbatches(comps: components.Components) -> int:
+  """train.microbatches=0: the fewest micro-batches (a divisor of the rays each device holds) whose compiled
+  step fits memory_budget_bytes, by XLA's memory analysis of the step compiled for this run's shapes. Each
+  try is one compilation; the next count tried is scaled by how far the last one was over the budget."""
+  tc = comps.config.train
+  per_device = tc.batch_size // jax.device_count()
+  divisors = [m for m in range(1, per_device + 1) if per_device % m == 0]
+  budget = memory_budget_bytes(comps.config)
+  first = next(comps.batches(0))
+  batch = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
+  key = components.rays_key(tc.seed)
+  count = 1
+  while True:
+    step = make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
+                           comps.scene.background, tc.random_background, count, comps.compiler_options)
+    need = step_memory_bytes(step.lower(comps.state_shapes, batch, key).compile())
+    if need is None or need <= budget or count == divisors[-1]:
+      break
+    wanted = count * need / max(budget, 1)  # activations dominate, and shrink with the slice
+    count = next((m for m in divisors if m > count and m >= wanted), divisors[-1])
+  if jax.process_index() == 0:
+    fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
+    shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
+    print(f"nerfpod: train.microbatches=0: {count} micro-batch(es) of {per_device // count} rays per device "
+          f"({shown} per device by XLA's analysis) {fits} the budget of {budget / 2**20:,.1f} MiB per device",
+          flush=True)
+  return count
 
 
 def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainState, int] | None:
@@ -152,10 +205,17 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
             f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
             f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
 
-    batches = comps.batches(start_step)
-    step_fn = train_step(comps)
     schedule = components.learning_rate_schedule(tc)
     key = components.rays_key(tc.seed)
+    batches = comps.batches(start_step)
+    step_fn = train_step(comps)
+    if start_step < tc.num_steps and jax.process_count() > 1:
+      # Compile before the first step, then wait for every process to have done so (see wait_for_all).
+      first = next(batches)
+      batches = itertools.chain([first], batches)
+      global_first = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
+      step_fn = step_fn.lower(state, global_first, key).compile()
+      distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
     preview = comps.scene.split(config.eval.split)
 
     pending = None  # metrics of a log step, fetched only after the next step is dispatched

@@ -110,11 +110,13 @@ class Run:
     self.kill()
 
   def kill(self, index: int | None = None, sig=signal.SIGKILL) -> None:
-    for i, proc in enumerate(self.procs):
-      if (index is None or i == index) and proc.poll() is None:
-        proc.send_signal(sig)
-        if sig == signal.SIGKILL:
-          proc.wait()
+    """Signals every process (or one), all before waiting for any: a pod that dies at once."""
+    hit = [proc for i, proc in enumerate(self.procs) if (index is None or i == index) and proc.poll() is None]
+    for proc in hit:
+      proc.send_signal(sig)
+    if sig == signal.SIGKILL:
+      for proc in hit:
+        proc.wait()
 
   def signal(self, index: int, sig) -> None:
     if self.procs[index].poll() is None:
