@@ -69,10 +69,11 @@ def test_local_launcher_refuses_bad_counts():
   assert out.returncode == 2 and "--num_processes and --devices_per_process must be at least 1" in out.stderr
 
 
-def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None):
+def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None, run_status=0):
   """Runs launch/tpu_pod.py with a stand-in `gcloud` on PATH that records its calls; returns (result, calls).
 
-  fake_gcloud_exists: what the stand-in's `describe` answers: {"bucket": bool, "pod": bool}."""
+  fake_gcloud_exists: what the stand-in's `describe` answers: {"bucket": bool, "pod": bool}; run_status: the
+  exit status of the run on worker 0, as the log follower reports it."""
   bin_dir = tmp_path / "bin"
   bin_dir.mkdir(exist_ok=True)
   calls = tmp_path / "gcloud_calls"
@@ -82,7 +83,8 @@ def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None):
       "#!/bin/sh\n"
       f"printf '%s\\n' \"$*\" >> {shlex.quote(str(calls))}\n"
       f"case \"$*\" in *'storage buckets describe'*) exit {0 if exists.get('bucket') else 1};; "
-      f"*'tpu-vm describe'*) exit {0 if exists.get('pod') else 1};; esac\nexit 0\n")
+      f"*'tpu-vm describe'*) exit {0 if exists.get('pod') else 1};; "
+      f"*'tail --pid'*) exit {run_status};; esac\nexit 0\n")
   gcloud.chmod(0o755)
   env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}", TMPDIR=str(tmp_path))
   result = subprocess.run([sys.executable, str(TPU_POD), *args], capture_output=True, text=True, env=env,
@@ -141,6 +143,15 @@ def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
                    "compute tpus tpu-vm describe", "compute tpus tpu-vm scp", "compute tpus tpu-vm ssh",
                    "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
   assert (tmp_path / "nerfpod-src.tar.gz").stat().st_size > 0  # the project, packed for the workers
+
+
+def test_tpu_pod_passes_a_preempted_runs_status_75_on_with_how_to_resume(tmp_path):
+  result, _ = _tpu_pod(tmp_path, *POD_ARGS, fake_gcloud_exists={"bucket": True, "pod": True}, run_status=75)
+  assert result.returncode == 75, result.stderr
+  assert "stopped at a checkpoint (preempted, exit status 75)" in result.stderr
+  assert "run this script again with the same arguments" in result.stderr
+  result, _ = _tpu_pod(tmp_path, *POD_ARGS, fake_gcloud_exists={"bucket": True, "pod": True}, run_status=1)
+  assert result.returncode == 1 and "failed (stream worker 0's log" in result.stderr
 
 
 @pytest.mark.parametrize("bad,message", [

@@ -19,6 +19,9 @@ from nerfpod import checkpoints, distributed, evaluate, modes, train
 from nerfpod.components import TrainState
 from nerfpod.errors import UserError
 
+# A restore that fails half way leaves orbax an asyncio callback that fires after its loop closed: noise.
+pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+
 
 def _mesh(count: int = 8) -> Mesh:
   return Mesh(np.array(jax.devices()[:count]), (distributed.DATA_AXIS,))
