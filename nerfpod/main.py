@@ -71,7 +71,7 @@ def main(argv):
     print("nerfpod: interrupted; the same command resumes from the newest checkpoint", file=sys.stderr,
           flush=True)
     sys.exit(128 + signal.SIGINT)
-  if _MODE.value == "train" and result is None:  # stopped early at a saved step (preemption, SIGTERM, Ctrl-C): "run me again"
+  if _MODE.value == "train" and result is None:  # stopped early at a saved step: "run me again"
     sys.exit(config.checkpoint.preempted_exit_code)
 
 

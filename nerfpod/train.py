@@ -113,8 +113,8 @@ class SkipCount:
     if self.in_row >= self.limit:
       raise UserError(f"training diverged: the last {self.in_row} steps (to step {step}) all had a non-finite "
                       f"loss or gradient and were skipped (train.max_nonfinite_steps={self.limit}); no "
-                      f"non-finite value was saved, the newest checkpoint is step {newest_checkpoint()}; train again in "
-                      f"a new --workdir with a lower train.lr_init or a train.grad_clip > 0.")
+                      f"non-finite value was saved, the newest checkpoint is step {newest_checkpoint()}; train "
+                      f"again in a new --workdir with a lower train.lr_init or a train.grad_clip > 0.")
 
   def with_total(self, metrics: dict) -> dict:
     """The fetched step metrics with 'skipped' (that step's flag) replaced by the total so far."""

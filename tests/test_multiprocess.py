@@ -7,7 +7,7 @@ is the reference every other run must end at.
 import os
 import random
 import re
-from signal import SIGTERM
+from signal import SIGINT, SIGTERM
 import time
 
 import jax
@@ -140,9 +140,11 @@ def test_preemptions_in_one_process_and_in_a_just_resumed_pod_lose_nothing(refer
   workdir = tmp_path / "run"
   with procs.Run(workdir, THROTTLED, devices_per_process=2) as run:
     run.wait_for(lambda: "step      1/" in run.output(0), RUN_TIMEOUT, "first training step")
-    run.signal(0, SIGTERM)
+    run.signal(0, SIGINT)  # Ctrl-C: a preemption too, in one line, without a traceback
     assert run.wait(60) == [75], run.tails()
   assert "nerfpod: preempted: saved step" in run.output(0)
+  assert "nerfpod: interrupted: saving the current step" in run.output(0)
+  assert "Traceback" not in run.output(0) and "KeyboardInterrupt" not in run.output(0)
   first = checkpoints.latest_step(str(workdir))
   assert 0 < first < NUM_STEPS
 

@@ -177,6 +177,8 @@ def test_workdir_mistakes_are_one_sentence_before_any_work(tmp_path):
   (trained / "config.json").write_text('{"train": ')
   with pytest.raises(UserError, match=r"config.json is not valid JSON .*restore it"):
     modes.train_and_evaluate(config, str(trained))
+  with pytest.raises(UserError, match=r"--workdir=.*file/run cannot be written \(Not a directory\)"):
+    modes.train_and_evaluate(config, str(a_file / "run"))  # a folder that cannot be made
   if os.geteuid() != 0:  # root writes anywhere
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o500)

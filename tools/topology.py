@@ -6,7 +6,8 @@
 Prints a JSON line: for each parameter leaf, whether the two runs' values are bitwise equal, the norm of the
 difference relative to the leaf's norm, and the fraction of entries off by more than 1e-3 of the leaf's
 largest magnitude; and both runs' last logged loss and eval/metrics.json means. Other arguments
-(`--config.train.batch_size=2048`) go to both runs. Each run is a real `python -m nerfpod.main` on simulated CPU devices.
+(`--config.train.batch_size=2048`) go to both runs. Each run is a real `python -m nerfpod.main` on
+simulated CPU devices.
 """
 import argparse
 import json
