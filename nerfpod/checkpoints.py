@@ -363,9 +363,18 @@ def state_differences(path, abstract_state, limit: int = 3) -> str:
 def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:
   """(state as nested dicts of NumPy arrays, data position, step) of a workdir's checkpoint, on any host and
   without a mesh: for tools and tests that inspect parameters. Default step: the newest."""
-  step = latest_step(workdir) if step is None else step
-  if step is None:
-    raise UserError(f"workdir {workdir} holds no complete checkpoint.")
+  if step is None:  # the newest that reads back whole, as a read-only restore does
+    steps = finished_steps(workdir)
+    if not steps:
+      raise UserError(f"workdir {workdir} holds no complete checkpoint.")
+    for candidate in reversed(steps):
+      try:
+        return read_numpy(workdir, candidate)
+      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
+        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        print(f"nerfpod: warning: the checkpoint of step {candidate} in {checkpoint_dir(workdir)} does not read "
+              f"back whole ({reason}); reading the step before it", file=sys.stderr, flush=True)
+    raise UserError(f"no checkpoint in {checkpoint_dir(workdir)} reads back whole.")
   path = checkpoint_dir(workdir) / str(step)
   restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), _saved_tree(path / "state"))
   state = ocp.PyTreeCheckpointer().restore(path / "state",

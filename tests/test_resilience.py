@@ -86,6 +86,8 @@ def test_read_only_restore_skips_a_damaged_step_and_leaves_it_in_place(tmp_path,
   assert position == {"next_step": 10}
   assert "left in place" in capsys.readouterr().err
   assert (directory / "20").is_dir() and not (tmp_path / "checkpoints_damaged").exists()
+  _, position, step = checkpoints.read_numpy(str(tmp_path))  # tools read the same way
+  assert step == 10 and position == {"next_step": 10}
 
 
 def test_no_readable_checkpoint_is_one_sentence_and_nothing_is_deleted(tmp_path):
