@@ -74,7 +74,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end
   c.checkpoint.max_to_keep = 3    # newest checkpoints kept on disk
   c.checkpoint.preempted_exit_code = 75  # exit status after a preemption/SIGTERM/Ctrl-C saved a step (75:
-                                         # EX_TEMPFAIL, "run me again"); 0 means finished
+                                         # EX_TEMPFAIL of sysexits.h, "try again": schedulers requeue on it)
 
   c.eval = ml_collections.ConfigDict()
   c.eval.split = "test"           # held-out split the final metrics are computed on

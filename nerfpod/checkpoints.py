@@ -40,11 +40,6 @@ from nerfpod.errors import UserError
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
                      "checkpoint.", "eval.", "orbit.", "compile.")
-# Exit status of a run that stopped early at a checkpoint (preemption, SIGTERM, a first Ctrl-C) and wants to be
-# started again: EX_TEMPFAIL of sysexits.h, "temporary failure, the user is invited to retry". Schedulers
-# (Kubernetes podFailurePolicy, Slurm, systemd) are told to requeue on it; 0 stays "finished".
-PREEMPTED_EXIT_CODE = 75
-
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
@@ -57,8 +52,8 @@ def incompatible_fields(saved: dict, current: dict) -> list[str]:
 
 
 def check_workdir(workdir: str, writable: bool) -> None:
-  """Refuses, in one sentence each, a --workdir that is a file, one that cannot be written (`writable`:
-  training) or one that does not exist (evaluation, rendering). gs:// paths are left to their own errors."""
+  """Refuses, in one sentence each, a --workdir that is a file, or (`writable`: training) one that cannot be
+  made or written. gs:// paths are left to their own errors."""
   if "://" in str(workdir):
     return
   path = epath.Path(workdir)
@@ -105,7 +100,8 @@ def check_compatible(workdir: str, config_json: dict) -> None:
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
                     f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
-                    f"logging cadence, checkpoint.*, eval.*, orbit.* and compile.* may change on resuming).")
+                    f"logging cadence, train.max_nonfinite_steps, checkpoint.*, eval.*, orbit.* and compile.* may "
+                    f"change on resuming).")
 
 
 def write_json(path, value, sort_keys: bool = False) -> None:
