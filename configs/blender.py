@@ -23,6 +23,7 @@ def get_config(arg: str | None = None):
   c.train.random_background = False  # ...with its fixed white background
   c.train.num_steps = 200_000
   c.train.batch_size = 4096
+  c.train.microbatches = 0        # as few micro-batches as fit compile.cpu_memory_gib (CPU) or the device
   c.train.lr_init = 5e-4
   c.train.lr_final = 5e-5
   c.train.lr_warmup_steps = 0

@@ -20,6 +20,7 @@ def get_config(arg: str | None = None):
   c.render.num_samples = 128
   c.train.num_steps = 30_000
   c.train.batch_size = 4096
+  c.train.microbatches = 0        # as few micro-batches as fit compile.cpu_memory_gib (CPU) or the device
   c.train.lr_init, c.train.lr_final = 1e-2, 3e-4
   c.train.log_every = 100
   c.train.image_every = 2500

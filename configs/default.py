@@ -60,7 +60,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train = ml_collections.ConfigDict()
   c.train.num_steps = 1500        # optimiser steps
   c.train.batch_size = 1024       # rays per step, over all devices of all hosts
-  c.train.microbatches = 1        # slices each device's rays are processed in (gradient accumulation)
+  c.train.microbatches = 1        # slices each device's rays are processed in (gradient accumulation); 0: as
+                                  # few as fit the memory (XLA's analysis of the compiled step)
   c.train.lr_init = 1e-2          # learning rate at the start (after warm-up)
   c.train.lr_final = 1e-3         # learning rate at the last step (log-linear decay in between)
   c.train.lr_warmup_steps = 50    # linear warm-up from 0, steps
@@ -70,14 +71,20 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
   c.train.log_every = 100         # steps between TensorBoard scalars and console lines
   c.train.image_every = 500       # steps between rendered held-out views in TensorBoard; 0: never
+  c.train.max_nonfinite_steps = 20  # stop (exit 2) after this many steps in a row with a non-finite loss or
+                                    # gradient; each such step is skipped, its update never reaches the state
 
   c.compile = ml_collections.ConfigDict()
   c.compile.cpu_ynnpack = False   # CPU: let XLA hand dots to YNNPACK (its default); off, the steps measured
                                   # 1.1-1.5x faster on a 2-core CPU (README, Speed). Ignored on TPU/GPU.
+  c.compile.cpu_memory_gib = 3.0  # CPU: memory the train step may use (all of a process's simulated devices
+                                  # together) when train.microbatches=0; accelerators use their own size
 
   c.checkpoint = ml_collections.ConfigDict()
   c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end
   c.checkpoint.max_to_keep = 3    # newest checkpoints kept on disk
+  c.checkpoint.preempted_exit_code = 75  # exit status after a preemption/SIGTERM/Ctrl-C saved a step (75:
+                                         # EX_TEMPFAIL of sysexits.h, "try again": schedulers requeue on it)
 
   c.eval = ml_collections.ConfigDict()
   c.eval.split = "test"           # held-out split the final metrics are computed on

@@ -9,11 +9,13 @@ Everything after `--` goes to `python -m nerfpod.main` unchanged; the launcher a
 and JAX_PLATFORMS=cpu. Process 0's output streams here; the others' goes to --log_dir.
 
 SIGTERM, and a first Ctrl-C, reach every process as SIGTERM, which is what a TPU VM gets before
-maintenance: the processes agree on a step, checkpoint it and exit 0 (the same command resumes from there).
-A second Ctrl-C kills them. When one process fails, the others get --grace_s seconds to stop by themselves
-(the distributed runtime notices a missing peer) and are then killed. The launcher exits 0 if all processes
-did, else with the status of the first that failed (killed by signal N: 128 + N). Standard library only: it
-starts fast.
+maintenance: the processes agree on a step, checkpoint it and exit with the preempted status (75 unless
+--preempted_exit_code says otherwise; it must match the run's checkpoint.preempted_exit_code); the same
+command resumes from there. A second Ctrl-C kills them. When one process fails, the others get --grace_s
+seconds to stop by themselves (the distributed runtime notices a missing peer) and are then killed. The
+launcher exits 0 if all processes did; the preempted status if all stopped at a checkpoint (some may have
+finished); else the status of the first that failed (killed by signal N: 128 + N). Standard library only:
+it starts fast.
 """
 import argparse
 import os
@@ -49,6 +51,9 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   parser.add_argument("--grace_s", type=float, default=30.0, help="seconds the other processes get to "
                       "stop by themselves after one failed, before they are killed")
   parser.add_argument("--module", default="nerfpod.main", help="Python module each process runs")
+  parser.add_argument("--preempted_exit_code", type=int, default=75, help="the processes' exit status after "
+                      "stopping at a checkpoint (their checkpoint.preempted_exit_code): not a failure; the "
+                      "launcher then exits with it too, so that a scheduler requeues the run")
   args = parser.parse_args(own)
   if args.num_processes < 1 or args.devices_per_process < 1:
     parser.error("--num_processes and --devices_per_process must be at least 1")
@@ -99,7 +104,7 @@ def main(argv: list[str]) -> int:
 
   def forward(signum, _frame):
     """SIGTERM, and a first Ctrl-C, reach every process as SIGTERM (they checkpoint an agreed step and
-    exit 0); a second Ctrl-C kills them."""
+    exit with the preempted status); a second Ctrl-C kills them."""
     if signum == signal.SIGINT:
       interrupts.append(signum)
       if len(interrupts) == 1:
@@ -125,7 +130,8 @@ def main(argv: list[str]) -> int:
     first_failure = None  # (index, status) of the first process that failed by itself
     deadline = None
     while None in [child.poll() for child in children]:  # a list, so that every child is polled
-      failed = [i for i, child in enumerate(children) if child.returncode not in (None, 0)]
+      failed = [i for i, child in enumerate(children)
+                if child.returncode not in (None, 0, args.preempted_exit_code)]
       if failed and first_failure is None:
         first_failure = (failed[0], exit_status(children[failed[0]].returncode))
         deadline = time.monotonic() + args.grace_s
@@ -140,7 +146,7 @@ def main(argv: list[str]) -> int:
     for child in children:
       child.wait()
     if first_failure is None:  # they all ended between two polls
-      failed = [i for i, child in enumerate(children) if child.returncode != 0]
+      failed = [i for i, child in enumerate(children) if child.returncode not in (0, args.preempted_exit_code)]
       if failed:
         first_failure = (failed[0], exit_status(children[failed[0]].returncode))
   finally:
@@ -151,6 +157,10 @@ def main(argv: list[str]) -> int:
     for log in logs:
       log.close()
   statuses = [exit_status(child.returncode) for child in children]
+  if first_failure is None and args.preempted_exit_code in statuses:
+    print(f"launch/local.py: stopped at a checkpoint (exit status {args.preempted_exit_code}); the same command "
+          f"resumes from there", file=sys.stderr, flush=True)
+    return args.preempted_exit_code
   if first_failure is None:
     return 0
   print(f"launch/local.py: exit statuses {statuses}; logs of processes 1.. in {log_dir}", file=sys.stderr,

@@ -11,8 +11,9 @@ created in the pod's region if it does not exist. On the workers jax.distributed
 
 The run is started detached (it survives a dropped connection); following the log again, or stopping the
 run, is one gcloud command each, printed at the start. Maintenance or preemption sends every worker
-SIGTERM: nerfpod saves a checkpoint at a step all workers agree on and exits 0; run this script again with
-the same arguments and it resumes from that checkpoint.
+SIGTERM: nerfpod saves a checkpoint at a step all workers agree on and exits with status 75 (EX_TEMPFAIL;
+the run's checkpoint.preempted_exit_code), as does this script, so that a scheduler requeues it; run this
+script again with the same arguments and it resumes from that checkpoint. 0 means the run finished.
 
 `--dry-run` prints every command instead of running it. Needs the gcloud CLI, logged in, and for a new pod
 the TPU quota; standard library only.
@@ -31,6 +32,8 @@ REMOTE_DIR = "nerfpod"  # under each worker's home
 LOG = f"~/{REMOTE_DIR}/run.log"
 PID = f"~/{REMOTE_DIR}/run.pid"
 STATUS = f"~/{REMOTE_DIR}/run.status"
+# nerfpod's exit status after saving a step and stopping early (checkpoint.preempted_exit_code's default).
+PREEMPTED_EXIT_CODE = 75
 
 
 def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
@@ -126,6 +129,10 @@ def main(argv: list[str]) -> int:
     code = subprocess.call(cmd, **quiet)
     if probe:
       skip_next = code == 0  # it exists: skip its creation
+    elif code == PREEMPTED_EXIT_CODE and what.startswith("stream"):
+      print(f"launch/tpu_pod.py: the run stopped at a checkpoint (preempted, exit status {code}); run this "
+            f"script again with the same arguments to resume", file=sys.stderr, flush=True)
+      return code
     elif code != 0:
       print(f"launch/tpu_pod.py: failed ({what}) with exit status {code}", file=sys.stderr, flush=True)
       return code

@@ -13,13 +13,23 @@ catches it on whichever host gets it and makes all hosts agree on one step (`rea
 after the furthest one any process had reached); with one process, a SIGTERM handler sets a flag. Either
 way `save` then writes that step, whatever the interval, and the loop stops there.
 
+A first Ctrl-C (SIGINT) in training is a preemption too (the current step is saved, the run stops and exits
+with checkpoint.preempted_exit_code); a second one stops the process at once, like a kill.
+
+Damage: a finished step that does not read back whole (a file emptied or deleted by a disk or a person, or
+non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
+deleted), and the restore falls back to the newest step before it that reads back whole.
+
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
 import json
+import os
 import signal
+import sys
 import threading
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from etils import epath
@@ -28,8 +38,8 @@ from nerfpod import schema
 from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
-RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "checkpoint.", "eval.",
-                     "orbit.", "compile.")
+RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
+                     "checkpoint.", "eval.", "orbit.", "compile.")
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
@@ -41,12 +51,47 @@ def incompatible_fields(saved: dict, current: dict) -> list[str]:
                                           for p in RESUMABLE_CHANGES)]
 
 
+def check_workdir(workdir: str, writable: bool) -> None:
+  """Refuses, in one sentence each, a --workdir that is a file, or (`writable`: training) one that cannot be
+  made or written. gs:// paths are left to their own errors."""
+  if "://" in str(workdir):
+    return
+  path = epath.Path(workdir)
+  if path.exists() and not path.is_dir():
+    raise UserError(f"--workdir={workdir} is an existing file, not a folder; pass a folder (a new one for a new "
+                    f"run).")
+  if not writable:
+    return
+  try:
+    path.mkdir(parents=True, exist_ok=True)
+    probe = path / f".nerfpod-write-test-{os.getpid()}"
+    probe.write_text("")
+    probe.unlink()
+  except OSError as e:
+    raise UserError(f"--workdir={workdir} cannot be written ({e.strerror or e}); pass a folder this user may "
+                    f"write, or fix its permissions.") from None
+
+
+def saved_config(workdir: str) -> dict | None:
+  """The workdir's config.json, None where there is none; a malformed one is a UserError."""
+  path = epath.Path(workdir) / "config.json"
+  if not path.exists():
+    return None
+  try:
+    saved = json.loads(path.read_text())
+    if not isinstance(saved, dict):
+      raise ValueError("not a JSON object")
+  except (ValueError, UnicodeDecodeError) as e:
+    raise UserError(f"{path} is not valid JSON ({e}); restore it (it records the config the checkpoints were "
+                    f"trained with) or move it away to resume with this run's config.") from None
+  return saved
+
+
 def check_compatible(workdir: str, config_json: dict) -> None:
   """Refuses to resume a workdir whose checkpoints came from a config of another shape or data."""
-  path = epath.Path(workdir) / "config.json"
-  if latest_step(workdir) is None or not path.exists():
+  saved = saved_config(workdir)
+  if latest_step(workdir) is None or saved is None:
     return
-  saved = json.loads(path.read_text())
   differing = incompatible_fields(saved, config_json)
   if differing:
     was, now = schema.migrate_flat(schema.flatten(saved)), schema.flatten(config_json)
@@ -55,7 +100,8 @@ def check_compatible(workdir: str, config_json: dict) -> None:
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
                     f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
-                    f"logging cadence, checkpoint.*, eval.*, orbit.* and compile.* may change on resuming).")
+                    f"logging cadence, train.max_nonfinite_steps, checkpoint.*, eval.*, orbit.* and compile.* may "
+                    f"change on resuming).")
 
 
 def write_json(path, value, sort_keys: bool = False) -> None:
@@ -64,7 +110,8 @@ def write_json(path, value, sort_keys: bool = False) -> None:
   path = epath.Path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   tmp = path.parent / f"{path.name}.tmp"
-  tmp.write_text(json.dumps(value, indent=2, sort_keys=sort_keys))
+  # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
+  tmp.write_text(json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False))
   tmp.replace(path)
 
 
@@ -104,7 +151,7 @@ class Checkpoints:
   """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position).
 
   Also the preemption watch: `reached_preemption(step)` is True at the one step all processes agree to
-  stop at after a SIGTERM. Use as a context manager, or call close().
+  stop at after a SIGTERM or a first Ctrl-C. Use as a context manager, or call close().
   """
 
   def __init__(self, workdir: str, every_steps: int, max_to_keep: int, read_only: bool = False):
@@ -120,9 +167,12 @@ class Checkpoints:
         save_decision_policy=cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
                                                cm.PreemptionCheckpointingPolicy()]))
     self._directory = checkpoint_dir(workdir)
+    self._read_only = read_only
     self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
     self._sigterm = threading.Event()
     self._previous_handler = None
+    self._previous_sigint = None
+    self._interrupts = 0
     self._agree = jax.process_count() > 1 and not read_only
     if read_only:
       pass
@@ -135,6 +185,21 @@ class Checkpoints:
       # would also do, but orbax's save-finalising thread reports older steps to it, which with one
       # process can make the agreed step one the loop has already passed.)
       self._previous_handler = signal.signal(signal.SIGTERM, lambda *_: self._sigterm.set())
+    if not read_only and threading.current_thread() is threading.main_thread():
+      self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
+
+  def _on_sigint(self, *_):
+    """A first Ctrl-C: a preemption (the current step is saved, then the run stops); a second: stop now."""
+    self._interrupts += 1
+    if self._interrupts > 1:
+      print("nerfpod: interrupted again: stopping now, without saving", file=sys.stderr, flush=True)
+      os._exit(128 + signal.SIGINT)
+    print("nerfpod: interrupted: saving the current step, then stopping (Ctrl-C again to stop at once)",
+          file=sys.stderr, flush=True)
+    if self._agree:
+      os.kill(os.getpid(), signal.SIGTERM)  # JAX's preemption service makes every process agree on the step
+    else:
+      self._sigterm.set()
 
   def __enter__(self):
     return self
@@ -146,12 +211,59 @@ class Checkpoints:
     return self.manager.latest_step()
 
   def restore(self, abstract_state, step: int | None = None):
-    """(state, data position) of `step` (default: the newest), arrays placed as in `abstract_state`.
+    """(state, data position) of `step` (default: the newest that reads back whole), arrays placed as in
+    `abstract_state`.
 
     The placement comes from `abstract_state`'s shardings, i.e. this run's mesh, whatever mesh wrote the
-    checkpoint: a run can come back on another number of hosts or devices.
+    checkpoint: a run can come back on another number of hosts or devices. Without `step`, a newest step
+    that does not read back whole (missing or emptied files, non-finite values) is set aside into
+    checkpoints_damaged/ (read-only: only skipped) with one line saying so, and the step before it is tried.
     """
-    step = self.manager.latest_step() if step is None else step
+    if step is not None:
+      return self._restore_step(abstract_state, step)
+    damaged = []
+    for candidate in sorted(self.manager.all_steps(), reverse=True):
+      try:
+        return self._restore_step(abstract_state, candidate)
+      except UserError:
+        raise
+      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
+        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        damaged.append(f"step {candidate}: {reason}")
+        if self._read_only:
+          where = "left in place (a training run on this workdir sets it aside)"
+        else:
+          where = f"set aside as {self._set_aside(candidate)}"
+        if jax.process_index() == 0:
+          print(f"nerfpod: warning: the checkpoint of step {candidate} in {self._directory} does not read back "
+                f"whole ({reason}); {where}; falling back to the step before it", file=sys.stderr, flush=True)
+    raise UserError(f"no checkpoint in {self._directory} reads back whole ({'; '.join(damaged)}); "
+                    + ("" if self._read_only else f"they were set aside in {self._damaged_dir()}; ")
+                    + "train again from scratch in a new --workdir (or rerun the training command, which now "
+                      "starts from scratch).")
+
+  def _damaged_dir(self) -> epath.Path:
+    return self._directory.parent / "checkpoints_damaged"
+
+  def _set_aside(self, step: int) -> epath.Path:
+    """Renames a damaged step's folder into checkpoints_damaged/ (process 0, then every process waits for it
+    to be gone) and makes the manager forget it; returns where it went."""
+    target = self._damaged_dir() / str(step)
+    suffix = 1
+    while target.exists():
+      suffix += 1
+      target = self._damaged_dir() / f"{step}-{suffix}"
+    if jax.process_index() == 0:
+      target.parent.mkdir(parents=True, exist_ok=True)
+      (self._directory / str(step)).rename(target)
+    if jax.process_count() > 1:
+      from jax.experimental import multihost_utils
+      multihost_utils.sync_global_devices(f"nerfpod_set_aside_{step}")
+    self.manager.reload()
+    return target
+
+  def _restore_step(self, abstract_state, step: int):
+    """(state, position) of one step, or an exception where it does not read back whole."""
     # Checked before restoring: orbax would fail half way, with a stack trace and its reads still pending.
     differences = state_differences(self._directory / str(step) / "state", abstract_state)
     if differences:
@@ -160,7 +272,12 @@ class Checkpoints:
                       f"version; use a new --workdir (or that version).")
     restored = self.manager.restore(step, args=ocp.args.Composite(
         state=ocp.args.StandardRestore(abstract_state), data=ocp.args.JsonRestore()))
-    return restored["state"], restored["data"]
+    if not bool(all_finite(restored["state"])):
+      raise ValueError("it holds non-finite values")
+    position = restored["data"]
+    if not isinstance(position, dict) or not isinstance(position.get("next_step"), int):
+      raise ValueError(f"its data position {position!r} is not {{'next_step': N}}")
+    return restored["state"], position
 
   def reached_preemption(self, step: int) -> bool:
     """True at the step where every process stops after a SIGTERM reached any of them.
@@ -177,6 +294,15 @@ class Checkpoints:
     if self.manager.latest_step() == step:
       return False
     force = force or self.reached_preemption(step)
+    if not (force or self.manager.should_save(step)):
+      return False
+    # The step never lets a non-finite value into the state (it skips such updates); this is the last line
+    # of defence, as a saved NaN would rotate the good checkpoints out.
+    if not bool(all_finite(state)):
+      if jax.process_index() == 0:
+        print(f"nerfpod: warning: the train state at step {step} holds non-finite values; not saving it",
+              file=sys.stderr, flush=True)
+      return False
     return self.manager.save(step, args=ocp.args.Composite(
         state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_position)), force=force)
 
@@ -193,11 +319,23 @@ class Checkpoints:
     if self._previous_handler is not None:
       signal.signal(signal.SIGTERM, self._previous_handler)
       self._previous_handler = None
+    if self._previous_sigint is not None:
+      signal.signal(signal.SIGINT, self._previous_sigint)
+      self._previous_sigint = None
+
+
+@jax.jit
+def all_finite(tree) -> jax.Array:
+  """Whether every floating-point leaf of `tree` is finite (a scalar bool, on the leaves' devices)."""
+  checks = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
+  return jnp.all(jnp.stack(checks)) if checks else jnp.asarray(True)
 
 
 def _saved_tree(path):
   """The tree of array metadata (shapes, dtypes) of the pytree item saved at `path`, read without its data."""
-  return ocp.PyTreeCheckpointer().metadata(path).item_metadata.tree
+  # The handler's own reader: the checkpointer's would also look for step metadata in the item's folder,
+  # where there is none, and log a warning on every resume.
+  return ocp.PyTreeCheckpointHandler().metadata(epath.Path(path)).tree
 
 
 def _leaf_shapes(tree) -> dict[str, tuple]:
@@ -228,9 +366,18 @@ def state_differences(path, abstract_state, limit: int = 3) -> str:
 def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:
   """(state as nested dicts of NumPy arrays, data position, step) of a workdir's checkpoint, on any host and
   without a mesh: for tools and tests that inspect parameters. Default step: the newest."""
-  step = latest_step(workdir) if step is None else step
-  if step is None:
-    raise UserError(f"workdir {workdir} holds no complete checkpoint.")
+  if step is None:  # the newest that reads back whole, as a read-only restore does
+    steps = finished_steps(workdir)
+    if not steps:
+      raise UserError(f"workdir {workdir} holds no complete checkpoint.")
+    for candidate in reversed(steps):
+      try:
+        return read_numpy(workdir, candidate)
+      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
+        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        print(f"nerfpod: warning: the checkpoint of step {candidate} in {checkpoint_dir(workdir)} does not read "
+              f"back whole ({reason}); reading the step before it", file=sys.stderr, flush=True)
+    raise UserError(f"no checkpoint in {checkpoint_dir(workdir)} reads back whole.")
   path = checkpoint_dir(workdir) / str(step)
   restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), _saved_tree(path / "state"))
   state = ocp.PyTreeCheckpointer().restore(path / "state",

@@ -53,6 +53,20 @@ def initialize(coordinator_address: str | None = None, num_processes: int | None
     jax.distributed.initialize(**timeouts)
 
 
+def wait_for_all(name: str, timeout_s: float = 600.0) -> None:
+  """Waits until every process reaches this point (the distributed runtime's barrier; no device work).
+
+  Before the first collective of a program that each process compiled itself: on CPU, the collectives'
+  set-up waits only 30 s for the slowest peer, which a loaded machine compiling at different speeds
+  exceeds; this barrier waits up to `timeout_s`."""
+  if jax.process_count() == 1:
+    return
+  from jax._src import distributed as jax_distributed  # the runtime's client: no public barrier in jax
+  client = jax_distributed.global_state.client
+  if client is not None:
+    client.wait_at_barrier(name, timeout_in_ms=int(timeout_s * 1000))
+
+
 def _on_cloud_tpu_vm() -> bool:
   """True on a Cloud TPU VM (JAX found TPU chips and libtpu at import), where initialize() needs no
   arguments: it reads the pod's workers from the VM's metadata (a single-host VM makes a pod of one)."""
@@ -103,3 +117,39 @@ def to_host(tree):
   if all(x.is_fully_addressable for x in jax.tree.leaves(tree)):
     return jax.device_get(tree)
   return multihost_utils.process_allgather(tree, tiled=True)
+
+
+def ordered_mean(tree, axis_name: str, axis_size: int):
+  """The mean of `tree` over the devices of `axis_name`, inside shard_map, summed in an order that depends on
+  the devices' indices only, not on how they are spread over processes: the same bits on 1 process x 8
+  devices as on 2 x 4 or 8 x 1.
+
+  (jax.lax.pmean leaves the order to the collective's implementation, which differs between devices of one
+  process and devices of several; with Adam's tiny epsilon those round-off differences grow into visibly
+  different hash-grid parameters.) With a power-of-two count: a butterfly of log2(N) exchanges, device i
+  adding its partner i xor 2^k's partial sum in round k. Floating-point addition is commutative, so both
+  partners compute the same bits, and after the last round every device holds the same sum of the same
+  tree of additions. Otherwise: every device gathers all N values and adds them in index order. Either
+  way the result is then made formally device-invariant by a psum in which every device but the first
+  contributes exact zeros (x + 0 = x exactly, in any order).
+  """
+  import jax.numpy as jnp
+  if axis_size == 1:
+    return jax.lax.pmean(tree, axis_name)  # no sum at all; pmean only marks the value device-invariant
+  index = jax.lax.axis_index(axis_name)
+
+  def mean(x):
+    if axis_size & (axis_size - 1) == 0:
+      total, bit = x, 1
+      while bit < axis_size:
+        total = total + jax.lax.ppermute(total, axis_name, [(i, i ^ bit) for i in range(axis_size)])
+        bit <<= 1
+    else:
+      gathered = jax.lax.all_gather(x, axis_name)
+      total = gathered[0]
+      for i in range(1, axis_size):
+        total = total + gathered[i]
+    total = total / axis_size
+    return jax.lax.psum(jnp.where(index == 0, total, jnp.zeros_like(total)), axis_name)
+
+  return jax.tree.map(mean, tree)

@@ -3,8 +3,11 @@
 Parses flags, checks the whole config (nerfpod.schema) before JAX starts, starts the multi-host runtime where
 there is one, and runs the mode (nerfpod.modes): `train` (the default: train_and_evaluate, which trains,
 evaluates and renders the orbit), `eval` or `render` (from the workdir's newest checkpoint). A user's
-mistake is printed as one sentence per problem with exit code 2.
+mistake is printed as one sentence per problem with exit code 2. Exit codes: 0 finished; 2 bad input (or
+training diverged); checkpoint.preempted_exit_code (75) stopped early at a saved step (SIGTERM, preemption, a
+first Ctrl-C): run the same command again; 130 interrupted outside training's steps.
 """
+import signal
 import sys
 
 from absl import app, flags, logging
@@ -60,10 +63,16 @@ def main(argv):
                            heartbeat_timeout_seconds=_HEARTBEAT.value,
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
     from nerfpod import modes
-    {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
-     "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)
+    result = {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
+              "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)
   except UserError as e:
     _fail(e)
+  except KeyboardInterrupt:  # Ctrl-C outside training's steps (start-up, evaluation, the orbit)
+    print("nerfpod: interrupted; the same command resumes from the newest checkpoint", file=sys.stderr,
+          flush=True)
+    sys.exit(128 + signal.SIGINT)
+  if _MODE.value == "train" and result is None:  # stopped early at a saved step: "run me again"
+    sys.exit(config.checkpoint.preempted_exit_code)
 
 
 def _parse_flags(argv):

@@ -20,6 +20,7 @@ def _prepare(config, workdir: str, trained: bool = False) -> components.Componen
   """Checks the config (with this run's device count) and a resumed workdir's, then builds the pieces.
   `trained`: the workdir must hold a checkpoint (evaluation, rendering)."""
   schema.validate(config, jax.device_count())
+  checkpoints.check_workdir(workdir, writable=not trained)
   if trained and checkpoints.latest_step(workdir) is None:
     raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
                     f"the default) or pass the --workdir of a trained run.")
@@ -30,8 +31,9 @@ def _prepare(config, workdir: str, trained: bool = False) -> components.Componen
 def train_and_evaluate(config, workdir: str) -> dict | None:
   """Trains (resuming from workdir's newest checkpoint), evaluates the held-out views, renders the orbit.
 
-  Returns the metrics written to workdir/eval/metrics.json, or None when a SIGTERM (preemption) stopped
-  training: the state was then saved at a step all processes agreed on, and nothing else is done.
+  Returns the metrics written to workdir/eval/metrics.json, or None when a SIGTERM (preemption) or a first
+  Ctrl-C stopped training: the state was then saved at a step all processes agreed on, and nothing else is
+  done (the entry point exits with checkpoint.preempted_exit_code).
   """
   comps = _prepare(config, workdir)
   watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size)

@@ -46,7 +46,8 @@ class Monitor:
     if not self.enabled:
       return
     for name, value in metrics.items():
-      self.writer.add_scalar(f"train/{name}", float(value), step)
+      if np.isfinite(float(value)):  # a skipped step's NaN loss is counted in train/skipped instead
+        self.writer.add_scalar(f"train/{name}", float(value), step)
     self.writer.add_scalar("train/learning_rate", lr, step)
     line = (f"step {step:>6d}/{self.num_steps} | loss {float(metrics['loss']):.5f} | "
             f"psnr {float(metrics['psnr']):6.2f} dB | lr {lr:.2e}")

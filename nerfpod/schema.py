@@ -154,7 +154,7 @@ FIELDS: dict[str, Field] = {
 
     "train.num_steps": integer(0, example=1000),
     "train.batch_size": integer(1, example=4096),
-    "train.microbatches": integer(1),
+    "train.microbatches": integer(0),
     "train.lr_init": number(above=0.0, example=5e-4),
     "train.lr_final": number(above=0.0, example=5e-5),
     "train.lr_warmup_steps": integer(0),
@@ -164,11 +164,14 @@ FIELDS: dict[str, Field] = {
     "train.seed": integer(0),
     "train.log_every": integer(1, example=100),
     "train.image_every": integer(0, example=500),
+    "train.max_nonfinite_steps": integer(1, example=20),
 
     "compile.cpu_ynnpack": boolean(),
+    "compile.cpu_memory_gib": number(above=0.0, example=3.0),
 
     "checkpoint.every_steps": integer(1, example=500),
     "checkpoint.max_to_keep": integer(1, example=3),
+    "checkpoint.preempted_exit_code": integer(3, 125, example=75),
 
     "eval.split": choice("test", "val", "train"),
     "eval.max_views": integer(0),
@@ -235,7 +238,7 @@ def device_rules(c: dict, device_count: int) -> list[str]:
   if batch % device_count:
     return [f"train.batch_size={batch} does not split over {device_count} devices; make it a multiple of "
             f"{device_count} (e.g. --config.train.batch_size={max(1, batch // device_count) * device_count})."]
-  if batch % (device_count * micro):
+  if micro and batch % (device_count * micro):
     return [f"train.batch_size={batch} does not split into train.microbatches={micro} equal slices on each "
             f"of {device_count} devices; make the batch a multiple of {device_count * micro} or use fewer "
             f"micro-batches (e.g. --config.train.microbatches=1)."]

@@ -1,5 +1,7 @@
 """Training: the sharded train step and the loop (resume, steps, checkpoints, previews, logging)."""
+import itertools
 import json
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -9,6 +11,7 @@ from jax.sharding import PartitionSpec as P
 
 from nerfpod import checkpoints, components, distributed, render, video
 from nerfpod.components import TrainState
+from nerfpod.errors import UserError
 
 
 def per_ray_uniforms(key, ray_ids, count: int):
@@ -23,8 +26,10 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
-  averaged across devices with pmean (every device holds the same number of rays, so that is the global
-  mean) and every device applies the same Adam update to its replica of the parameters.
+  averaged across devices (every device holds the same number of rays, so that is the global mean), in an
+  order that does not depend on the processes (distributed.ordered_mean: any topology of the same device
+  count gives the same bits), and every device applies the same Adam update to its replica of the
+  parameters. A step whose loss, gradient or update is not finite leaves the state as it was.
   With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
   colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
   colour, which gives clean depth, opacity and disparity.
@@ -33,6 +38,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   `compiler_options`: XLA options to compile the step with (xla_options.compiler_options).
   """
   background = jnp.asarray(background, jnp.float32)
+  num_devices = mesh.shape[distributed.DATA_AXIS]
 
   def loss_fn(params, batch, key):
     u_coarse = per_ray_uniforms(jax.random.fold_in(key, 0), batch["ray_ids"], model.num_samples)
@@ -68,11 +74,17 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
     params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
     (loss, mses), grads = accumulate(params, batch, key)
-    grads, loss, mses = jax.lax.pmean((grads, loss, mses), distributed.DATA_AXIS)
+    grads, loss, mses = distributed.ordered_mean((grads, loss, mses), distributed.DATA_AXIS, num_devices)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
+    # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
+    # Adam's moments and count stay as they were; the data moves on) and counted in metrics["skipped"].
+    finite = checkpoints.all_finite((loss, grads, params, opt_state))
+    params, opt_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), (params, opt_state),
+                                     (state.params, state.opt_state))
     metrics = {"loss": loss, "mse": mses[-1], "psnr": -10.0 * jnp.log10(mses[-1]),
-               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.tree.norm(grads)}
+               "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.tree.norm(grads),
+               "skipped": 1 - finite.astype(jnp.int32)}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
   step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
@@ -80,12 +92,93 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   return jax.jit(step, donate_argnums=0, compiler_options=compiler_options)
 
 
+class SkipCount:
+  """Steps skipped for a non-finite loss or gradient: the total (logged as train/skipped) and the current run
+  of them in a row, which stops training at `limit` with one sentence (the state, and so every checkpoint,
+  holds the last good parameters)."""
+
+  def __init__(self, limit: int):
+    self.limit, self.total, self.in_row = limit, 0, 0
+
+  def record(self, step: int, skipped, newest_checkpoint) -> None:
+    """`newest_checkpoint()`: the newest saved step, named when training stops."""
+    if not int(jax.device_get(skipped)):
+      self.in_row = 0
+      return
+    self.total += 1
+    self.in_row += 1
+    if self.in_row == 1 and jax.process_index() == 0:
+      print(f"nerfpod: warning: step {step} had a non-finite loss or gradient; skipped its update",
+            file=sys.stderr, flush=True)
+    if self.in_row >= self.limit:
+      raise UserError(f"training diverged: the last {self.in_row} steps (to step {step}) all had a non-finite "
+                      f"loss or gradient and were skipped (train.max_nonfinite_steps={self.limit}); no "
+                      f"non-finite value was saved, the newest checkpoint is step {newest_checkpoint()}; train "
+                      f"again in a new --workdir with a lower train.lr_init or a train.grad_clip > 0.")
+
+  def with_total(self, metrics: dict) -> dict:
+    """The fetched step metrics with 'skipped' (that step's flag) replaced by the total so far."""
+    return dict(metrics, skipped=self.total)
+
+
 def train_step(comps: components.Components, microbatches: int | None = None):
-  """The jitted train step of a run's components (micro-batches: the config's unless given)."""
+  """The jitted train step of a run's components (micro-batches: the config's unless given; 0: as few as
+  fit the memory budget, see fit_microbatches)."""
   tc = comps.config.train
+  microbatches = tc.microbatches if microbatches is None else microbatches
+  if microbatches == 0:
+    microbatches = fit_microbatches(comps)
   return make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
-                         comps.scene.background, tc.random_background,
-                         tc.microbatches if microbatches is None else microbatches, comps.compiler_options)
+                         comps.scene.background, tc.random_background, microbatches, comps.compiler_options)
+
+
+def step_memory_bytes(compiled) -> int | None:
+  """What one device needs to run a compiled step, from XLA's own buffer assignment: its arguments, outputs
+  and temporaries, less the outputs that reuse (donated) arguments' buffers. None where XLA reports none."""
+  analysis = compiled.memory_analysis()
+  if analysis is None:
+    return None
+  return int(analysis.argument_size_in_bytes + analysis.output_size_in_bytes + analysis.temp_size_in_bytes
+             - analysis.alias_size_in_bytes)
+
+
+def memory_budget_bytes(config) -> int:
+  """The memory one device's train step may use: on accelerators 85% of what the device reports (the rest
+  for the runtime, the renderer, fragmentation); on a CPU, compile.cpu_memory_gib shared by this process's
+  simulated devices."""
+  stats = jax.local_devices()[0].memory_stats() or {}
+  if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
+    return int(0.85 * stats["bytes_limit"])
+  return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
+
+
+def fit_microbatches(comps: components.Components) -> int:
+  """train.microbatches=0: the fewest micro-batches (a divisor of the rays each device holds) whose compiled
+  step fits memory_budget_bytes, by XLA's memory analysis of the step compiled for this run's shapes. Each
+  try is one compilation; the next count tried is scaled by how far the last one was over the budget."""
+  tc = comps.config.train
+  per_device = tc.batch_size // jax.device_count()
+  divisors = [m for m in range(1, per_device + 1) if per_device % m == 0]
+  budget = memory_budget_bytes(comps.config)
+  first = next(comps.batches(0))
+  batch = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
+  key = components.rays_key(tc.seed)
+  count = 1
+  while True:
+    step = make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
+                           comps.scene.background, tc.random_background, count, comps.compiler_options)
+    need = step_memory_bytes(step.lower(comps.state_shapes, batch, key).compile())
+    if need is None or need <= budget or count == divisors[-1]:
+      break
+    wanted = count * need / max(budget, 1)  # activations dominate, and shrink with the slice
+    count = next((m for m in divisors if m > count and m >= wanted), divisors[-1])
+  if jax.process_index() == 0:
+    fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
+    shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
+    print(f"nerfpod: train.microbatches=0: {count} micro-batch(es) of {per_device // count} rays per device "
+          f"({shown} per device by XLA's analysis) {fits} the budget of {budget / 2**20:,.1f} MiB per device",
+          flush=True)
+  return count
 
 
 def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainState, int] | None:
@@ -113,19 +206,31 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
             f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
             f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
 
-    batches = comps.batches(start_step)
-    step_fn = train_step(comps)
     schedule = components.learning_rate_schedule(tc)
     key = components.rays_key(tc.seed)
+    batches = comps.batches(start_step)
+    step_fn = train_step(comps)
+    if start_step < tc.num_steps and jax.process_count() > 1:
+      # Compile before the first step, then wait for every process to have done so (see wait_for_all).
+      first = next(batches)
+      batches = itertools.chain([first], batches)
+      global_first = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
+      step_fn = step_fn.lower(state, global_first, key).compile()
+      distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
     preview = comps.scene.split(config.eval.split)
 
     pending = None  # metrics of a log step, fetched only after the next step is dispatched
+    skips = SkipCount(tc.max_nonfinite_steps)
+    unchecked = None  # (step, whether it was skipped) of the previous step, read after this one is dispatched
     for step in range(start_step, tc.num_steps):
       local = next(batches)
       assert int(local.pop("step")) == step, "data pipeline out of step with training"
       state, metrics = step_fn(state, distributed.to_global(comps.mesh, local), key)
+      if unchecked is not None:
+        skips.record(*unchecked, ckpt.latest_step)
+      unchecked = (step + 1, metrics["skipped"])
       if pending is not None:
-        monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+        monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
         pending = None
       done = step + 1
       if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
@@ -133,7 +238,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
       ckpt.save(done, state, {"next_step": done})  # every checkpoint.every_steps, and when preempted
       if ckpt.reached_preemption(done):
         if pending is not None:
-          monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+          monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])),
+                          float(schedule(pending[0] - 1)))
         ckpt.close()  # waits until the step is on disk
         if jax.process_index() == 0:
           print(f"nerfpod: preempted: saved step {done} in {checkpoints.checkpoint_dir(workdir)} and "
@@ -144,8 +250,10 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
                                   preview.cameras[0], config.data.pixel_center, config.eval.chunk)
         monitor.images(done, {"preview/rgb": out["rgb"],
                               "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})
+    if unchecked is not None:
+      skips.record(*unchecked, ckpt.latest_step)
     if pending is not None:
-      monitor.scalars(pending[0], jax.device_get(pending[1]), float(schedule(pending[0] - 1)))
+      monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
     final_step = int(jax.device_get(state.step))
     if ckpt.latest_step() != final_step:
       ckpt.save(final_step, state, {"next_step": final_step}, force=True)

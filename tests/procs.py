@@ -65,7 +65,7 @@ class Run:
     via_launcher: through launch/local.py (one child here, the launcher, whose output is process 0's),
     else each process directly (so that a test can signal any one of them). stand_in: the processes are
     stand-ins doing what it says, comma-separated per process: 'exit:N' or 'wait' (until SIGTERM, then
-    exit 0); `config`, `overrides` and `workdir` are then only passed on.
+    exit 0; 'wait:N': exit N); `config`, `overrides` and `workdir` are then only passed on.
     """
     import portpicker
     self.workdir = pathlib.Path(workdir)
@@ -110,11 +110,13 @@ class Run:
     self.kill()
 
   def kill(self, index: int | None = None, sig=signal.SIGKILL) -> None:
-    for i, proc in enumerate(self.procs):
-      if (index is None or i == index) and proc.poll() is None:
-        proc.send_signal(sig)
-        if sig == signal.SIGKILL:
-          proc.wait()
+    """Signals every process (or one), all before waiting for any: a pod that dies at once."""
+    hit = [proc for i, proc in enumerate(self.procs) if (index is None or i == index) and proc.poll() is None]
+    for proc in hit:
+      proc.send_signal(sig)
+    if sig == signal.SIGKILL:
+      for proc in hit:
+        proc.wait()
 
   def signal(self, index: int, sig) -> None:
     if self.procs[index].poll() is None:
@@ -193,14 +195,15 @@ def _record_loaded_rays(folder: str) -> None:
 def _stand_in(actions: str) -> None:
   """A stand-in for nerfpod.main in launcher tests (no JAX): prints what it was given, then does what
   `actions` (comma-separated, one per process) says for its process id: 'exit:N' or 'wait' (until SIGTERM,
-  then exit 0)."""
+  then exit 0; 'wait:N': then exit N)."""
   index = int(next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0"))
   action = actions.split(",")[index]
   print(f"stand-in process {index} ready: JAX_NUM_CPU_DEVICES={os.environ.get('JAX_NUM_CPU_DEVICES')} "
         f"args={' '.join(sys.argv[1:])}", flush=True)
   if action.startswith("exit:"):
     sys.exit(int(action.split(":")[1]))
-  signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+  code = int(action.split(":")[1]) if action.startswith("wait:") else 0
+  signal.signal(signal.SIGTERM, lambda *_: sys.exit(code))
   time.sleep(60)
   sys.exit(9)
 

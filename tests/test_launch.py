@@ -46,16 +46,34 @@ def test_local_launcher_passes_sigterm_or_ctrl_c_on_as_sigterm_and_exits_0_when_
   assert codes == [0], run.output(0)
 
 
+def test_local_launcher_exits_with_the_preempted_status_when_the_processes_stopped_at_a_checkpoint(tmp_path):
+  """A process that saved a step and stopped (exit 75) is no failure: its peers are not killed, and the
+  launcher exits 75 (requeue me), even where a peer had already finished (0)."""
+  with _launch_stand_ins(tmp_path, "wait:75,wait:75", 2, 1) as run:
+    run.wait_for(lambda: "stand-in process 0 ready" in run.output(0)
+                 and "stand-in process 1 ready" in run.launched_log(1), 30, "both stand-ins ready")
+    run.signal(0, signal.SIGTERM)
+    codes = run.wait(timeout=30)
+  assert codes == [75], run.output(0)
+  assert "stopped at a checkpoint (exit status 75)" in run.output(0)
+  with _launch_stand_ins(tmp_path, "exit:75,exit:0", 2, 1, "--grace_s=60") as run:
+    codes = run.wait(timeout=30)
+  assert codes == [75] and "exited with status" not in run.output(0), run.output(0)
+  with _launch_stand_ins(tmp_path, "exit:9,exit:9", 2, 1, "--preempted_exit_code=9") as run:
+    assert run.wait(timeout=30) == [9] and "stopped at a checkpoint" in run.output(0)
+
+
 def test_local_launcher_refuses_bad_counts():
   out = subprocess.run([sys.executable, str(LOCAL), "--num_processes=0"], capture_output=True, text=True,
                        timeout=30)
   assert out.returncode == 2 and "--num_processes and --devices_per_process must be at least 1" in out.stderr
 
 
-def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None):
+def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None, run_status=0):
   """Runs launch/tpu_pod.py with a stand-in `gcloud` on PATH that records its calls; returns (result, calls).
 
-  fake_gcloud_exists: what the stand-in's `describe` answers: {"bucket": bool, "pod": bool}."""
+  fake_gcloud_exists: what the stand-in's `describe` answers: {"bucket": bool, "pod": bool}; run_status: the
+  exit status of the run on worker 0, as the log follower reports it."""
   bin_dir = tmp_path / "bin"
   bin_dir.mkdir(exist_ok=True)
   calls = tmp_path / "gcloud_calls"
@@ -65,7 +83,8 @@ def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None):
       "#!/bin/sh\n"
       f"printf '%s\\n' \"$*\" >> {shlex.quote(str(calls))}\n"
       f"case \"$*\" in *'storage buckets describe'*) exit {0 if exists.get('bucket') else 1};; "
-      f"*'tpu-vm describe'*) exit {0 if exists.get('pod') else 1};; esac\nexit 0\n")
+      f"*'tpu-vm describe'*) exit {0 if exists.get('pod') else 1};; "
+      f"*'tail --pid'*) exit {run_status};; esac\nexit 0\n")
   gcloud.chmod(0o755)
   env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}", TMPDIR=str(tmp_path))
   result = subprocess.run([sys.executable, str(TPU_POD), *args], capture_output=True, text=True, env=env,
@@ -124,6 +143,15 @@ def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
                    "compute tpus tpu-vm describe", "compute tpus tpu-vm scp", "compute tpus tpu-vm ssh",
                    "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
   assert (tmp_path / "nerfpod-src.tar.gz").stat().st_size > 0  # the project, packed for the workers
+
+
+def test_tpu_pod_passes_a_preempted_runs_status_75_on_with_how_to_resume(tmp_path):
+  result, _ = _tpu_pod(tmp_path, *POD_ARGS, fake_gcloud_exists={"bucket": True, "pod": True}, run_status=75)
+  assert result.returncode == 75, result.stderr
+  assert "stopped at a checkpoint (preempted, exit status 75)" in result.stderr
+  assert "run this script again with the same arguments" in result.stderr
+  result, _ = _tpu_pod(tmp_path, *POD_ARGS, fake_gcloud_exists={"bucket": True, "pod": True}, run_status=1)
+  assert result.returncode == 1 and "failed (stream worker 0's log" in result.stderr
 
 
 @pytest.mark.parametrize("bad,message", [

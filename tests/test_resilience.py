@@ -1,0 +1,244 @@
+"""Nothing good lost, in one process: damaged checkpoints are set aside and restore falls back, non-finite
+steps never reach a saved state, metrics.json stays strict JSON, workdir mistakes are one sentence, the first
+Ctrl-C is a preemption, and the gradient mean gives the same bits on any spread of devices.
+(Real processes killed at random moments: test_chaos.py.)"""
+import json
+import os
+import pathlib
+import signal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+from conftest import smoke_config
+from nerfpod import checkpoints, distributed, evaluate, modes, train
+from nerfpod.components import TrainState
+from nerfpod.errors import UserError
+
+# A restore that fails half way leaves orbax an asyncio callback that fires after its loop closed: noise.
+pytestmark = pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
+
+
+def _mesh(count: int = 8) -> Mesh:
+  return Mesh(np.array(jax.devices()[:count]), (distributed.DATA_AXIS,))
+
+
+def _state(value: float, mesh=None, w=None):
+  """A small train state (a dataclass, as the real one: orbax needs its saved metadata to read it back)."""
+  params = {"w": jnp.full((4, 3), float(value)) if w is None else w, "b": jnp.arange(5.0) * value}
+  tree = TrainState(step=jnp.asarray(int(value), jnp.int32), params=params,
+                    opt_state=optax.adam(0.1).init(params))
+  return jax.device_put(tree, NamedSharding(mesh or _mesh(), P()))
+
+
+def _abstract(tree):
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), tree)
+
+
+def _saved_steps(workdir, *steps):
+  with checkpoints.Checkpoints(str(workdir), every_steps=1, max_to_keep=5) as ckpt:
+    for step in steps:
+      assert ckpt.save(step, _state(step), {"next_step": step})
+
+
+def _empty_a_data_file(step_dir):
+  files = sorted(p for p in pathlib.Path(step_dir, "state").rglob("*") if p.is_file() and p.parent.name == "d")
+  assert files, f"no data files under {step_dir}"
+  for path in files:
+    path.write_bytes(b"")
+
+
+DAMAGES = {
+    "emptied data files": _empty_a_data_file,
+    "deleted _METADATA": lambda step_dir: os.remove(step_dir / "state" / "_METADATA"),
+    "deleted data position": lambda step_dir: [os.remove(p) for p in (step_dir / "data").iterdir()],
+}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGES), ids=list(DAMAGES))
+def test_a_damaged_newest_checkpoint_is_set_aside_and_restore_falls_back(tmp_path, capsys, damage):
+  _saved_steps(tmp_path, 10, 20)
+  directory = checkpoints.checkpoint_dir(str(tmp_path))
+  DAMAGES[damage](directory / "20")
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    state, position = ckpt.restore(_abstract(_state(0)))
+    assert position == {"next_step": 10} and int(state.step) == 10
+    np.testing.assert_array_equal(state.params["b"], np.arange(5.0) * 10)
+    assert ckpt.save(20, _state(20), {"next_step": 20})  # the run goes on and writes step 20 again
+  err = capsys.readouterr().err
+  lines = [line for line in err.splitlines() if line.startswith("nerfpod: warning:")]
+  assert len(lines) == 1 and "step 20" in lines[0] and "set aside as" in lines[0], err
+  assert checkpoints.finished_steps(str(tmp_path)) == [10, 20]
+  aside = tmp_path / "checkpoints_damaged" / "20"
+  assert aside.is_dir() and (aside / "state").is_dir()  # kept, not deleted
+
+
+def test_read_only_restore_skips_a_damaged_step_and_leaves_it_in_place(tmp_path, capsys):
+  _saved_steps(tmp_path, 10, 20)
+  directory = checkpoints.checkpoint_dir(str(tmp_path))
+  os.remove(directory / "20" / "state" / "_METADATA")
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3, read_only=True) as ckpt:
+    _, position = ckpt.restore(_abstract(_state(0)))
+  assert position == {"next_step": 10}
+  assert "left in place" in capsys.readouterr().err
+  assert (directory / "20").is_dir() and not (tmp_path / "checkpoints_damaged").exists()
+  _, position, step = checkpoints.read_numpy(str(tmp_path))  # tools read the same way
+  assert step == 10 and position == {"next_step": 10}
+
+
+def test_no_readable_checkpoint_is_one_sentence_and_nothing_is_deleted(tmp_path):
+  _saved_steps(tmp_path, 10, 20)
+  directory = checkpoints.checkpoint_dir(str(tmp_path))
+  for step in (10, 20):
+    _empty_a_data_file(directory / str(step))
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    with pytest.raises(UserError, match=r"no checkpoint in .* reads back whole \(step 20: .*; step 10: .*\); "
+                                        r"they were set aside in .*checkpoints_damaged"):
+      ckpt.restore(_abstract(_state(0)))
+  assert sorted(p.name for p in (tmp_path / "checkpoints_damaged").iterdir()) == ["10", "20"]
+
+
+def test_a_non_finite_state_is_never_saved_and_a_saved_one_counts_as_damaged(tmp_path, capsys):
+  _saved_steps(tmp_path, 10)
+  bad = _state(20, w=jnp.full((4, 3), 20.0).at[0, 0].set(jnp.nan))
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=1) as ckpt:
+    assert not ckpt.save(20, bad, {"next_step": 20}, force=True)
+  assert "holds non-finite values; not saving it" in capsys.readouterr().err
+  assert checkpoints.finished_steps(str(tmp_path)) == [10]  # max_to_keep=1 did not rotate step 10 out
+  # A NaN state written by an older version (straight through orbax) reads back as damaged.
+  import orbax.checkpoint as ocp
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    ckpt.manager.save(30, args=ocp.args.Composite(state=ocp.args.StandardSave(bad),
+                                                  data=ocp.args.JsonSave({"next_step": 30})), force=True)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
+    _, position = ckpt.restore(_abstract(_state(0)))
+  assert position == {"next_step": 10} and "non-finite values" in capsys.readouterr().err
+
+
+def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in_a_row():
+  config = smoke_config(**{"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
+                           "model.mlp.skips": (), "train.batch_size": 64})
+  from nerfpod import components
+  from nerfpod.nerf import model as nerf_model
+  mesh = _mesh(2)
+  model, optimizer = nerf_model.from_config(config), optax.adam(1e-2)
+  state = components.initial_state(model, optimizer, 0, mesh)
+  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3))
+  rng = np.random.default_rng(0)
+  batch = {"origins": np.tile([0.0, 0.0, 4.0], (64, 1)).astype(np.float32),
+           "directions": rng.normal(size=(64, 3)).astype(np.float32),
+           "rgb": rng.uniform(size=(64, 3)).astype(np.float32), "ray_ids": np.arange(64, dtype=np.int32)}
+  put = lambda b: jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), b)  # noqa: E731
+  before = jax.device_get(state.params)
+  poisoned = dict(batch, rgb=batch["rgb"].copy())
+  poisoned["rgb"][5, 1] = np.nan  # one ray's target: the loss and every gradient become NaN
+  state, metrics = step_fn(state, put(poisoned), jax.random.key(0))
+  assert int(metrics["skipped"]) == 1 and not np.isfinite(float(metrics["loss"]))
+  assert int(state.step) == 1  # the data moves on
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), before)
+  assert int(jax.device_get(state.opt_state[0].count)) == 0  # Adam's moments and count untouched
+  state, metrics = step_fn(state, put(batch), jax.random.key(0))
+  assert int(metrics["skipped"]) == 0 and int(jax.device_get(state.opt_state[0].count)) == 1
+  after = jax.tree.leaves(jax.device_get(state.params))
+  assert any(not np.array_equal(a, b) for a, b in zip(after, jax.tree.leaves(before)))
+
+  skips = train.SkipCount(limit=3)
+  for step, flag in [(1, 1), (2, 1), (3, 0), (4, 1), (5, 1)]:
+    skips.record(step, jnp.asarray(flag), lambda: 0)
+  assert skips.total == 4 and skips.in_row == 2
+  with pytest.raises(UserError, match=r"training diverged: the last 3 steps \(to step 6\).*newest checkpoint "
+                                      r"is step 4.*lower train.lr_init"):
+    skips.record(6, jnp.asarray(1), lambda: 4)
+  assert skips.with_total({"loss": 1.0, "skipped": 1}) == {"loss": 1.0, "skipped": 5}
+
+
+def test_metrics_json_holds_null_with_a_reason_never_a_bare_nan(tmp_path):
+  entry = evaluate._finite_or_null({"index": 0, "psnr": float("nan"), "ssim": 0.5})
+  assert entry["psnr"] is None and entry["ssim"] == 0.5 and "psnr not finite (psnr=nan)" in entry["reason"]
+  assert evaluate._finite_or_null({"psnr": 20.0, "ssim": 0.5}) == {"psnr": 20.0, "ssim": 0.5}
+  checkpoints.write_json(tmp_path / "m.json", {"mean": entry})
+  assert json.loads((tmp_path / "m.json").read_text(), parse_constant=lambda c: pytest.fail(c))["mean"] == entry
+  with pytest.raises(ValueError):
+    checkpoints.write_json(tmp_path / "n.json", {"psnr": float("nan")})
+  assert not (tmp_path / "n.json").exists()
+
+
+def test_workdir_mistakes_are_one_sentence_before_any_work(tmp_path):
+  a_file = tmp_path / "file"
+  a_file.write_text("x")
+  config = smoke_config()
+  for mode in (modes.train_and_evaluate, modes.evaluate_workdir):
+    with pytest.raises(UserError, match=r"--workdir=.*file is an existing file, not a folder"):
+      mode(config, str(a_file))
+  trained = tmp_path / "trained"
+  _saved_steps(trained, 10)
+  (trained / "config.json").write_text('{"train": ')
+  with pytest.raises(UserError, match=r"config.json is not valid JSON .*restore it"):
+    modes.train_and_evaluate(config, str(trained))
+  with pytest.raises(UserError, match=r"--workdir=.*file/run cannot be written \(Not a directory\)"):
+    modes.train_and_evaluate(config, str(a_file / "run"))  # a folder that cannot be made
+  if os.geteuid() != 0:  # root writes anywhere
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    with pytest.raises(UserError, match="cannot be written"):
+      modes.train_and_evaluate(config, str(locked / "run"))
+
+
+def test_a_refused_resume_leaves_config_json_as_it_was(tmp_path):
+  saved = json.loads(smoke_config().to_json_best_effort())
+  checkpoints.write_config(str(tmp_path), saved)
+  _saved_steps(tmp_path, 10)
+  before = (tmp_path / "config.json").read_bytes()
+  with pytest.raises(UserError, match=r"different config: model.hashgrid.hidden_width \(16 -> 8\)"):
+    modes.train_and_evaluate(smoke_config(**{"model.hashgrid.hidden_width": 8}), str(tmp_path))
+  assert (tmp_path / "config.json").read_bytes() == before
+
+
+def test_a_first_ctrl_c_in_training_is_a_preemption_and_the_handler_is_given_back(tmp_path):
+  before = signal.getsignal(signal.SIGINT)
+  ckpt = checkpoints.Checkpoints(str(tmp_path), every_steps=100, max_to_keep=3)
+  try:
+    assert not ckpt.reached_preemption(3)
+    os.kill(os.getpid(), signal.SIGINT)  # no KeyboardInterrupt: the step in hand is saved, then the run stops
+    assert ckpt.reached_preemption(3)
+    assert ckpt.save(3, _state(3), {"next_step": 3})
+  finally:
+    ckpt.close()
+  assert signal.getsignal(signal.SIGINT) is before
+  assert checkpoints.latest_step(str(tmp_path)) == 3
+
+
+@pytest.mark.parametrize("devices", [8, 6, 1])
+def test_ordered_mean_is_the_mean_in_index_order_and_the_same_on_every_device(devices):
+  mesh = _mesh(devices)
+  rng = np.random.default_rng(devices)
+  # Magnitudes spread over many decades: the order of the additions shows in the last bits.
+  values = (rng.normal(size=(devices, 257)) * 10.0 ** rng.integers(-6, 6, size=(devices, 257))).astype(np.float32)
+
+  def local(x):
+    mean = distributed.ordered_mean(x[0], distributed.DATA_AXIS, devices)
+    return mean[None], jax.lax.all_gather(mean, distributed.DATA_AXIS)[None]
+
+  step = jax.jit(jax.shard_map(local, mesh=mesh, in_specs=P(distributed.DATA_AXIS),
+                               out_specs=(P(), P(distributed.DATA_AXIS))))
+  mean, everywhere = step(jax.device_put(values, NamedSharding(mesh, P(distributed.DATA_AXIS))))
+  everywhere = np.asarray(everywhere)
+  assert all(np.array_equal(row, everywhere[0][0]) for row in everywhere.reshape(-1, 257))
+  if devices & (devices - 1) == 0:  # the butterfly: pairs, then pairs of pairs, ...
+    partial = list(values)
+    while len(partial) > 1:
+      partial = [partial[i] + partial[i + 1] for i in range(0, len(partial), 2)]
+    expected = partial[0] / np.float32(devices)
+  else:  # in index order
+    expected = values[0].copy()
+    for row in values[1:]:
+      expected = expected + row
+    expected = expected / np.float32(devices)
+  if devices & (devices - 1):  # XLA may divide by 6 as a multiplication by 1/6: one ulp apart at most
+    np.testing.assert_array_max_ulp(np.asarray(mean)[0], expected, maxulp=1)
+  else:
+    np.testing.assert_array_equal(np.asarray(mean)[0], expected)
