@@ -22,6 +22,16 @@ LEGACY_NAMES = {f"model.{name}": f"model.mlp.{name}" for name in (
     "num_frequencies", "depth", "width", "skips", "viewdir_frequencies", "density_activation")}
 
 
+# Fields added since earlier versions, with the value that does what those versions did: an earlier
+# workdir's config.json that lacks them reads as having these (so that it still resumes, evaluates, renders).
+ADDED_FIELDS = {
+    "render.proposal_samples": [],  # no proposal sampling (JSON keeps tuples as lists)
+    "model.proposal.num_levels": 5, "model.proposal.log2_table_size": 17, "model.proposal.base_resolution": 16,
+    "model.proposal.max_resolution": 128, "model.proposal.hidden_width": 16,  # unused without proposals
+    "train.interlevel_weight": 1.0, "train.distortion_weight": 0.0,       # likewise
+}
+
+
 class ConfigError(UserError):
   """Every mistake found in a config, one sentence each."""
 
@@ -246,8 +256,9 @@ def flatten(tree, prefix: str = "") -> dict:
 
 
 def migrate_flat(flat: dict) -> dict:
-  """A flattened config (e.g. an old workdir's config.json) with earlier names renamed to today's."""
-  return {LEGACY_NAMES.get(k, k): v for k, v in flat.items()}
+  """A flattened config (e.g. an old workdir's config.json) with earlier names renamed to today's and the
+  fields added since filled in with what the earlier version did (ADDED_FIELDS)."""
+  return {**ADDED_FIELDS, **{LEGACY_NAMES.get(k, k): v for k, v in flat.items()}}
 
 
 def migrate(config) -> list[str]:
