@@ -157,7 +157,7 @@ FIELDS: dict[str, Field] = {
     "render.num_samples": integer(1, example=64),
     "render.num_importance": integer(0),
     "render.last_delta": number(0.0, example=1e10),
-    "render.proposal_samples": integers(1),
+    "render.proposal_samples": integers(2),
     "render.near": number(example=2.0),
     "render.far": number(example=6.0),
 
@@ -214,6 +214,10 @@ def _rules(c: dict) -> list[str]:
     out.append(f"render.proposal_samples={_show(c['render.proposal_samples'])} and render.num_importance="
                f"{c['render.num_importance']} are two ways of placing samples; pick one "
                f"(e.g. --config.render.num_importance=0).")
+  if c["render.proposal_samples"] and c["render.num_samples"] < 2:
+    out.append(f"render.num_samples={c['render.num_samples']} is too few for proposal sampling: the field's "
+               f"intervals are bounded by midpoints between its samples, so use at least 2 "
+               f"(e.g. --config.render.num_samples=16).")
   near, far = c["render.near"], c["render.far"]
   if near >= 0 and far >= 0 and not near < far:
     out.append(f"render.near={near:g} must be less than render.far={far:g} (e.g. --config.render.near=2 "

@@ -57,6 +57,7 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
     ({"render.num_importance": 8, "render.num_samples": 2}, "render.num_samples=2 is too few"),
     ({"render.near": 3.0, "render.far": 2.0}, "render.near=3 must be less than render.far=2"),
     ({"render.num_importance": 8, "render.proposal_samples": (32,)}, "are two ways of placing samples"),
+    ({"render.num_samples": 1, "render.proposal_samples": (32,)}, "render.num_samples=1 is too few for proposal"),
     ({"model.proposal.base_resolution": 32, "model.proposal.max_resolution": 16},
      "model.proposal.max_resolution=16 must be at least model.proposal.base_resolution=32"),
     ({"model.mlp.depth": 3, "model.mlp.skips": (2,)}, "must be below model.mlp.depth - 1 = 2"),

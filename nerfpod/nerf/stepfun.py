@@ -56,7 +56,7 @@ def stratified_uniforms(num: int, jitter_RxN=None, shape=()):
 
 
 def sample_intervals(edges_RxB1, weights_RxB, num: int, jitter_RxN=None, domain=(0.0, 1.0)):
-  """`num` intervals drawn from the histogram: their (R, num + 1) edges, sorted, without gradient.
+  """`num` (>= 2) intervals drawn from the histogram: their (R, num + 1) edges, sorted, without gradient.
 
   `num` points are drawn by stratified inverse CDF (`jitter`: (R, num) numbers in [0, 1), or None for the
   strata's centres); the edges are the midpoints between neighbouring points, and the outermost points
