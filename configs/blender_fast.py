@@ -2,13 +2,18 @@
 
 Instant-NGP-sized grid (16 levels, 2^19 rows, up to 2048 cells a side), view directions through spherical
 harmonics, 4096 rays a step. Arguments: `scene=NAME` (folder under data/nerf_synthetic, or set
---config.data.path), `smoke` for tests.
+--config.data.path), `cpu` sizes the job for a 2-core CPU, `smoke` for tests.
+
+`cpu`: 100x100 images (`data.downscale=4` of 400x400 renders; `--config.data.downscale=2` for 200x200), a
+CPU-sized grid, proposal sampling, 1,024 rays a step, evaluated on the `val` split (the shared 400x400
+lego has no test split): e.g. `--config=configs/blender_fast.py:scene=lego,cpu
+--config.data.path=../shared/data/lego_400`. README (Speed) has what it reaches and in how long.
 """
 from nerfpod import config_util
 
 
 def get_config(arg: str | None = None):
-  args = config_util.parse_arg(arg, scene="lego", smoke=False)
+  args = config_util.parse_arg(arg, scene="lego", cpu=False, smoke=False)
   default = config_util.sibling_module(__file__, "default")
   c = default.get_config()
   c.data.kind = "blender"
@@ -25,6 +30,18 @@ def get_config(arg: str | None = None):
   c.train.log_every = 100
   c.train.image_every = 2500
   c.checkpoint.every_steps = 2500
+  if args["cpu"]:
+    c.data.downscale = 4
+    g.num_levels, g.log2_table_size, g.max_resolution = 8, 16, 256
+    g.hidden_width, g.geo_features = 32, 7
+    c.render.proposal_samples = (32,)  # as configs/tiny_fast.py: 32 proposal intervals, 16 for the field
+    c.render.num_samples = 16
+    c.train.num_steps = 6000
+    c.train.batch_size = 1024
+    c.train.lr_init, c.train.lr_final = 1e-2, 1e-3
+    c.train.image_every = 1000
+    c.checkpoint.every_steps = 1000
+    c.eval.split = "val"
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

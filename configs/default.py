@@ -44,10 +44,19 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model.hashgrid.max_resolution = 256   # cells per side of the finest level
   c.model.hashgrid.hidden_width = 32      # units of the density and colour MLPs' hidden layers
   c.model.hashgrid.geo_features = 7       # features passed from the density MLP to the colour MLP
+  c.model.proposal = ml_collections.ConfigDict()  # proposal fields (render.proposal_samples): density only,
+                                          # in the hash grid's box, model.hashgrid.features_per_level wide
+  c.model.proposal.num_levels = 5         # resolution levels of each proposal field's hash grid
+  c.model.proposal.log2_table_size = 17   # rows per level's table, log2
+  c.model.proposal.base_resolution = 16   # cells per side of the coarsest level
+  c.model.proposal.max_resolution = 128   # cells per side of the finest level
+  c.model.proposal.hidden_width = 16      # units of its one hidden layer
 
   c.render = ml_collections.ConfigDict()
   c.render.num_samples = 48       # stratified (coarse) samples per ray
   c.render.num_importance = 0     # extra importance samples per ray for a fine network; 0: no fine network
+  c.render.proposal_samples = ()  # intervals per ray of each proposal round, e.g. (64, 32): the NeRF field then
+                                  # gets render.num_samples intervals drawn from the last; (): no proposals
   c.render.last_delta = 0.0       # length of the last sample's interval, world units (the paper: 1e10,
                                   # opaque at the far end: use it only with a fixed background colour)
   c.render.near = -1.0            # ray start, world units; negative: the scene's own bound
@@ -68,6 +77,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.adam_eps = 1e-15        # Adam's epsilon (1e-15 for hash grids, 1e-8 for MLPs)
   c.train.random_background = True  # data with alpha: composite training rays on random colours
   c.train.grad_clip = 0.0         # clip the global gradient norm to this; 0: no clipping
+  c.train.interlevel_weight = 1.0  # proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)
+  c.train.distortion_weight = 0.0  # proposal sampling: weight of the distortion loss (eq. 15); 0: off
   c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
   c.train.log_every = 100         # steps between TensorBoard scalars and console lines
   c.train.image_every = 500       # steps between rendered held-out views in TensorBoard; 0: never
@@ -120,7 +131,12 @@ def shrink_for_smoke(c: ml_collections.ConfigDict) -> None:
   c.model.hashgrid.max_resolution = 64
   c.model.hashgrid.hidden_width = 16
   c.model.hashgrid.geo_features = 7
+  c.model.proposal.num_levels = 2
+  c.model.proposal.log2_table_size = 10
+  c.model.proposal.max_resolution = 32
+  c.model.proposal.hidden_width = 8
   c.render.num_samples = 16
+  c.render.proposal_samples = tuple(min(n, 16) for n in c.render.proposal_samples)
   c.render.num_importance = min(c.render.num_importance, 16)
   c.train.num_steps = 20
   c.train.batch_size = 256

@@ -22,6 +22,16 @@ LEGACY_NAMES = {f"model.{name}": f"model.mlp.{name}" for name in (
     "num_frequencies", "depth", "width", "skips", "viewdir_frequencies", "density_activation")}
 
 
+# Fields added since earlier versions, with the value that does what those versions did: an earlier
+# workdir's config.json that lacks them reads as having these (so that it still resumes, evaluates, renders).
+ADDED_FIELDS = {
+    "render.proposal_samples": [],  # no proposal sampling (JSON keeps tuples as lists)
+    "model.proposal.num_levels": 5, "model.proposal.log2_table_size": 17, "model.proposal.base_resolution": 16,
+    "model.proposal.max_resolution": 128, "model.proposal.hidden_width": 16,  # unused without proposals
+    "train.interlevel_weight": 1.0, "train.distortion_weight": 0.0,       # likewise
+}
+
+
 class ConfigError(UserError):
   """Every mistake found in a config, one sentence each."""
 
@@ -143,10 +153,16 @@ FIELDS: dict[str, Field] = {
     "model.hashgrid.max_resolution": integer(1, example=2048),
     "model.hashgrid.hidden_width": integer(1, example=64),
     "model.hashgrid.geo_features": integer(0, example=15),
+    "model.proposal.num_levels": integer(1, example=5),
+    "model.proposal.log2_table_size": integer(4, 30, example=17),
+    "model.proposal.base_resolution": integer(1, example=16),
+    "model.proposal.max_resolution": integer(1, example=128),
+    "model.proposal.hidden_width": integer(1, example=16),
 
     "render.num_samples": integer(1, example=64),
     "render.num_importance": integer(0),
     "render.last_delta": number(0.0, example=1e10),
+    "render.proposal_samples": integers(2),
     "render.near": number(example=2.0),
     "render.far": number(example=6.0),
     "render.space": choice("euclidean", "ndc", "contract"),
@@ -161,6 +177,8 @@ FIELDS: dict[str, Field] = {
     "train.adam_eps": number(above=0.0, example=1e-15),
     "train.random_background": boolean(),
     "train.grad_clip": number(0.0),
+    "train.interlevel_weight": number(0.0, example=1.0),
+    "train.distortion_weight": number(0.0, example=0.002),
     "train.seed": integer(0),
     "train.log_every": integer(1, example=100),
     "train.image_every": integer(0, example=500),
@@ -204,6 +222,14 @@ def _rules(c: dict) -> list[str]:
     out.append(f"render.num_samples={c['render.num_samples']} is too few for hierarchical sampling "
                f"(render.num_importance={c['render.num_importance']}): the fine samples are drawn from the "
                f"coarse ones' interior weights, so use at least 3 (e.g. --config.render.num_samples=64).")
+  if c["render.proposal_samples"] and c["render.num_importance"] > 0:
+    out.append(f"render.proposal_samples={_show(c['render.proposal_samples'])} and render.num_importance="
+               f"{c['render.num_importance']} are two ways of placing samples; pick one "
+               f"(e.g. --config.render.num_importance=0).")
+  if c["render.proposal_samples"] and c["render.num_samples"] < 2:
+    out.append(f"render.num_samples={c['render.num_samples']} is too few for proposal sampling: the field's "
+               f"intervals are bounded by midpoints between its samples, so use at least 2 "
+               f"(e.g. --config.render.num_samples=16).")
   near, far = c["render.near"], c["render.far"]
   if near >= 0 and far >= 0 and not near < far:
     out.append(f"render.near={near:g} must be less than render.far={far:g} (e.g. --config.render.near=2 "
@@ -229,6 +255,9 @@ def _rules(c: dict) -> list[str]:
   if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
     out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
                f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")
+  if c["model.proposal.max_resolution"] < c["model.proposal.base_resolution"]:
+    out.append(f"model.proposal.max_resolution={c['model.proposal.max_resolution']} must be at least "
+               f"model.proposal.base_resolution={c['model.proposal.base_resolution']}.")
   return out
 
 
@@ -257,8 +286,9 @@ def flatten(tree, prefix: str = "") -> dict:
 
 
 def migrate_flat(flat: dict) -> dict:
-  """A flattened config (e.g. an old workdir's config.json) with earlier names renamed to today's."""
-  return {LEGACY_NAMES.get(k, k): v for k, v in flat.items()}
+  """A flattened config (e.g. an old workdir's config.json) with earlier names renamed to today's and the
+  fields added since filled in with what the earlier version did (ADDED_FIELDS)."""
+  return {**ADDED_FIELDS, **{LEGACY_NAMES.get(k, k): v for k, v in flat.items()}}
 
 
 def migrate(config) -> list[str]:

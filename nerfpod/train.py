@@ -12,6 +12,7 @@ from jax.sharding import PartitionSpec as P
 from nerfpod import checkpoints, components, distributed, render, video
 from nerfpod.components import TrainState
 from nerfpod.errors import UserError
+from nerfpod.nerf import stepfun
 
 
 def per_ray_uniforms(key, ray_ids, count: int):
@@ -22,7 +23,8 @@ def per_ray_uniforms(key, ray_ids, count: int):
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                     random_background: bool = False, microbatches: int = 1,
-                    compiler_options: dict | None = None):
+                    compiler_options: dict | None = None, interlevel_weight: float = 1.0,
+                    distortion_weight: float = 0.0):
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
@@ -36,22 +38,36 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   With `microbatches` > 1, each device's rays are processed in that many sequential slices whose gradients
   are averaged (gradient accumulation): the same result in a fraction of the activation memory.
   `compiler_options`: XLA options to compile the step with (xla_options.compiler_options).
+  With proposal sampling (model.proposal_samples), the loss adds `interlevel_weight` times mip-NeRF 360's
+  interlevel loss of every proposal round and `distortion_weight` times the distortion loss of the NeRF's
+  weights; both are also returned as metrics.
   """
   background = jnp.asarray(background, jnp.float32)
   num_devices = mesh.shape[distributed.DATA_AXIS]
 
   def loss_fn(params, batch, key):
-    u_coarse = per_ray_uniforms(jax.random.fold_in(key, 0), batch["ray_ids"], model.num_samples)
-    u_fine = (per_ray_uniforms(jax.random.fold_in(key, 1), batch["ray_ids"], model.num_importance)
-              if model.num_importance else None)
+    # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
+    uniforms = [per_ray_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count)
+                for i, count in enumerate(model.sample_counts())]
     target, ray_background = batch["rgb"], background
     if random_background and "alpha" in batch:
       ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
-    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background,
-                         u_coarse, u_fine)
+    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms)
     mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
-    return jnp.sum(mses), mses
+    loss = jnp.sum(mses)
+    extra = {}
+    final = levels[-1]
+    if "proposals" in final:
+      # The proposals learn to bound the NeRF's weights (a fixed target for them: no gradient into the NeRF
+      # from this loss); the photometric loss reaches only the NeRF (sample positions carry no gradient).
+      target_weights = jax.lax.stop_gradient(final["weights"])
+      extra["interlevel"] = sum(jnp.mean(stepfun.interlevel_loss(final["s_edges"], target_weights,
+                                                                 p["s_edges"], p["weights"]))
+                                for p in final["proposals"])
+      extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
+      loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
+    return loss, (mses, extra)
 
   value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
 
@@ -73,8 +89,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
     params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
-    (loss, mses), grads = accumulate(params, batch, key)
-    grads, loss, mses = distributed.ordered_mean((grads, loss, mses), distributed.DATA_AXIS, num_devices)
+    (loss, (mses, extra)), grads = accumulate(params, batch, key)
+    grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), distributed.DATA_AXIS,
+                                                        num_devices)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
@@ -84,7 +101,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                                      (state.params, state.opt_state))
     metrics = {"loss": loss, "mse": mses[-1], "psnr": -10.0 * jnp.log10(mses[-1]),
                "psnr_coarse": -10.0 * jnp.log10(mses[0]), "grad_norm": optax.tree.norm(grads),
-               "skipped": 1 - finite.astype(jnp.int32)}
+               "skipped": 1 - finite.astype(jnp.int32), **extra}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
   step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
@@ -129,7 +146,8 @@ def train_step(comps: components.Components, microbatches: int | None = None):
   if microbatches == 0:
     microbatches = fit_microbatches(comps)
   return make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
-                         comps.scene.background, tc.random_background, microbatches, comps.compiler_options)
+                         comps.scene.background, tc.random_background, microbatches, comps.compiler_options,
+                         tc.interlevel_weight, tc.distortion_weight)
 
 
 def step_memory_bytes(compiled) -> int | None:
@@ -166,7 +184,8 @@ def fit_microbatches(comps: components.Components) -> int:
   count = 1
   while True:
     step = make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
-                           comps.scene.background, tc.random_background, count, comps.compiler_options)
+                           comps.scene.background, tc.random_background, count, comps.compiler_options,
+                           tc.interlevel_weight, tc.distortion_weight)
     need = step_memory_bytes(step.lower(comps.state_shapes, batch, key).compile())
     if need is None or need <= budget or count == divisors[-1]:
       break

@@ -47,3 +47,16 @@ def test_mixed_precision_is_also_measured_against_the_bfloat16_peak():
       result["achieved_flops"] / result["matmul_peak_flops_bfloat16"])
   assert "matmul_peak_flops_bfloat16" not in benchmark.throughput(smoke_config(**{"train.batch_size": 256}),
                                                                    steps=1)
+
+
+def test_quality_mode_reports_thresholds_and_the_samples_that_matter():
+  config = smoke_config(**{"render.proposal_samples": (16,), "render.num_samples": 8, "train.num_steps": 4})
+  result = benchmark.time_to_quality(config, max_seconds=600, eval_every=2)
+  assert set(result) >= {"seconds_to_20db", "seconds_to_25db", "seconds_to_28db", "seconds_to_30db",
+                         "cpu_seconds_to_30db"}
+  assert [h["step"] for h in result["history"]] == [2, 4]
+  assert result["samples_per_ray"] == {"field": 8, "proposal": 16}
+  weights = result["weights"]
+  assert weights["samples_per_ray"] == 8 and 0.0 <= weights["share_above_negligible"] <= 1.0
+  assert weights["samples_above_negligible_per_ray"] == pytest.approx(8 * weights["share_above_negligible"])
+  assert benchmark.samples_per_ray(smoke_config(**{"render.num_importance": 16})) == {"field": 48, "proposal": 0}

@@ -102,3 +102,63 @@ def test_bfloat16_matmuls_keep_float32_parameters_and_close_outputs(field):
   grads = jax.jit(jax.grad(
       lambda p: jnp.sum(model16.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]["rgb"])))(params)
   assert all(g.dtype == jnp.float32 for g in jax.tree.leaves(grads))
+
+
+def _proposal_model(field="hashgrid", proposal_samples=(12, 8), num_samples=6):
+  config = smoke_config(**{"model.field": field, "model.mlp.depth": 2, "model.mlp.width": 16,
+                           "model.mlp.skips": (), "model.use_viewdirs": True,
+                           "render.num_samples": num_samples, "render.proposal_samples": proposal_samples})
+  model = nerf_model.from_config(config)
+  origins, directions = _rays(32)
+  directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)  # near 2 .. far 6 crosses the box
+  params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0,
+                                                      jnp.ones(3))
+  return model, params, origins, directions
+
+
+def _uniforms(model, rays=32, seed=5):
+  return [jax.random.uniform(jax.random.key(seed + i), (rays, n)) for i, n in enumerate(model.sample_counts())]
+
+
+@pytest.mark.parametrize("field", ["mlp", "hashgrid"])
+def test_proposal_rounds_feed_the_field_few_intervals_inside_the_ray(field):
+  model, params, origins, directions = _proposal_model(field)
+  assert model.sample_counts() == (12, 8, 6)
+  assert set(params["params"]) == {"proposal_0", "proposal_1", "coarse"}
+  for uniforms in (_uniforms(model), []):  # training (jittered) and evaluation (deterministic)
+    (out,) = _apply(model, params, origins, directions, 2.0, 6.0, jnp.ones(3), *uniforms)
+    assert out["rgb"].shape == (32, 3) and out["weights"].shape == (32, 6) and out["t"].shape == (32, 6)
+    assert out["s_edges"].shape == (32, 7)
+    assert [p["s_edges"].shape for p in out["proposals"]] == [(32, 13), (32, 9)]
+    assert [p["weights"].shape for p in out["proposals"]] == [(32, 12), (32, 8)]
+    s = np.asarray(out["s_edges"])
+    assert (np.diff(s, axis=-1) >= 0).all() and (s >= 0).all() and (s <= 1).all()
+    t = np.asarray(out["t"])
+    assert (t >= 2.0 - 1e-5).all() and (t <= 6.0 + 1e-5).all()  # inside [near, far] (and the box)
+    weights = np.asarray(out["weights"])
+    np.testing.assert_allclose(weights.sum(-1), out["acc"], rtol=1e-5, atol=1e-6)
+    assert (weights.sum(-1) > 0.01).mean() > 0.5  # most rays cross density
+
+
+def test_photometric_loss_reaches_only_the_nerf_and_interlevel_loss_only_the_proposals():
+  from nerfpod.nerf import stepfun
+  model, params, origins, directions = _proposal_model()
+  uniforms = _uniforms(model)
+  run = lambda p: model.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3), *uniforms)[-1]
+
+  def photometric(p):
+    return jnp.sum(run(p)["rgb"])
+
+  def interlevel(p):
+    out = run(p)
+    target = jax.lax.stop_gradient(out["weights"])
+    return sum(jnp.sum(stepfun.interlevel_loss(out["s_edges"], target, q["s_edges"], q["weights"]))
+               for q in out["proposals"])
+
+  nonzero = lambda tree: any(np.any(np.asarray(g) != 0) for g in jax.tree.leaves(tree))
+  grads = jax.jit(jax.grad(photometric))(params)["params"]
+  assert nonzero(grads["coarse"])
+  assert not nonzero(grads["proposal_0"]) and not nonzero(grads["proposal_1"])  # positions carry none
+  grads = jax.jit(jax.grad(interlevel))(params)["params"]
+  assert not nonzero(grads["coarse"])
+  assert nonzero(grads["proposal_0"]) and nonzero(grads["proposal_1"])

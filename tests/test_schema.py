@@ -56,6 +56,10 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
     ({"data.kind": "tiny", "data.path": "x.npz", "data.downscale": 2}, "data.downscale=2 is not supported"),
     ({"render.num_importance": 8, "render.num_samples": 2}, "render.num_samples=2 is too few"),
     ({"render.near": 3.0, "render.far": 2.0}, "render.near=3 must be less than render.far=2"),
+    ({"render.num_importance": 8, "render.proposal_samples": (32,)}, "are two ways of placing samples"),
+    ({"render.num_samples": 1, "render.proposal_samples": (32,)}, "render.num_samples=1 is too few for proposal"),
+    ({"model.proposal.base_resolution": 32, "model.proposal.max_resolution": 16},
+     "model.proposal.max_resolution=16 must be at least model.proposal.base_resolution=32"),
     ({"model.mlp.depth": 3, "model.mlp.skips": (2,)}, "must be below model.mlp.depth - 1 = 2"),
     ({"model.hashgrid.base_resolution": 32, "model.hashgrid.max_resolution": 16},
      "model.hashgrid.max_resolution=16 must be at least model.hashgrid.base_resolution=32"),
@@ -106,7 +110,22 @@ def test_earlier_field_names_still_work_in_overrides_config_files_and_saved_conf
   assert schema.migrate(config) == ["model.depth"]
   assert config.model.mlp.depth == 5 and "depth" not in config.model
   assert schema.problems(config) == []
-  assert schema.migrate_flat({"model.width": 64, "train.seed": 1}) == {"model.mlp.width": 64, "train.seed": 1}
+  assert schema.migrate_flat({"model.width": 64, "train.seed": 1}) == {
+      **schema.ADDED_FIELDS, "model.mlp.width": 64, "train.seed": 1}
+
+
+def test_a_workdir_written_before_fields_were_added_still_matches_the_default_config():
+  from nerfpod import checkpoints
+  current = json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort())
+  flat = schema.flatten(current)
+  assert {k: flat[k] for k in schema.ADDED_FIELDS} == schema.ADDED_FIELDS  # what the default does today
+  saved = json.loads(json.dumps(current))
+  del saved["render"]["proposal_samples"], saved["model"]["proposal"], saved["train"]["interlevel_weight"]
+  del saved["train"]["distortion_weight"]
+  assert checkpoints.incompatible_fields(saved, current) == []
+  with_proposals = json.loads(json.dumps(current))
+  with_proposals["render"]["proposal_samples"] = [32]
+  assert checkpoints.incompatible_fields(saved, with_proposals) == ["render.proposal_samples"]
 
 
 def _run_bad(name: str, value) -> tuple[str, object, object]:

@@ -134,3 +134,26 @@ def test_unknown_compiler_options_fall_back_to_xla_defaults(monkeypatch):
   assert not xla_options._accepted(unknown)
   monkeypatch.setattr(xla_options, "CPU_WITHOUT_YNNPACK", unknown)
   assert xla_options.compiler_options(smoke_config()) == {}
+
+
+def test_proposal_step_is_compiled_once_and_reports_its_losses():
+  """Static shapes: every step of proposal sampling reuses the one compiled program."""
+  config = smoke_config(**{"render.proposal_samples": (16,), "render.num_samples": 8,
+                           "train.batch_size": 64, "train.distortion_weight": 0.01})
+  mesh = distributed.make_mesh()
+  scene = scenes.load(config.data)
+  model = nerf_model.from_config(config)
+  optimizer = components.make_optimizer(config.train)
+  state = components.initial_state(model, optimizer, 0, mesh)
+  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, random_background=True,
+                                  distortion_weight=0.01)
+  dataset = data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 3)
+  for step in range(3):
+    batch = dict(dataset[step])
+    batch.pop("step")
+    state, metrics = step_fn(state, distributed.to_global(mesh, batch), jax.random.key(0))
+    assert np.isfinite(float(metrics["loss"])) and float(metrics["interlevel"]) >= 0.0
+    assert float(metrics["distortion"]) > 0.0
+    np.testing.assert_allclose(float(metrics["loss"]), float(metrics["mse"]) + float(metrics["interlevel"])
+                               + 0.01 * float(metrics["distortion"]), rtol=1e-5)
+  assert step_fn._cache_size() == 1

@@ -11,8 +11,12 @@ compile options and the step's), their ratio (and with `model.compute_dtype=bflo
 bfloat16 matmul peak), the share of time spent loading data, and peak memory (host RSS; device memory where
 the backend reports it).
 Quality mode trains the config from scratch and evaluates the held-out split every `--eval_every` steps,
-recording the wall time since the process started (evaluation pauses excluded) at which the mean PSNR first
-reaches 20, 25 and 28 dB. Results print as a JSON line (and go to --out if given).
+recording the wall time since the process started (evaluation pauses excluded; also the process's CPU time,
+less disturbed by other load) at which the mean PSNR first
+reaches 20, 25, 28 and 30 dB, and at its end which samples matter: how many samples per ray each field
+spends (proposal rounds apart) and the share of the NeRF field's samples that carry a non-negligible weight
+(> 1% of the ray's light) on the first held-out views. Results print as a JSON line (and go to --out if
+given).
 """
 import json
 import platform
@@ -26,11 +30,12 @@ from ml_collections import config_flags  # noqa: E402
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file to benchmark.", lock_config=True)
 _STEPS = flags.DEFINE_integer("steps", 30, "Timed train steps (throughput mode).")
-_QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20/25/28 dB instead.")
+_QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20/25/28/30 dB instead.")
 _MAX_SECONDS = flags.DEFINE_float("max_seconds", 600.0, "Quality mode: stop after this much wall time.")
 _EVAL_EVERY = flags.DEFINE_integer("eval_every", 250, "Quality mode: steps between held-out evaluations.")
 _OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file.")
-THRESHOLDS = (20.0, 25.0, 28.0)
+THRESHOLDS = (20.0, 25.0, 28.0, 30.0)
+NEGLIGIBLE_WEIGHT = 0.01  # a sample below this share of its ray's light hardly changes the pixel
 
 
 def matmul_peak_flops(compiler_options: dict | None = None, n: int = 2048, repeats: int = 5,
@@ -120,10 +125,10 @@ def throughput(config, steps: int) -> dict:
   options = xla_options.compiler_options(config)
   peak = matmul_peak_flops(options)
   rays = steps * config.train.batch_size
-  samples_per_ray = config.render.num_samples + (config.render.num_samples + config.render.num_importance
-                                                 if config.render.num_importance else 0)
+  samples = samples_per_ray(config)
   achieved = flops_per_step * steps / step_s / trainer.comps.mesh.size  # per device, as the peak is
-  return {"rays_per_s": rays / (data_s + step_s), "samples_per_s": rays * samples_per_ray / (data_s + step_s),
+  return {"rays_per_s": rays / (data_s + step_s), "samples_per_s": rays * samples["field"] / (data_s + step_s),
+          "samples_per_ray": samples,
           "step_ms": 1e3 * step_s / steps, "data_ms": 1e3 * data_s / steps,
           "data_fraction": data_s / (data_s + step_s), "flops_per_step": flops_per_step,
           "achieved_flops": achieved, "matmul_peak_flops": peak, "fraction_of_peak": achieved / peak,
@@ -140,28 +145,66 @@ def _compute_dtype_peak(config, options: dict, achieved: float) -> dict:
   return {f"matmul_peak_flops_{dtype}": peak, f"fraction_of_{dtype}_peak": achieved / peak}
 
 
+def samples_per_ray(config) -> dict:
+  """Samples per ray each kind of field is queried at in a train step: `field` (NeRF fields: coarse, and
+  fine over the union of coarse and importance samples) and `proposal` (cheap density-only fields)."""
+  r = config.render
+  field = r.num_samples + (r.num_samples + r.num_importance if r.num_importance else 0)
+  return {"field": field, "proposal": int(sum(r.proposal_samples))}
+
+
+def weight_share(trainer, views: int = 2, chunk: int = 4096) -> dict:
+  """Where the light is: on the first `views` held-out views, the final NeRF field's samples per ray and
+  the share of them whose compositing weight exceeds NEGLIGIBLE_WEIGHT (evaluation sampling)."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+  from nerfpod.nerf import cameras
+  comps = trainer.comps
+  split = comps.scene.split(trainer.config.eval.split)
+  apply = jax.jit(lambda p, o, d: comps.model.apply(p, o, d, comps.near, comps.far,
+                                                    jnp.asarray(comps.scene.background))[-1]["weights"])
+  above = total = 0
+  for index in range(min(views, len(split))):
+    origins, directions = cameras.image_rays(split.poses[index], split.intrinsics, trainer.config.data.pixel_center)
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    for start in range(0, len(origins), chunk):
+      weights = np.asarray(apply(trainer.state.params, origins[start:start + chunk], directions[start:start + chunk]))
+      above += int(np.sum(weights > NEGLIGIBLE_WEIGHT))
+      total += weights.size
+      per_ray = weights.shape[-1]
+  return {"samples_per_ray": per_ray, "share_above_negligible": above / total,
+          "samples_above_negligible_per_ray": per_ray * above / total}
+
+
 def time_to_quality(config, max_seconds: float, eval_every: int) -> dict:
+  """Trains from scratch, evaluating every `eval_every` steps; the wall time (and this process's CPU time,
+  which a loaded machine disturbs less) since start-up, evaluations excluded, at which each threshold is
+  first reached."""
   import jax
   trainer = _Trainer(config)
-  paused = 0.0  # time spent in the benchmark's own evaluations
-  reached, history = {}, []
+  paused = paused_cpu = 0.0  # time spent in the benchmark's own evaluations
+  reached, reached_cpu, history = {}, {}, []
   for step in range(1, config.train.num_steps + 1):
     jax.block_until_ready(trainer.step(trainer.next_batch()))
     elapsed = time.perf_counter() - _START - paused
+    cpu = time.process_time() - paused_cpu
     if step % eval_every == 0 or step == config.train.num_steps or elapsed > max_seconds:
-      t = time.perf_counter()
+      t, c = time.perf_counter(), time.process_time()
       psnr = trainer.heldout_psnr()
-      paused += time.perf_counter() - t
-      history.append({"step": step, "seconds": round(elapsed, 1), "psnr": round(psnr, 2)})
+      paused, paused_cpu = paused + time.perf_counter() - t, paused_cpu + time.process_time() - c
+      history.append({"step": step, "seconds": round(elapsed, 1), "cpu_seconds": round(cpu, 1),
+                      "psnr": round(psnr, 2)})
       print(json.dumps(history[-1]), flush=True)
       for threshold in THRESHOLDS:
         if psnr >= threshold and threshold not in reached:
-          reached[threshold] = elapsed
+          reached[threshold], reached_cpu[threshold] = elapsed, cpu
       if elapsed > max_seconds or all(t in reached for t in THRESHOLDS):
         break
   return {f"seconds_to_{int(t)}db": reached.get(t) for t in THRESHOLDS} | {
+      f"cpu_seconds_to_{int(t)}db": reached_cpu.get(t) for t in THRESHOLDS} | {
       "final_psnr": history[-1]["psnr"], "final_step": history[-1]["step"], "history": history,
-      **_peak_memory()}
+      "samples_per_ray": samples_per_ray(config), "weights": weight_share(trainer), **_peak_memory()}
 
 
 def main(argv):
@@ -170,8 +213,10 @@ def main(argv):
   from nerfpod import xla_options
   config = _CONFIG.value
   result = {"config": {"field": config.model.field, "samples": config.render.num_samples,
-                       "importance": config.render.num_importance, "batch_size": config.train.batch_size,
-                       "data": config.data.kind},
+                       "importance": config.render.num_importance,
+                       "proposal_samples": list(config.render.proposal_samples),
+                       "batch_size": config.train.batch_size, "steps": config.train.num_steps,
+                       "data": config.data.kind, "downscale": config.data.downscale},
             "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                         "backend": jax.default_backend(), "devices": jax.device_count(),
                         "device_kind": jax.devices()[0].device_kind},

@@ -16,13 +16,35 @@ def composite(rgb_RxSx3, sigma_RxS, t_RxS, directions_Rx3, *, last_delta: float,
   """
   deltas = jnp.diff(t_RxS, axis=-1)
   deltas = jnp.concatenate([deltas, jnp.full_like(deltas[..., :1], last_delta)], axis=-1)
-  deltas = deltas * jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
-  optical_depth = sigma_RxS * deltas
-  alpha = 1.0 - jnp.exp(-optical_depth)
+  return _composite(rgb_RxSx3, sigma_RxS, t_RxS, deltas, directions_Rx3, background)
+
+
+def interval_weights(sigma_RxS, t_edges_RxS1, directions_Rx3):
+  """Weights (R, S) of samples that each fill an interval [t_i, t_{i+1}] (proposal sampling): the same
+  quadrature, with every interval's length known exactly (no open last interval)."""
+  deltas = jnp.diff(t_edges_RxS1, axis=-1) * jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
+  return _weights(sigma_RxS * deltas)
+
+
+def composite_intervals(rgb_RxSx3, sigma_RxS, t_edges_RxS1, directions_Rx3, *, background=None):
+  """`composite` for samples that each fill an interval [t_i, t_{i+1}] (proposal sampling): the colour
+  and density at the interval's midpoint hold over its exact length. Depth is the expected midpoint."""
+  mids = 0.5 * (t_edges_RxS1[..., 1:] + t_edges_RxS1[..., :-1])
+  return _composite(rgb_RxSx3, sigma_RxS, mids, jnp.diff(t_edges_RxS1, axis=-1), directions_Rx3, background)
+
+
+def _weights(optical_depth_RxS):
+  """w_i = (1 - exp(-tau_i)) T_i with T_i = exp(-sum_{j<i} tau_j), in log space."""
+  alpha = 1.0 - jnp.exp(-optical_depth_RxS)
   accumulated = jnp.concatenate(
-      [jnp.zeros_like(optical_depth[..., :1]), jnp.cumsum(optical_depth[..., :-1], axis=-1)], axis=-1)
-  transmittance = jnp.exp(-accumulated)
-  weights = alpha * transmittance
+      [jnp.zeros_like(optical_depth_RxS[..., :1]), jnp.cumsum(optical_depth_RxS[..., :-1], axis=-1)], axis=-1)
+  return alpha * jnp.exp(-accumulated)
+
+
+def _composite(rgb_RxSx3, sigma_RxS, t_RxS, deltas_RxS, directions_Rx3, background):
+  """The quadrature shared by both: samples at t with intervals of (ray-parameter) length deltas."""
+  deltas = deltas_RxS * jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
+  weights = _weights(sigma_RxS * deltas)
   acc = jnp.sum(weights, axis=-1)
   rgb = jnp.sum(weights[..., None] * rgb_RxSx3, axis=-2)
   if background is not None:

@@ -87,6 +87,41 @@ class HashGridField(nn.Module):
     return nn.sigmoid(dense(3, "rgb")(c).astype(jnp.float32)), sigma
 
 
+class ProposalField(nn.Module):
+  """A proposal network (mip-NeRF 360, nerfacto): density only, from a small hash grid and one hidden layer.
+
+  It is queried at many samples per ray (the NeRF field at few), so it must be cheap: a few coarse levels
+  (dense tables for the most part), no colour, no view direction. Its density is trained only by the
+  interlevel loss, to bound the NeRF's weights. Points outside the box [-bound, bound]^3 have no density.
+  """
+  bound: float
+  num_levels: int
+  features_per_level: int
+  log2_table_size: int
+  base_resolution: int
+  max_resolution: int
+  hidden_width: int
+  dtype: jnp.dtype
+
+  @nn.compact
+  def __call__(self, points_Nx3):
+    unit = (points_Nx3 + self.bound) / (2.0 * self.bound)
+    inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
+    features = encodings.HashGridEncoding(
+        self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
+        self.max_resolution, name="grid")(jnp.clip(unit, 0.0, 1.0))
+    h = nn.relu(nn.Dense(self.hidden_width, dtype=self.dtype, name="hidden")(features))
+    raw = nn.Dense(1, dtype=self.dtype, name="density")(h).astype(jnp.float32)[..., 0]
+    return jnp.where(inside, jnp.exp(jnp.minimum(raw, 15.0)), 0.0)
+
+
+def make_proposal_field(model_config, dtype, name: str | None = None) -> ProposalField:
+  """A proposal field sized by config.model.proposal, in the box of config.model.hashgrid.bound."""
+  return ProposalField(bound=model_config.hashgrid.bound,
+                       features_per_level=model_config.hashgrid.features_per_level,
+                       **dict(model_config.proposal), dtype=dtype, name=name)
+
+
 def make_field(model_config, dtype, name: str | None = None) -> nn.Module:
   """The field named by `model.field` ('mlp' or 'hashgrid'), sized by config.model.mlp or .hashgrid."""
   if model_config.field == "mlp":

@@ -1,28 +1,37 @@
-"""The NeRF model: sample along rays, query the field(s), composite; coarse-to-fine when configured."""
+"""The NeRF model: sample along rays, query the field(s), composite; coarse-to-fine or proposal sampling."""
 from typing import Any
 
 import flax.linen as nn
 import jax.numpy as jnp
 
-from nerfpod.nerf import compositing, coord, fields, sampling
+from nerfpod.nerf import compositing, coord, fields, sampling, stepfun
 
 
 class NeRF(nn.Module):
-  """Renders a batch of rays.
+  """Renders a batch of rays, in one of three ways.
 
-  `num_samples` stratified samples go to the coarse field. With `num_importance` > 0 (the paper's
-  hierarchical sampling), that many more are drawn from the coarse weights by inverse CDF and the fine field
-  is queried at the union of both sets; each level returns its own rendering, coarse first. A bounded field
-  (the hash grid) has each ray's [near, far] clipped to its box first.
+  - Stratified: `num_samples` stratified samples go to the field.
+  - Hierarchical (`num_importance` > 0, the paper's): that many more are drawn from the coarse weights by
+    inverse CDF and a fine field is queried at the union of both sets; each level returns its rendering.
+  - Proposal (`proposal_samples`, mip-NeRF 360 / nerfacto): each round draws that many intervals from the
+    previous round's histogram (the first from the whole ray) and a small density-only proposal field
+    weighs them; the NeRF field is then queried at `num_samples` intervals drawn from the last proposal.
+    Rounds work in the normalised distance s in [0, 1] (`_warp` maps it to t under `spacing`), and no
+    gradient reaches the sample positions. The rendering carries `s_edges` and, per proposal round, its
+    (s_edges, weights): train.py supervises the proposals with the interlevel loss.
 
   `space` says where the field lives (nerf/coord.py): 'euclidean', the world itself; 'ndc', a forward-facing
   scene's NDC cube (the rays are mapped there first, with the view directions taken from the world rays as
   the original does, and near/far are NDC parameters in [0, 1]); 'contract', mip-NeRF 360's contracted ball
   of radius 2 (sample points are contracted before the field; rays are not clipped, every point lands in
   the ball). `spacing` places the samples evenly in distance ('linear') or in inverse distance ('inverse',
-  for unbounded scenes with a far bound of 1e6): samples are drawn in s in [0, 1] and mapped to t.
-  Randomness comes in as arrays of uniform numbers (None: deterministic evaluation), so the module is a
-  pure function of its inputs. Every attribute comes from the config (`from_config`).
+  for unbounded scenes with a far bound of 1e6): samples are drawn in s in [0, 1] and mapped to t
+  (proposal rounds too).
+
+  A bounded field (the hash grid) has each ray's [near, far] clipped to its box first (not in contracted space).
+  Randomness comes in as arrays of uniform numbers, one (R, n) array per round of `sample_counts()` (none:
+  deterministic evaluation), so the module is a pure function of its inputs. Every attribute comes from
+  the config (`from_config`).
   """
   model_config: Any
   num_samples: int
@@ -32,21 +41,31 @@ class NeRF(nn.Module):
   space: str = "euclidean"
   spacing: str = "linear"
   ndc_camera: tuple[float, float, float, float] | None = None  # (fx, fy, width, height) defining the NDC cube
+  proposal_samples: tuple = ()
+
+  def sample_counts(self) -> tuple:
+    """How many uniform numbers per ray each sampling round takes, in the order __call__ takes them."""
+    if self.proposal_samples:
+      return tuple(self.proposal_samples) + (self.num_samples,)
+    return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background):
-    points = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
-    if self.space == "contract":
-      points = coord.contract(points)
+    points = self._points(origins, directions, t_RxS)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3))
     rgb = rgb.reshape(points.shape)
     sigma = sigma.reshape(points.shape[:-1])
     out = compositing.composite(rgb, sigma, t_RxS, directions, last_delta=self.last_delta,
                                 background=background)
-    if self.space == "ndc":  # depth along the NDC camera's axis, disparity its inverse (coord.ndc_to_disparity)
+    out["t"] = t_RxS
+    return self._in_world_units(out, t_RxS)
+
+  def _in_world_units(self, out, t_RxS):
+    """In NDC space, depth along the NDC camera's axis and disparity its inverse (coord.ndc_to_disparity),
+    rather than the NDC ray parameter."""
+    if self.space == "ndc":
       out["disparity"] = jnp.sum(out["weights"] * coord.ndc_to_disparity(t_RxS), axis=-1)
       out["depth"] = out["acc"] / jnp.maximum(out["disparity"], 1e-10)
-    out["t"] = t_RxS
     return out
 
   def _distances(self, near, far, num: int, uniform):
@@ -56,12 +75,13 @@ class NeRF(nn.Module):
     return coord.s_to_t(sampling.stratified(0.0, 1.0, num, uniform), near, far, self.spacing)
 
   @nn.compact
-  def __call__(self, origins_Rx3, directions_Rx3, near, far, background,
-               uniform_coarse_RxS=None, uniform_fine_RxN=None):
+  def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
-    near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite).
+    near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
+    (R, n) array of numbers in [0, 1) per entry of `sample_counts()`, or none at all (evaluation).
     """
+    uniforms = uniforms or (None,) * len(self.sample_counts())
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
     if self.space == "ndc":
       if self.ndc_camera is None:
@@ -70,7 +90,9 @@ class NeRF(nn.Module):
     if self.model_config.field == "hashgrid" and self.space != "contract":  # bounded: sample inside its box
       near, far = sampling.clip_to_box(origins_Rx3, directions_Rx3, near, far,
                                        self.model_config.hashgrid.bound)
-    t = self._distances(near, far, self.num_samples, uniform_coarse_RxS)
+    if self.proposal_samples:
+      return [self._proposal_render(origins_Rx3, directions_Rx3, viewdirs, near, far, background, uniforms)]
+    t = self._distances(near, far, self.num_samples, uniforms[0])
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse")
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background)
@@ -79,12 +101,47 @@ class NeRF(nn.Module):
     # Importance samples are drawn in s, where the coarse samples are evenly spread ('linear': s is t).
     s = t if self.spacing == "linear" else coord.t_to_s(t, near, far, self.spacing)
     mids = 0.5 * (s[..., 1:] + s[..., :-1])
-    s_fine = sampling.sample_pdf(mids, coarse["weights"][..., 1:-1], self.num_importance, uniform_fine_RxN)
+    s_fine = sampling.sample_pdf(mids, coarse["weights"][..., 1:-1], self.num_importance, uniforms[1])
     t_fine = s_fine if self.spacing == "linear" else coord.s_to_t(s_fine, near, far, self.spacing)
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine")
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background)
     return [coarse, fine]
+
+  def _points(self, origins, directions, t_RxS):
+    """The sample points at distances t, in the field's space (contracted where space='contract')."""
+    points = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
+    return coord.contract(points) if self.space == "contract" else points
+
+  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms):
+    if self.spacing == "linear":
+      warp = sampling.linear_warp(near, far)
+    else:  # even in s is even in inverse distance
+      warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731
+    rays = origins.shape[:-1]
+    s_edges = jnp.broadcast_to(jnp.array([0.0, 1.0]), rays + (2,))  # round 0 draws from the whole ray
+    weights = jnp.ones(rays + (1,))
+    proposals = []
+    for i, count in enumerate(self.proposal_samples):
+      s_edges = stepfun.sample_intervals(s_edges, weights, count, uniforms[i])
+      t_edges = warp(s_edges)
+      t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
+      points = self._points(origins, directions, t_mids)
+      field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}")
+      sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
+      weights = compositing.interval_weights(sigma, t_edges, directions)
+      proposals.append({"s_edges": s_edges, "weights": weights})
+    s_edges = stepfun.sample_intervals(s_edges, weights, self.num_samples, uniforms[-1])
+    t_edges = warp(s_edges)
+    t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
+    points = self._points(origins, directions, t_mids)
+    dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
+    field = fields.make_field(self.model_config, self.dtype, name="coarse")
+    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3))
+    out = compositing.composite_intervals(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_edges,
+                                          directions, background=background)
+    out.update(t=t_mids, s_edges=s_edges, proposals=proposals)
+    return self._in_world_units(out, t_mids)
 
 
 def from_config(config, ndc_camera=None) -> NeRF:
@@ -94,4 +151,5 @@ def from_config(config, ndc_camera=None) -> NeRF:
   render = config.render
   return NeRF(model_config=config.model, num_samples=render.num_samples, num_importance=render.num_importance,
               last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
+              proposal_samples=tuple(render.proposal_samples),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera))

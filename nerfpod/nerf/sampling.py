@@ -65,3 +65,10 @@ def clip_to_box(origins_Rx3, directions_Rx3, near, far, bound: float):
   hi = jnp.clip(leave, near, far)
   hit = hi > lo
   return jnp.where(hit, lo, near), jnp.where(hit, hi, near + 1e-3)
+
+
+def linear_warp(near, far):
+  """s -> t: the normalised ray distance s in [0, 1] (where proposal sampling works) to the ray parameter t,
+  linearly from near to far (object scenes). near/far broadcast against (R, 1). An unbounded scene swaps in
+  another warp of the same form (e.g. samples spaced in inverse distance), and nothing else changes."""
+  return lambda s: near + s * (far - near)

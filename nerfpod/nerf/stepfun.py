@@ -1,0 +1,110 @@
+"""Step functions along rays, as (edges, weights) pairs: the arithmetic of proposal sampling (mip-NeRF 360).
+
+A ray's histogram is `edges_RxB1` (R, B+1), increasing, and `weights_RxB` (R, B) >= 0: weight i lies on
+[edges[i], edges[i+1]] with uniform density. Proposal sampling draws the NeRF's intervals from a cheap
+field's histogram by inverse CDF (`sample_intervals`); the cheap field learns to *bound* the NeRF's
+histogram (`interlevel_loss`, mip-NeRF 360 eq. 12-13), so that its samples cover every place the NeRF puts
+weight; `distortion_loss` (eq. 15) pulls each ray's weight together into one compact interval.
+
+Everything here works in any 1-D domain; the model uses the normalised ray distance s in [0, 1] (so that the
+losses do not depend on the scene's scale). Shapes are static: B and the number of samples are Python ints,
+and every search is a broadcast comparison (no data-dependent shapes, which TPUs and jit need).
+"""
+import jax
+import jax.numpy as jnp
+
+# Keeps divisions by a weight finite (multinerf's eps: float32's machine epsilon).
+EPS = float(jnp.finfo(jnp.float32).eps)
+
+
+def _searchsorted(sorted_RxK, values_RxN, strict: bool = False):
+  """(R, N) counts of entries of each row of `sorted_RxK` that are <= each value (< with `strict`): the index
+  of the first entry > value (>= value). A broadcast comparison, O(N K), which beats a binary search at the
+  sizes used here (tens of entries) and has static shapes."""
+  compare = jnp.less if strict else jnp.less_equal
+  return jnp.sum(compare(sorted_RxK[..., None, :], values_RxN[..., :, None]), axis=-1)
+
+
+def inverse_cdf(edges_RxB1, weights_RxB, uniform_RxN):
+  """The points whose CDF under the histogram is `uniform_RxN` (numbers in [0, 1]), (R, N).
+
+  Zero-weight intervals are never hit (except by u = 0 or 1 exactly); a ray whose weights are all zero
+  gets the uniform distribution over its edges' span. No gradient flows through the result.
+  """
+  total = jnp.sum(weights_RxB, axis=-1, keepdims=True)
+  uniform_weights = jnp.ones_like(weights_RxB) / weights_RxB.shape[-1]
+  pdf = jnp.where(total > 0, weights_RxB / jnp.where(total > 0, total, 1.0), uniform_weights)
+  cdf = jnp.concatenate([jnp.zeros_like(pdf[..., :1]), jnp.minimum(1.0, jnp.cumsum(pdf, axis=-1))], axis=-1)
+  cdf = cdf.at[..., -1].set(1.0)
+  above = jnp.clip(_searchsorted(cdf, uniform_RxN), 1, cdf.shape[-1] - 1)  # interval i = above - 1
+  below = above - 1
+  cdf_lo = jnp.take_along_axis(cdf, below, axis=-1)
+  cdf_hi = jnp.take_along_axis(cdf, above, axis=-1)
+  edge_lo = jnp.take_along_axis(edges_RxB1, below, axis=-1)
+  edge_hi = jnp.take_along_axis(edges_RxB1, above, axis=-1)
+  span = cdf_hi - cdf_lo
+  frac = jnp.clip((uniform_RxN - cdf_lo) / jnp.where(span > 0, span, 1.0), 0.0, 1.0)
+  return jax.lax.stop_gradient(edge_lo + frac * (edge_hi - edge_lo))
+
+
+def stratified_uniforms(num: int, jitter_RxN=None, shape=()):
+  """N numbers in [0, 1], one per stratum [i/N, (i+1)/N): at `jitter` within each (training), or at the
+  strata's centres (evaluation, `jitter` None; `shape` gives the leading shape then)."""
+  if jitter_RxN is None:
+    return jnp.broadcast_to((jnp.arange(num) + 0.5) / num, tuple(shape) + (num,))
+  return (jnp.arange(num) + jitter_RxN) / num
+
+
+def sample_intervals(edges_RxB1, weights_RxB, num: int, jitter_RxN=None, domain=(0.0, 1.0)):
+  """`num` (>= 2) intervals drawn from the histogram: their (R, num + 1) edges, sorted, without gradient.
+
+  `num` points are drawn by stratified inverse CDF (`jitter`: (R, num) numbers in [0, 1), or None for the
+  strata's centres); the edges are the midpoints between neighbouring points, and the outermost points
+  mirrored about their neighbouring midpoint, clipped to `domain` (multinerf's sample_intervals). Where the
+  histogram is dense the intervals are short: the next field is queried where the weight is.
+  """
+  u = stratified_uniforms(num, jitter_RxN, weights_RxB.shape[:-1])
+  points = inverse_cdf(edges_RxB1, weights_RxB, u)
+  mids = 0.5 * (points[..., 1:] + points[..., :-1])
+  first = jnp.maximum(domain[0], 2.0 * points[..., :1] - mids[..., :1])
+  last = jnp.minimum(domain[1], 2.0 * points[..., -1:] - mids[..., -1:])
+  edges = jnp.concatenate([first, mids, last], axis=-1)
+  return jax.lax.stop_gradient(edges)
+
+
+def outer(edges_RxB1, env_edges_RxK1, env_weights_RxK):
+  """For each interval of `edges`, the summed weight of every interval of the envelope histogram that
+  overlaps it, (R, B): the smallest value a histogram on the envelope's intervals may hold there if its
+  mass is to cover that interval (mip-NeRF 360 eq. 13)."""
+  cumulative = jnp.concatenate([jnp.zeros_like(env_weights_RxK[..., :1]), jnp.cumsum(env_weights_RxK, -1)], -1)
+  k = env_weights_RxK.shape[-1]
+  # The first envelope interval each interval overlaps, j with env[j] <= left < env[j + 1], and the last,
+  # j with env[j] < right <= env[j + 1] (clipped to 0..K-1): intervals that only touch do not overlap.
+  first = jnp.clip(_searchsorted(env_edges_RxK1, edges_RxB1[..., :-1]) - 1, 0, k - 1)
+  last = jnp.clip(_searchsorted(env_edges_RxK1, edges_RxB1[..., 1:], strict=True) - 1, 0, k - 1)
+  lo = jnp.take_along_axis(cumulative, first, axis=-1)     # mass before the first overlapped
+  hi = jnp.take_along_axis(cumulative, last + 1, axis=-1)  # mass up to the last overlapped
+  return jnp.maximum(hi - lo, 0.0)
+
+
+def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, eps: float = EPS):
+  """mip-NeRF 360's proposal loss (eq. 12), per ray (R,): sum_i max(0, w_i - outer_i)^2 / (w_i + eps).
+
+  `weights` are the NeRF's (the target: pass them through stop_gradient), `env_*` the proposal's. Zero
+  exactly when the proposal's histogram bounds the NeRF's everywhere; the gradient raises the proposal's
+  weights where they fall short.
+  """
+  bound = outer(edges_RxB1, env_edges_RxK1, env_weights_RxK)
+  return jnp.sum(jnp.maximum(0.0, weights_RxB - bound)**2 / (weights_RxB + eps), axis=-1)
+
+
+def distortion_loss(edges_RxB1, weights_RxB):
+  """mip-NeRF 360's distortion loss (eq. 15), per ray (R,): the double integral of w(u) w(v) |u - v| over the
+  ray, w being the histogram's density: sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 (e_{i+1} - e_i), m the
+  midpoints. The pairwise sum is computed in O(B) with prefix sums (the midpoints are sorted)."""
+  mids = 0.5 * (edges_RxB1[..., 1:] + edges_RxB1[..., :-1])
+  weight_before = jnp.cumsum(weights_RxB, axis=-1) - weights_RxB          # sum_{j<i} w_j
+  moment_before = jnp.cumsum(weights_RxB * mids, axis=-1) - weights_RxB * mids  # sum_{j<i} w_j m_j
+  inter = 2.0 * jnp.sum(weights_RxB * (mids * weight_before - moment_before), axis=-1)
+  intra = jnp.sum(weights_RxB**2 * jnp.diff(edges_RxB1, axis=-1), axis=-1) / 3.0
+  return inter + intra

@@ -1,0 +1,146 @@
+"""Step functions of proposal sampling (nerf/stepfun.py) against brute-force references."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from nerfpod.nerf import stepfun
+
+
+def _random_histograms(rng, rays: int, intervals: int, zero_share: float = 0.3):
+  """Random step functions on [0, 1]: sorted edges (random interior, 0 and 1 at the ends) and weights, some
+  of them zero, each ray's summing to at most 1 (as compositing weights do)."""
+  interior = np.sort(rng.uniform(0.0, 1.0, (rays, intervals - 1)), axis=-1)
+  edges = np.concatenate([np.zeros((rays, 1)), interior, np.ones((rays, 1))], axis=-1)
+  weights = rng.uniform(0.0, 1.0, (rays, intervals)) * (rng.uniform(size=(rays, intervals)) > zero_share)
+  weights = weights / np.maximum(weights.sum(-1, keepdims=True), 1e-9) * rng.uniform(0.2, 1.0, (rays, 1))
+  return edges, weights
+
+
+def _outer_brute_force(edges, env_edges, env_weights):
+  """For each interval of `edges`, the sum of the envelope's weights on intervals that overlap it (with a
+  positive-length overlap), by looping over every pair."""
+  out = np.zeros((edges.shape[0], edges.shape[1] - 1))
+  for r in range(edges.shape[0]):
+    for i in range(edges.shape[1] - 1):
+      for j in range(env_edges.shape[1] - 1):
+        if min(edges[r, i + 1], env_edges[r, j + 1]) > max(edges[r, i], env_edges[r, j]):
+          out[r, i] += env_weights[r, j]
+  return out
+
+
+def _interlevel_brute_force(edges, weights, env_edges, env_weights):
+  bound = _outer_brute_force(edges, env_edges, env_weights)
+  return np.sum(np.maximum(0.0, weights - bound)**2 / (weights + stepfun.EPS), axis=-1)
+
+
+def test_outer_bound_matches_brute_force_on_random_step_functions():
+  rng = np.random.default_rng(0)
+  edges, _ = _random_histograms(rng, 40, 12)
+  env_edges, env_weights = _random_histograms(rng, 40, 9)
+  got = np.asarray(stepfun.outer(jnp.asarray(edges), jnp.asarray(env_edges), jnp.asarray(env_weights)))
+  np.testing.assert_allclose(got, _outer_brute_force(edges, env_edges, env_weights), rtol=1e-5, atol=1e-7)
+
+
+def test_interlevel_loss_is_zero_exactly_when_the_proposal_bounds_the_nerf():
+  rng = np.random.default_rng(1)
+  edges, weights = _random_histograms(rng, 60, 16)
+  env_edges, env_weights = _random_histograms(rng, 60, 10)
+  loss = np.asarray(stepfun.interlevel_loss(*map(jnp.asarray, (edges, weights, env_edges, env_weights))))
+  np.testing.assert_allclose(loss, _interlevel_brute_force(edges, weights, env_edges, env_weights),
+                             rtol=1e-4, atol=1e-7)
+  bounded = np.all(weights <= _outer_brute_force(edges, env_edges, env_weights), axis=-1)
+  assert 0 < bounded.sum() < len(bounded)  # both cases occur among these rays
+  assert np.all(loss[bounded] == 0.0) and np.all(loss[~bounded] > 0.0)
+  # A proposal whose histogram is the NeRF's own bounds it (up to the round-off of the prefix sums the bound
+  # is read from: an excess of ~1e-8 squared); one with all its mass elsewhere does not.
+  assert np.all(np.asarray(stepfun.interlevel_loss(edges, weights, edges, weights)) < 1e-12)
+  far_away = np.zeros_like(weights)
+  far_away[:, -1] = 1.0
+  nerf_weights = weights.copy()
+  nerf_weights[:, -1] = 0.0
+  nerf_weights[:, 0] = 0.5  # the first interval never overlaps the last
+  assert np.all(np.asarray(stepfun.interlevel_loss(edges, nerf_weights, edges, far_away)) > 0.0)
+
+
+def test_interlevel_gradient_raises_the_proposal_where_it_falls_short():
+  edges = jnp.array([[0.0, 0.25, 0.5, 0.75, 1.0]])
+  nerf = jnp.array([[0.0, 0.8, 0.1, 0.0]])
+  proposal = jnp.array([[0.1, 0.1, 0.0, 0.0]])
+  grad = jax.grad(lambda w: jnp.sum(stepfun.interlevel_loss(edges, nerf, edges, w)))(proposal)
+  assert float(grad[0, 1]) < 0.0 and float(grad[0, 2]) < 0.0  # descent raises the mass near the NeRF's
+  assert float(grad[0, 3]) == 0.0  # beyond every interval the NeRF weighs, no pressure at all
+
+
+def _distortion_brute_force(edges, weights, n: int = 3000):
+  """The double integral of w(u) w(v) |u - v| over [0, 1]^2 by the midpoint rule on an n x n grid, w(u)
+  being the histogram's density (weight / interval length)."""
+  u = (np.arange(n) + 0.5) / n
+  out = []
+  for e, w in zip(edges, weights):
+    interval = np.clip(np.searchsorted(e, u, side="right") - 1, 0, len(w) - 1)
+    density = w[interval] / np.diff(e)[interval]
+    out.append(np.sum(density[:, None] * density[None, :] * np.abs(u[:, None] - u[None, :])) / n**2)
+  return np.array(out)
+
+
+def test_distortion_loss_equals_its_brute_force_double_integral():
+  rng = np.random.default_rng(2)
+  edges, weights = _random_histograms(rng, 6, 8, zero_share=0.2)
+  # Intervals of at least 1/40 keep the grid's error at the edges small.
+  edges = np.concatenate([np.zeros((6, 1)), np.cumsum(rng.uniform(1.0, 3.0, (6, 8)), -1)], -1)
+  edges /= edges[:, -1:]
+  got = np.asarray(stepfun.distortion_loss(jnp.asarray(edges), jnp.asarray(weights)))
+  np.testing.assert_allclose(got, _distortion_brute_force(edges, weights), rtol=2e-3)
+  # One interval holding all the weight: w^2 * length / 3 (the integral of |u - v| over a square of side l
+  # is l^3 / 3, and the density there is 1 / l).
+  one = stepfun.distortion_loss(jnp.array([[0.0, 0.2, 0.6, 1.0]]), jnp.array([[0.0, 1.0, 0.0]]))
+  np.testing.assert_allclose(one, [0.4 / 3], rtol=1e-6)
+
+
+def test_resampling_reproduces_a_known_histogram():
+  edges = jnp.array([[0.0, 0.1, 0.3, 0.35, 0.6, 0.9, 1.0]])
+  weights = jnp.array([[0.0, 0.4, 0.05, 0.3, 0.0, 0.25]])
+  n = 100_000
+  jitter = jax.random.uniform(jax.random.key(3), (1, n))
+  points = np.asarray(stepfun.inverse_cdf(edges, weights, stepfun.stratified_uniforms(n, jitter)))[0]
+  assert np.all(np.diff(points) >= 0)  # stratified inverse CDF keeps the points sorted
+  hist, _ = np.histogram(points, bins=np.asarray(edges[0]))
+  np.testing.assert_allclose(hist / n, np.asarray(weights[0]) / 1.0, atol=2e-4)
+  # Uniform inside an interval: [0.35, 0.6) splits evenly.
+  inner = points[(points >= 0.35) & (points < 0.6)]
+  np.testing.assert_allclose(np.histogram(inner, bins=5, range=(0.35, 0.6))[0] / len(inner), 0.2, atol=0.01)
+  assert not np.any((points > 0.0) & (points < 0.1)) and not np.any((points > 0.6) & (points < 0.9))
+  # The intervals drawn are short where the weight is dense; a region without weight is bridged by the two
+  # intervals of the points on either side, each reaching half way across (their midpoints may lie there).
+  intervals = np.asarray(stepfun.sample_intervals(edges, weights, 64, jitter[:, :64]))[0]
+  assert intervals.shape == (65,) and np.all(np.diff(intervals) >= 0)
+  assert intervals[0] >= 0.0 and intervals[-1] <= 1.0
+  mids = 0.5 * (intervals[1:] + intervals[:-1])
+  assert np.sum((mids > 0.0) & (mids < 0.1)) <= 2 and np.sum((mids > 0.6) & (mids < 0.9)) <= 2
+  lengths = np.diff(intervals)
+  assert np.max(lengths[(mids > 0.1) & (mids < 0.3)]) < 0.3 / 64 * 4  # density 2: about 1/128 each
+
+
+def test_deterministic_resampling_and_an_empty_ray():
+  edges = jnp.array([[0.0, 0.5, 1.0], [0.0, 0.5, 1.0]])
+  weights = jnp.array([[1.0, 1.0], [0.0, 0.0]])  # the second ray has no weight: uniform over its span
+  for row in np.asarray(stepfun.inverse_cdf(edges, weights, stepfun.stratified_uniforms(4, shape=(2,)))):
+    np.testing.assert_allclose(row, [0.125, 0.375, 0.625, 0.875], atol=1e-6)
+
+
+def test_no_gradient_flows_through_sampled_positions():
+  edges = jnp.linspace(0.0, 1.0, 9)[None]
+  jitter = jax.random.uniform(jax.random.key(4), (1, 16))
+  f = lambda w, e: jnp.sum(stepfun.sample_intervals(e, w, 16, jitter))
+  grad_w, grad_e = jax.grad(f, argnums=(0, 1))(jnp.linspace(0.1, 1.0, 8)[None], edges)
+  np.testing.assert_array_equal(grad_w, 0.0)
+  np.testing.assert_array_equal(grad_e, 0.0)
+
+
+@pytest.mark.parametrize("intervals", [1, 3])
+def test_shapes_are_static(intervals):
+  edges = jnp.linspace(0.0, 1.0, intervals + 1)[None].repeat(5, 0)
+  weights = jnp.ones((5, intervals))
+  out = jax.eval_shape(lambda e, w: stepfun.sample_intervals(e, w, 7), edges, weights)
+  assert out.shape == (5, 8)
