@@ -111,3 +111,50 @@ def test_ndc_is_refused_for_a_scene_not_framed_as_a_forward_facing_capture():
   from nerfpod.errors import UserError
   with pytest.raises(UserError, match="render.space=ndc needs a forward-facing capture framed as LLFF"):
     components.build(smoke_config(**{"render.space": "ndc"}))
+
+
+class _ConstantDensity(nn.Module):
+  """A proposal field of constant density that records the points it is asked about."""
+  record: object  # called with the points
+
+  def __call__(self, points_Nx3):
+    self.record(points_Nx3)
+    return jnp.ones(points_Nx3.shape[:-1])
+
+
+def _proposal_model(monkeypatch, surface, space, spacing, proposal, samples, ndc_camera=None):
+  seen = []
+  monkeypatch.setattr(nerf_model.fields, "make_field", lambda *a, **k: _OpaqueBeyond(surface, name=k["name"]))
+  monkeypatch.setattr(nerf_model.fields, "make_proposal_field",
+                      lambda *a, **k: _ConstantDensity(seen.append, name=k["name"]))
+  config = smoke_config(**{"render.space": space, "render.spacing": spacing, "render.num_samples": samples,
+                           "render.num_importance": 0, "render.proposal_samples": proposal,
+                           "model.field": "mlp"})
+  return nerf_model.from_config(config, ndc_camera), seen
+
+
+def test_proposal_sampling_in_contracted_space_with_inverse_spacing(monkeypatch):
+  """Proposal rounds in an unbounded scene: their points are contracted (inside the ball of radius 2), their
+  distances stay in [near, far] = [0.2, 1e6], and the NeRF field's samples, spread evenly in inverse distance,
+  find a sphere of world radius 2 (contracted radius 1.5) at its distance."""
+  _, origins, directions = _camera_rays()
+  model, seen = _proposal_model(monkeypatch, lambda p: jnp.linalg.norm(p, axis=-1) - 1.5, "contract", "inverse",
+                                (64,), 256)
+  out = model.apply({}, origins, directions, 0.2, 1e6, jnp.ones(3))[-1]
+  assert len(seen) == 1 and seen[0].shape == (64 * 64, 3)
+  assert float(jnp.max(jnp.linalg.norm(seen[0], axis=-1))) < 2.0
+  t = np.asarray(out["t"])
+  assert t.shape == (64, 256) and (t >= 0.2).all() and (t <= 1e6).all()
+  np.testing.assert_allclose(out["acc"], 1.0, atol=1e-4)
+  np.testing.assert_allclose(out["depth"], 2.0 / np.linalg.norm(directions, axis=-1), rtol=0.1)
+
+
+def test_proposal_sampling_in_ndc_space_gives_world_depth(monkeypatch):
+  intr, origins, directions = _camera_rays()
+  wall = 5.0
+  model, _ = _proposal_model(monkeypatch, lambda p: p[:, 2] - (1.0 - 2.0 / wall), "ndc", "linear", (64,), 256,
+                             ndc_camera=(intr.fx, intr.fy, intr.width, intr.height))
+  out = model.apply({}, origins, directions, 0.0, 1.0, jnp.ones(3))[-1]
+  np.testing.assert_allclose(out["acc"], 1.0, atol=1e-4)
+  np.testing.assert_allclose(out["disparity"], 1.0 / wall, atol=2.0 / 256)
+  np.testing.assert_allclose(out["depth"], wall, rtol=0.05)
