@@ -444,3 +444,25 @@ def test_bad_capture_exits_2_with_one_sentence_through_the_command_line(tmp_path
   errors = [l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]
   assert len(errors) == 1 and "17 image(s) of its 67 frames that do not exist" in errors[0]
   assert "Traceback" not in result.stderr and not (tmp_path / "run" / "config.json").exists()
+
+
+@pytest.mark.slow
+def test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_line(tmp_path):
+  """The whole job on the fox (transforms.json, OpenCV lens, portrait frames), told apart by data.kind=auto:
+  scene.json records the normalisation, the held-out views are evaluated at their own size."""
+  require(FOX)
+  from procs import run_main
+  workdir = tmp_path / "run"
+  result = run_main("--config=configs/default.py:smoke", f"--workdir={workdir}", "--config.data.kind=auto",
+                    f"--config.data.path={FOX}", "--config.data.downscale=8", "--config.render.near=0.05",
+                    "--config.render.far=3", "--config.eval.max_views=1", "--config.orbit.num_frames=2",
+                    devices_per_process=2)
+  assert result.returncode == 0, result.stderr[-3000:]
+  assert f"data: {FOX} holds a nerfstudio scene (data.kind=auto)" in result.stdout
+  scene = json.loads((workdir / "scene.json").read_text())
+  assert scene["kind"] == "nerfstudio" and scene["space"] == "unbounded" and scene["name"] == "nerfstudio_fox"
+  transform = np.array(scene["capture_to_scene"])
+  reloaded = scenes.load(data_config("nerfstudio", FOX, downscale=8))
+  np.testing.assert_allclose(transform, reloaded.transform, rtol=1e-12)
+  metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
+  assert metrics["views"][0]["name"] == "images/0001.jpg" and np.isfinite(metrics["mean"]["psnr"])
