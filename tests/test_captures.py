@@ -466,3 +466,14 @@ def test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_li
   np.testing.assert_allclose(transform, reloaded.transform, rtol=1e-12)
   metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
   assert metrics["views"][0]["name"] == "images/0001.jpg" and np.isfinite(metrics["mean"]["psnr"])
+
+
+def test_scene_report_tool_says_what_was_loaded(lego):
+  from tools import scene_report
+  config = smoke_config(**{"data.kind": "auto", "data.path": str(lego["root"] / "nerfstudio"),
+                            "data.orient": "none", "data.center": "none", "data.scale": 1.0})
+  result = scene_report.report(config, batch_size=256, batches=2)
+  assert result["kind"] == "nerfstudio" and result["space"] == "unbounded"
+  assert result["splits"]["train"]["frames"] == NUM_FRAMES - 1 and result["splits"]["train"]["sizes"] == ["50x50"]
+  assert result["splits"]["train"]["image_mib"] * 4 == pytest.approx(result["splits"]["train"]["as_float32_mib"])
+  assert result["capture_to_scene"] == np.eye(4).tolist() and result["pipeline_rays_per_s"] > 0

@@ -145,7 +145,8 @@ def capture_scene(name: str, kind: str, images, cams: Cameras, names, framing, w
   """A real capture's Scene from its frames and their framing (nerfpod.scenes.capture.frame): one split per
   list of frame indices, black background (captures are opaque)."""
   full = check_split(Split.from_images(images, framing.poses, cams, names, bounds=framing.bounds), where)
-  splits = {k: full.select(v) for k, v in framing.splits.items()}
+  selected: dict[tuple, Split] = {}  # val and test are often the same frames: one copy
+  splits = {k: selected.setdefault(tuple(v), full.select(v)) for k, v in framing.splits.items()}
   return Scene(name, splits, near=framing.near, far=framing.far, background=(0.0, 0.0, 0.0), space=framing.space,
                transform=framing.transform, kind=kind)
 
