@@ -210,7 +210,7 @@ def test_auto_detects_each_format_and_says_which(lego, capsys):
     assert scenes.detect(str(root / folder)) == kind
   assert scenes.detect(str(root / "nerfstudio" / "transforms.json")) == "nerfstudio"
   scene = scenes.load(as_is("auto", root / "llff"))
-  assert scene.kind == "llff" and "holds a llff scene" in capsys.readouterr().out
+  assert scene.kind == "llff" and "holds a scene of kind 'llff'" in capsys.readouterr().out
   with pytest.raises(UserError, match="cannot tell the format"):
     scenes.detect(str(root / "llff" / "images"))
 
@@ -458,7 +458,7 @@ def test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_li
                     "--config.render.far=3", "--config.eval.max_views=1", "--config.orbit.num_frames=2",
                     devices_per_process=2)
   assert result.returncode == 0, result.stderr[-3000:]
-  assert f"data: {FOX} holds a nerfstudio scene (data.kind=auto)" in result.stdout
+  assert f"data.kind=auto: {FOX} holds a scene of kind 'nerfstudio'" in result.stdout
   scene = json.loads((workdir / "scene.json").read_text())
   assert scene["kind"] == "nerfstudio" and scene["space"] == "unbounded" and scene["name"] == "nerfstudio_fox"
   transform = np.array(scene["capture_to_scene"])

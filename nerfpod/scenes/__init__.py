@@ -54,7 +54,7 @@ def load(data_config) -> Scene:
     kind = detect(path)
     import jax  # started by now; only process 0 talks
     if jax.process_index() == 0:
-      print(f"data: {path} holds a {kind} scene (data.kind=auto)", flush=True)
+      print(f"data.kind=auto: {path} holds a scene of kind {kind!r}", flush=True)
   if kind == "tiny":
     from nerfpod.scenes import tiny
     return tiny.load(path)

@@ -43,14 +43,21 @@ class Split:
     images = list(images)
     if isinstance(cameras, Intrinsics):
       cameras = Cameras.repeat(cameras, len(images))
+
     def flat(im, channels, name):
       im = np.asarray(im)
+      i = names.index(name)
+      if im.shape[:2] != (cameras.height[i], cameras.width[i]):
+        raise UserError(f"the image of frame {name} is {im.shape[1]}x{im.shape[0]} pixels but its camera is "
+                        f"{cameras.width[i]}x{cameras.height[i]}; use the images the cameras were made for.")
       if im.dtype != np.uint8:
         if not np.isfinite(im).all():
           raise UserError(f"the image of frame {name} contains NaN or infinity; fix or remove that frame.")
         im = to_uint8(im)
       return im.reshape(-1, channels)
     names = tuple(names)
+    if not len(images) == len(cameras) == len(names):
+      raise UserError(f"{len(images)} images, {len(cameras)} cameras and {len(names)} names do not match.")
     pixels = (np.concatenate([flat(im, 3, name) for im, name in zip(images, names)]) if images
               else np.zeros((0, 3), np.uint8))
     alpha = None if alphas is None else np.concatenate([flat(a, 1, name)[:, 0] for a, name in zip(alphas, names)])
