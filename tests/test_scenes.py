@@ -18,7 +18,7 @@ def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
     np.testing.assert_array_equal(a.splits[name].images, b.splits[name].images)
     assert a.splits[name].images.shape == (n, 24, 24, 3)
   assert (a.near, a.far, a.background) == (2.0, 6.0, (1.0, 1.0, 1.0))
-  images = a.splits["train"].images
+  images = np.asarray(a.splits["train"].images)
   assert (images == 1.0).all(-1).mean() > 0.2  # background visible
   assert (images < 0.9).any(-1).mean() > 0.2   # and the solids
   for pose in a.splits["train"].poses:
@@ -139,7 +139,9 @@ def test_split_keeps_frames_of_any_size_as_uint8_and_gives_them_back_as_float():
   only_b = split.select([1])
   assert only_b.names == ("b",) and only_b.cameras[0] == cams[1]
   np.testing.assert_array_equal(only_b.image_uint8(0), split.image_uint8(1))
+  np.testing.assert_array_equal(split.images[1], split.image(1))  # one frame, converted when read
+  assert split.images.size == 66 and len(split.images) == 2
   with pytest.raises(ValueError, match="differ in size"):
-    split.images
+    np.asarray(split.images)
   with pytest.raises(UserError, match="frame b is 5x2 pixels but its camera is 4x3"):
     Split.from_images(images, np.tile(np.eye(4), (2, 1, 1)), Intrinsics.from_focal(4, 3, 5.0), ["a", "b"])
