@@ -215,6 +215,31 @@ def test_auto_detects_each_format_and_says_which(lego, capsys):
     scenes.detect(str(root / "llff" / "images"))
 
 
+def test_transforms_json_with_camera_angle_and_explicit_split_lists(lego, tmp_path):
+  """instant-ngp's camera_angle_x instead of fl_x, no w/h (the images' size), and nerfstudio's file lists,
+  which win over data.llffhold."""
+  names, images = lego["names"], lego["images"]
+  write_images(tmp_path / "images", names, images)
+  angle = 2 * np.arctan(0.5 * SIZE / lego["focal"])
+  meta = {"camera_angle_x": angle,
+          "train_filenames": [f"images/{n}" for n in names[2:]], "val_filenames": ["images/r_1.png"],
+          "test_filenames": ["./images/r_0.png"],
+          "frames": [{"file_path": f"images/{n}", "transform_matrix": p.tolist()}
+                     for n, p in zip(names, lego["poses"])]}
+  (tmp_path / "transforms.json").write_text(json.dumps(meta))
+  scene = scenes.load(as_is("nerfstudio", tmp_path))
+  assert {k: v.names for k, v in scene.splits.items() if k != "train"} == {
+      "val": ("images/r_1.png",), "test": ("images/r_0.png",)}
+  assert len(scene.split("train")) == NUM_FRAMES - 2
+  cam = scene.split("train").cameras[0]
+  assert (cam.width, cam.height, cam.cx, cam.cy) == (SIZE, SIZE, SIZE / 2, SIZE / 2)
+  assert cam.fx == pytest.approx(lego["focal"]) and cam.fy == pytest.approx(lego["focal"])
+  meta["test_filenames"] = ["images/r_99.png"]
+  (tmp_path / "transforms.json").write_text(json.dumps(meta))
+  with pytest.raises(UserError, match="test_filenames names 1 file"):
+    scenes.load(as_is("nerfstudio", tmp_path))
+
+
 def test_frames_of_different_sizes_and_lenses_in_one_split(lego, tmp_path):
   """transforms.json with per-frame intrinsics: two sizes, one distorted lens; rays of each frame through
   its own camera, batches drawn uniformly over every pixel of every frame."""
@@ -249,6 +274,10 @@ def test_frames_of_different_sizes_and_lenses_in_one_split(lego, tmp_path):
                             split.cameras[f])
     np.testing.assert_allclose(xy, np.stack([col[sel], row[sel]], 1) + 0.5, atol=2e-3)
     np.testing.assert_array_equal(np.round(batch["rgb"][sel] * 255), split.image_uint8(f)[row[sel], col[sel]])
+  # Two hosts load the two halves of the same global batch.
+  halves = [data.LocalRayBatch(split, 0, 4096, slice(p * 2048, (p + 1) * 2048), 0.5).map(0) for p in (0, 1)]
+  for key in ("origins", "directions", "rgb"):
+    np.testing.assert_array_equal(np.concatenate([h[key] for h in halves]), batch[key])
 
 
 def _opencv_undistort_points(xd, yd, lens, iterations=500):
