@@ -400,6 +400,11 @@ def test_nerfstudio_fox_loads_with_its_lens_and_refuses_the_frames_whose_images_
   cam = scene.split("train").cameras[0]
   assert (cam.width, cam.height) == (270, 480) and cam.fx == pytest.approx(1375.52 / 4)
   assert cam.distortion == (0.0578421, -0.0805099, 0.0, 0.0, -0.000980296, 0.00015575)
+  # Centred on what the cameras look at: every camera's optical axis points at the origin (within 16
+  # degrees; OpenCV axes taken for OpenGL's would point every one away from it).
+  everything = np.concatenate([scene.split("train").poses, scene.split("test").poses])
+  towards = -everything[:, :3, 3] / np.linalg.norm(everything[:, :3, 3], axis=1, keepdims=True)
+  assert np.einsum("ni,ni->n", -everything[:, :3, 2], towards).min() > 0.96
   with pytest.raises(UserError) as err:
     scenes.load(data_config("nerfstudio", FOX / "transforms_upstream_67frames.json", downscale=4))
   message = str(err.value)
