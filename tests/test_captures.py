@@ -451,6 +451,10 @@ BAD_CASES = {
                          [(SIZE, SIZE, (60.0, 60.0, 25.0, 25.0), n) for n in lego["names"][:2]]),
         write_images(root / "images", lego["names"][:1], lego["images"][:1])), "r_1.png"),
     "no sparse model": ("colmap", lambda root, lego: None, "holds no COLMAP sparse model"),
+    "colmap malformed": ("colmap", lambda root, lego: (
+        write_colmap_txt(root / "sparse" / "0", lego["poses"][:2],
+                         [(SIZE, SIZE, (60.0, 60.0, 25.0, 25.0), n) for n in lego["names"][:2]]),
+        (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 50\n")), "cannot be read"),
 }
 
 
