@@ -17,12 +17,6 @@ import time
 from absl import app, flags
 from ml_collections import config_flags
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file whose data.* names the scene.",
-                                          lock_config=True)
-_BATCH_SIZE = flags.DEFINE_integer("batch_size", 4096, "Rays per batch for the pipeline's throughput.")
-_BATCHES = flags.DEFINE_integer("batches", 20, "Timed batches.")
-_OUT = flags.DEFINE_string("out", None, "Also write the JSON report to this file.")
-
 
 def report(config, batch_size: int = 4096, batches: int = 20) -> dict:
   import numpy as np
@@ -52,15 +46,25 @@ def report(config, batch_size: int = 4096, batches: int = 20) -> dict:
           "host_peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def main(argv):
-  del argv
-  result = report(_CONFIG.value, _BATCH_SIZE.value, _BATCHES.value)
-  text = json.dumps(result, indent=1)
-  print(text)
-  if _OUT.value:
-    with open(_OUT.value, "w") as f:
-      f.write(text + "\n")
+def run() -> None:
+  """The command line. Its flags are defined here, not on import, so that this module and the other tools
+  (which define --config and --out too) can be imported into one process, e.g. by the tests."""
+  config = config_flags.DEFINE_config_file("config", None, "Config file whose data.* names the scene.",
+                                           lock_config=True)
+  batch_size = flags.DEFINE_integer("batch_size", 4096, "Rays per batch for the pipeline's throughput.")
+  batches = flags.DEFINE_integer("batches", 20, "Timed batches.")
+  out = flags.DEFINE_string("out", None, "Also write the JSON report to this file.")
+
+  def main(argv):
+    del argv
+    text = json.dumps(report(config.value, batch_size.value, batches.value), indent=1)
+    print(text)
+    if out.value:
+      with open(out.value, "w") as f:
+        f.write(text + "\n")
+
+  app.run(main)
 
 
 if __name__ == "__main__":
-  app.run(main)
+  run()
