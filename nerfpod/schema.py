@@ -159,6 +159,8 @@ FIELDS: dict[str, Field] = {
     "train.image_every": integer(0, example=500),
 
     "compile.cpu_ynnpack": boolean(),
+    "compile.hashgrid_lookup": choice("auto", "gather", "matmul"),
+    "compile.matmul_max_rows": integer(0, example=5000),
 
     "checkpoint.every_steps": integer(1, example=500),
     "checkpoint.max_to_keep": integer(1, example=3),

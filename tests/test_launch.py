@@ -74,7 +74,7 @@ def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None):
 
 
 POD_ARGS = ("--name=nerf-pod", "--zone=us-central2-b", "--project=my-proj", "--accelerator-type=v4-32",
-            "--workdir=gs://my-bucket/runs/lego", "--", "--config=configs/default.py",
+            "--skip-preflight", "--workdir=gs://my-bucket/runs/lego", "--", "--config=configs/default.py",
             "--config.train.num_steps=500")
 
 
@@ -94,19 +94,28 @@ def test_tpu_pod_dry_run_prints_every_command_and_runs_none(tmp_path):
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
   ]
-  bucket_create, _, pod_create, _, scp, install, start, follow = commands[1:]
+  bucket_create, _, pod_create, _, scp, install, check, start, follow = commands[1:]
   assert "--location=us-central2" in bucket_create
   assert pod_create[5] == "nerf-pod" and "--accelerator-type=v4-32" in pod_create
   assert "--zone=us-central2-b" in pod_create and "--project=my-proj" in pod_create
   assert "--worker=all" in scp and "nerf-pod:~/nerfpod-src.tar.gz" in scp
+  # v4's runtime image (Ubuntu 22.04, Python 3.10): each worker gets Python 3.11 in a virtual environment
+  # with the suite's pinned versions and the TPU runtime of that JAX, then shows its chips before training.
+  assert "--version=tpu-ubuntu2204-base" in pod_create
   assert "--worker=all" in install
-  assert "pip install" in _command(install) and "-e ." in _command(install)
-  assert "gcsfs" in _command(install)  # what epath (orbax) needs for gs://
+  setup = _command(install)
+  assert "uv python install 3.11" in setup and "venv" in setup and "--python 3.11 ~/nerfpod-venv" in setup
+  assert "pip install -q --python ~/nerfpod-venv/bin/python -c constraints.txt -e '.[tpu]'" in setup
+  assert "gcsfs" in setup  # what epath (orbax) needs for gs://
+  assert "--worker=all" in check
+  assert shlex.split(_command(check).split("&& ", 1)[1]) == [
+      "~/nerfpod-venv/bin/python", "launch/check_devices.py", "--pod=v4-32", "--chips=16", "--per-host=4"]
   # The same command on every worker, writing into the bucket; then worker 0's log, to the run's end.
   assert "--worker=all" in start
   inner = shlex.split(shlex.split(_command(start).split("nohup sh -c ", 1)[1])[0])
-  assert inner[:3] == ["python3", "-m", "nerfpod.main"]
+  assert inner[:3] == ["~/nerfpod-venv/bin/python", "-m", "nerfpod.main"]
   assert inner[3:6] == ["--config=configs/default.py", "--config.train.num_steps=500",
                         "--workdir=gs://my-bucket/runs/lego"]
   assert "--worker=0" in follow and "tail --pid=" in _command(follow)
@@ -122,13 +131,14 @@ def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
   verbs = [" ".join(c.split()[:4]) for c in calls]
   assert verbs == ["storage buckets describe gs://my-bucket", "storage buckets create gs://my-bucket",
                    "compute tpus tpu-vm describe", "compute tpus tpu-vm scp", "compute tpus tpu-vm ssh",
-                   "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
+                   "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
   assert (tmp_path / "nerfpod-src.tar.gz").stat().st_size > 0  # the project, packed for the workers
 
 
 @pytest.mark.parametrize("bad,message", [
     (("--workdir=/tmp/local",), "must be a gs:// path"),
     (("--workdir=gs://b/x", "--", "--workdir=gs://b/y"), "pass --workdir to this script"),
+    (("--workdir=gs://b/x", "--accelerator-type=v9-8"), "--accelerator-type=v9-8 is not a pod this script knows"),
 ])
 def test_tpu_pod_refuses_what_cannot_work_on_a_pod(tmp_path, bad, message):
   result, calls = _tpu_pod(tmp_path, "--name=p", "--zone=us-central2-b", "--dry-run", *bad)

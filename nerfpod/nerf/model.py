@@ -2,6 +2,7 @@
 from typing import Any
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 from nerfpod.nerf import compositing, fields, sampling
@@ -22,6 +23,7 @@ class NeRF(nn.Module):
   num_importance: int
   last_delta: float
   dtype: Any
+  grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background):
     points = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
@@ -47,7 +49,7 @@ class NeRF(nn.Module):
                                        self.model_config.hashgrid.bound)
     t = sampling.stratified(near, far, self.num_samples, uniform_coarse_RxS)
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
-    coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse")
+    coarse_field = fields.make_field(self.model_config, self.dtype, "coarse", self.grid_matmul_max_rows)
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background)
     if self.num_importance == 0:
       return [coarse]
@@ -55,14 +57,29 @@ class NeRF(nn.Module):
     t_fine = sampling.sample_pdf(mids, coarse["weights"][..., 1:-1], self.num_importance,
                                  uniform_fine_RxN)
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
-    fine_field = fields.make_field(self.model_config, self.dtype, name="fine")
+    fine_field = fields.make_field(self.model_config, self.dtype, "fine", self.grid_matmul_max_rows)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background)
     return [coarse, fine]
 
 
-def from_config(config) -> NeRF:
-  """The NeRF model that `config.model` and `config.render` describe."""
+def grid_matmul_max_rows(config, backend: str) -> int:
+  """How many rows a hash-grid level may have to be looked up by matmuls on `backend` (0: all gather).
+
+  compile.hashgrid_lookup 'auto' takes matmuls on TPUs, where gathers and scatter-adds are slow (the README's
+  pod section has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row cheaply). The
+  parameters are the same either way, so a checkpoint moves freely between backends.
+  """
+  lookup = config.compile.get("hashgrid_lookup", "gather")
+  if lookup == "auto":
+    lookup = "matmul" if backend == "tpu" else "gather"
+  return int(config.compile.get("matmul_max_rows", 0)) if lookup == "matmul" else 0
+
+
+def from_config(config, backend: str | None = None) -> NeRF:
+  """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
+  JAX's; the pod compile tool asks for 'tpu' on a CPU)."""
   dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
+  backend = backend or jax.default_backend()
   return NeRF(model_config=config.model, num_samples=config.render.num_samples,
               num_importance=config.render.num_importance, last_delta=config.render.last_delta,
-              dtype=dtype)
+              dtype=dtype, grid_matmul_max_rows=grid_matmul_max_rows(config, backend))

@@ -5,6 +5,9 @@ from nerfpod.scenes.base import Scene, Split
 __all__ = ["KINDS", "Scene", "Split", "load"]
 
 KINDS = ("procedural", "tiny", "blender")
+# Whether a format's images carry alpha (then training batches do too): what the pod compile tool needs to
+# know of a scene without loading it.
+HAS_ALPHA = {"procedural": True, "tiny": False, "blender": True}
 
 
 def load(data_config) -> Scene:
