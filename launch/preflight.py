@@ -40,6 +40,10 @@ def _duration(seconds: float) -> str:
 def summary(report: dict) -> str:
   step = report["step"]
   memory = step["memory"]
+  if step["seconds"] is None:  # XLA refused it: more temporaries than a chip's HBM
+    return (f"{report['pod']} ({report['chips']} chips, {report['hosts']} hosts): per chip the step needs "
+            f"{_gib(memory['peak_bytes'])} of temporaries, XLA has {_gib(memory['xla_available_bytes'])} of a chip's "
+            f"{_gib(report['chip']['hbm_bytes'])} HBM for them")
   return (f"{report['pod']} ({report['chips']} chips, {report['hosts']} hosts): per chip {_gib(memory['peak_bytes'])} "
           f"of {_gib(report['chip']['hbm_bytes'])} HBM (arguments {_gib(memory['argument_bytes'])}, temporaries "
           f"{_gib(memory['temp_bytes'])}); step {_duration(step['seconds'])}, {step['rays_per_s']:,.0f} rays/s; "

@@ -6,8 +6,9 @@ https://cloud.google.com/tpu/docs/v5p, https://cloud.google.com/tpu/docs/v6e. Wh
 "all-reduce bandwidth" (v4: 1.1 PB/s over 4096 chips; v5e: 51.2 TB/s and v6e: 102.4 TB/s over 256
 chips), the per-chip all-reduce bandwidth is that divided by the pod's chips; for v5p, whose page gives
 none, it is half the chip's bidirectional ICI bandwidth (1200 GB/s), the same ratio v5e (400 GB/s ICI,
-200 GB/s all-reduce) and v6e (800, 400) show. Capacities stated in GB are taken as 10^9 bytes (the
-smaller reading).
+200 GB/s all-reduce) and v6e (800, 400) show. HBM capacities are GiB (the pages write "16 GB" and
+"95 GiB" for the same kind of figure; XLA's own compiler reports 15.75 GiB usable of a v5e's 16 GiB);
+bandwidths are 10^9 bytes/s.
 
 Names are the Cloud TPU accelerator types (`gcloud ... --accelerator-type`): v4 and v5p count
 TensorCores (two per chip, one JAX device per chip in megacore mode), v5e (`v5litepod-N`, also `v5e-N`)
@@ -30,9 +31,9 @@ class Chip:
 
 CHIPS = {
     "v4": Chip("TPU v4", 275e12, 32 * GiB, 1200 * GB, 1.1e15 / 4096, "https://cloud.google.com/tpu/docs/v4"),
-    "v5e": Chip("TPU v5 lite", 197e12, 16 * GB, 819 * GB, 51.2e12 / 256, "https://cloud.google.com/tpu/docs/v5e"),
-    "v5p": Chip("TPU v5", 459e12, 95 * GB, 2765 * GB, 1200 * GB / 2, "https://cloud.google.com/tpu/docs/v5p"),
-    "v6e": Chip("TPU v6 lite", 918e12, 32 * GB, 1638 * GB, 102.4e12 / 256, "https://cloud.google.com/tpu/docs/v6e"),
+    "v5e": Chip("TPU v5 lite", 197e12, 16 * GiB, 819 * GB, 51.2e12 / 256, "https://cloud.google.com/tpu/docs/v5e"),
+    "v5p": Chip("TPU v5", 459e12, 95 * GiB, 2765 * GB, 1200 * GB / 2, "https://cloud.google.com/tpu/docs/v5p"),
+    "v6e": Chip("TPU v6 lite", 918e12, 32 * GiB, 1638 * GB, 102.4e12 / 256, "https://cloud.google.com/tpu/docs/v6e"),
 }
 
 

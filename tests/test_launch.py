@@ -143,3 +143,57 @@ def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
 def test_tpu_pod_refuses_what_cannot_work_on_a_pod(tmp_path, bad, message):
   result, calls = _tpu_pod(tmp_path, "--name=p", "--zone=us-central2-b", "--dry-run", *bad)
   assert result.returncode == 2 and message in result.stderr and calls == []
+
+
+def test_tpu_pod_on_gke_writes_a_valid_jobset_with_one_process_per_host(tmp_path):
+  """--gke: the same job as a JobSet on a GKE TPU slice; the manifest is checked against the JobSet schema
+  (kubectl's client-side dry run needs the cluster's API discovery for a custom resource, so not here)."""
+  import json
+
+  import jsonschema
+  import yaml
+  manifest_path = tmp_path / "job.yaml"
+  args = [a for a in POD_ARGS if not a.startswith("--accelerator-type")]
+  result, calls = _tpu_pod(tmp_path, "--dry-run", "--gke", f"--manifest={manifest_path}",
+                           "--accelerator-type=v5litepod-16", "--max-restarts=7", *args)
+  assert result.returncode == 0, result.stderr
+  assert calls == []  # a dry run: nothing uploaded or applied
+  commands = [shlex.split(line) for line in result.stdout.splitlines()
+              if line and not line.startswith(("#", "launch/tpu_pod.py:"))]
+  assert commands[1][:3] == ["gcloud", "storage", "cp"]
+  assert commands[1][-1] == "gs://my-bucket/runs/lego/_launch/nerfpod-src.tar.gz"
+  assert commands[2] == ["kubectl", "apply", "-f", str(manifest_path)]
+  job = yaml.safe_load(manifest_path.read_text())
+  schema = json.loads((REPO / "tests" / "data" / "jobset_v1alpha2.schema.json").read_text())
+  jsonschema.validate(job, schema)
+  assert job["metadata"]["annotations"]["alpha.jobset.sigs.k8s.io/exclusive-topology"] == \
+      "cloud.google.com/gke-nodepool"
+  assert job["spec"]["failurePolicy"]["maxRestarts"] == 7
+  workers = job["spec"]["replicatedJobs"][0]["template"]["spec"]
+  assert workers["parallelism"] == workers["completions"] == 4  # v5litepod-16: 4 hosts of 4 chips
+  assert workers["completionMode"] == "Indexed"
+  pod = workers["template"]["spec"]
+  assert pod["nodeSelector"] == {"cloud.google.com/gke-tpu-accelerator": "tpu-v5-lite-podslice",
+                                 "cloud.google.com/gke-tpu-topology": "4x4"}
+  assert pod["terminationGracePeriodSeconds"] >= 60  # time to save a checkpoint after SIGTERM
+  container = pod["containers"][0]
+  assert container["resources"]["limits"]["google.com/tpu"] == 4
+  script = container["command"][-1].splitlines()
+  assert "pip install -q -c constraints.txt -e '.[tpu]' gcsfs" in script
+  assert "python launch/check_devices.py --pod=v5litepod-16 --chips=16 --per-host=4" in script
+  assert shlex.split(script[-1]) == ["exec", "python", "-m", "nerfpod.main", "--config=configs/default.py",
+                                     "--config.train.num_steps=500", "--workdir=gs://my-bucket/runs/lego"]
+  # A broken manifest fails the same check.
+  del pod["containers"][0]["image"]
+  with pytest.raises(jsonschema.ValidationError):
+    jsonschema.validate(job, schema)
+
+
+def test_check_devices_refuses_a_host_without_its_tpu_chips_in_one_sentence():
+  out = subprocess.run([sys.executable, str(REPO / "launch" / "check_devices.py"), "--pod=v4-32", "--chips=16",
+                        "--per-host=4"], capture_output=True, text=True, timeout=120, cwd=REPO,
+                       env=procs.environment(1))
+  assert out.returncode == 1
+  lines = out.stderr.strip().splitlines()
+  assert len(lines) == 1 and "expected 4 TPU chips here and 16 in all (v4-32) but JAX sees 1 device(s) here " \
+                             "(cpu:cpu)" in lines[0], out.stderr

@@ -43,6 +43,9 @@ def _quiet_libtpu() -> None:
   os.environ.setdefault("TPU_ACCELERATOR_TYPE", "v5litepod-4")
   os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")
   os.environ.setdefault("TPU_SKIP_MDS_QUERY", "1")
+  # libtpu takes a machine-wide lock file (/tmp/libtpu_lockfile) so that two processes never drive one TPU;
+  # compiling drives none, so several of these tools (and a test suite) may run side by side.
+  os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
   os.environ.setdefault("JAX_PLATFORMS", "cpu")  # the process itself runs nothing on a device
 
 
@@ -114,6 +117,43 @@ def _program_report(compiled, pod: pods.Pod, num_devices: int, rays: int, second
   }
 
 
+_SIZE_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def _out_of_memory_report(error: Exception, pod: pods.Pod, rays: int, seconds_to_compile: float) -> dict | None:
+  """The report of a program XLA refused to compile because it does not fit the chip's HBM (None: the
+  error is another). XLA's message names what it needed and what the chip has, e.g. 'the total memory
+  required for HLO temporaries (108.00G) exceeds available HBM (15.75G)'."""
+  import re
+  text = " ".join(str(error).split())
+  if "RESOURCE_EXHAUSTED" not in text and "Ran out of memory" not in text:
+    return None
+  sizes = [float(n) * _SIZE_UNITS[u] for n, u in re.findall(r"\(([0-9.]+)([KMGT]?)i?B?\)", text)]
+  needed, available = (sizes + [float("nan"), float("nan")])[:2]
+  return {
+      "compile_seconds": round(seconds_to_compile, 1), "compile_error": text[:400],
+      "memory": {"argument_bytes": 0, "output_bytes": 0, "temp_bytes": needed, "alias_bytes": 0, "code_bytes": 0,
+                 "peak_bytes": needed, "xla_available_bytes": available},
+      "fits_hbm": False, "hbm_bytes": pod.chip.hbm_bytes, "flops_per_chip": None, "bytes_per_chip": None,
+      "seconds": None, "seconds_split": None, "bf16_peak_share": None, "rays": rays, "rays_per_s": None,
+      "rays_per_s_per_chip": None, "collectives": [], "xla": None,
+  }
+
+
+def _compile(lowered, pod: pods.Pod, num_devices: int, rays: int) -> dict:
+  """Compiles and reports; a program too large for the chip is a report too (fits_hbm false), not a crash."""
+  import jax
+  start = time.perf_counter()
+  try:
+    compiled = lowered.compile()
+  except jax.errors.JaxRuntimeError as e:
+    report = _out_of_memory_report(e, pod, rays, time.perf_counter() - start)
+    if report is None:
+      raise
+    return report
+  return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start)
+
+
 def _merge_collectives(collectives: list) -> list:
   merged = {}
   for c in collectives:
@@ -165,19 +205,16 @@ def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
   if "step" in what:
     step_fn = train.make_train_step(program.model, program.optimizer, mesh, program.near, program.far,
                                     program.background, tc.random_background, tc.microbatches)
-    start = time.perf_counter()
-    compiled = step_fn.lower(program.state_shapes, program.batch_shapes, key).compile()
-    step = _program_report(compiled, pod, pod.num_chips, tc.batch_size, time.perf_counter() - start)
+    step = _compile(step_fn.lower(program.state_shapes, program.batch_shapes, key), pod, pod.num_chips,
+                    tc.batch_size)
     step["unexpected_collectives"] = check_collectives(step, state_bytes)
-    step["run_seconds"] = step["seconds"] * tc.num_steps
+    step["run_seconds"] = step["seconds"] * tc.num_steps if step["seconds"] is not None else None
     report["step"] = step
   params = program.state_shapes.params
   if "eval" in what:
     chunk = max(pod.num_chips, config.eval.chunk - config.eval.chunk % pod.num_chips)
     rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
-    start = time.perf_counter()
-    compiled = program.renderer().lower(params, rays, rays).compile()
-    report["eval"] = _program_report(compiled, pod, pod.num_chips, chunk, time.perf_counter() - start)
+    report["eval"] = _compile(program.renderer().lower(params, rays, rays), pod, pod.num_chips, chunk)
   if "orbit" in what:
     host_mesh = Mesh(np.array([d for d in mesh.devices.flat if d.process_index == hosts[0]]),
                      (distributed.DATA_AXIS,))
@@ -186,9 +223,7 @@ def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
     rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(host_mesh))
     host_params = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype,
                                                               sharding=distributed.replicated(host_mesh)), params)
-    start = time.perf_counter()
-    compiled = program.renderer(host_mesh).lower(host_params, rays, rays).compile()
-    report["orbit"] = _program_report(compiled, pod, local, chunk, time.perf_counter() - start)
+    report["orbit"] = _compile(program.renderer(host_mesh).lower(host_params, rays, rays), pod, local, chunk)
   return report
 
 
@@ -222,6 +257,10 @@ def format_report(report: dict) -> str:
       continue
     r = report[name]
     m = r["memory"]
+    if r["seconds"] is None:
+      lines.append(f"  {name:<7} does not fit: XLA needs {_size(m['peak_bytes'])} of temporaries, the chip has "
+                   f"{_size(m['xla_available_bytes'])} ({r['compile_error'][:160]})")
+      continue
     xla = r["xla"]["optimal_seconds"]
     lines.append(
         f"  {name:<7} {_size(m['argument_bytes']):>9} {_size(m['temp_bytes']):>9} {_size(m['output_bytes']):>9} "
@@ -229,7 +268,7 @@ def format_report(report: dict) -> str:
         f"{r['bytes_per_chip'] / 1e9:>8.3f} {_duration(r['seconds']):>10} "
         f"{(_duration(xla) if xla else 'n/a'):>9} {r['rays_per_s_per_chip'] or 0:>12,.0f} "
         f"{(r['rays_per_s'] or 0):>12,.0f} {r['compile_seconds']:>7.1f}s")
-  if "step" in report:
+  if "step" in report and report["step"]["seconds"] is not None:
     s = report["step"]
     split = s["seconds_split"]
     lines.append(f"  step time: {_duration(split['matmul_bound'])} matmul-bound ops, {_duration(split['memory_bound'])} "
