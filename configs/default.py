@@ -66,7 +66,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
                                   # 1.1-1.5x faster on a 2-core CPU (README, Speed). Ignored on TPU/GPU.
   c.compile.hashgrid_lookup = "auto"  # hash-grid levels: 'gather', 'matmul' (dense levels, no gather or
                                   # scatter) or 'auto' (matmul on TPU, gather elsewhere; README, pods)
-  c.compile.matmul_max_rows = 5000  # 'matmul' applies to dense levels of at most this many rows
+  c.compile.matmul_max_rows = 30000  # 'matmul' applies to dense levels of at most this many rows
 
   c.checkpoint = ml_collections.ConfigDict()
   c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end

@@ -33,7 +33,6 @@ _TOPOLOGY = flags.DEFINE_string("topology", None, "The pod: an accelerator type,
                                 "v5litepod-64), v5p-128, v6e-64; several, comma-separated.")
 _WHAT = flags.DEFINE_list("what", ["step", "eval", "orbit"], "What to compile: step, eval, orbit.")
 _JSON = flags.DEFINE_string("json", None, "Also write the report as JSON to this file ('-': stdout only).")
-flags.mark_flags_as_required(["config", "topology"])
 
 
 def _quiet_libtpu() -> None:
@@ -315,5 +314,6 @@ def main(argv):
 
 
 if __name__ == "__main__":
+  flags.mark_flags_as_required(["config", "topology"])  # here: tools.pod_tables imports this module
   _quiet_libtpu()
   app.run(main)
