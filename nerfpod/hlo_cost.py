@@ -268,6 +268,8 @@ class Program:
     if instr.opcode == "scatter" and table is not None:
       updates = operands[-1].bytes_out if operands[-1] else 0
       return flops, 2 * updates + self._operand_bytes_from(operands[1:-1]), True
+    if instr.opcode == "copy-start":  # an asynchronous copy: its result tuple holds source and destination
+      return flops, 2 * self._operand_bytes_from(operands), False
     if instr.opcode in ("dynamic-slice", "slice"):
       return flops, 2 * instr.bytes_out, False
     if instr.opcode == "dynamic-update-slice":

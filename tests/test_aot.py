@@ -91,8 +91,8 @@ def test_the_launchers_preflight_refuses_a_job_too_large_for_the_chips_with_the_
 def test_a_cpu_run_with_libtpu_installed_behaves_as_without_it(tmp_path):
   """No JAX_PLATFORMS given: nerfpod keeps JAX off the absent TPU (no start-up errors) and trains on the
   CPU to the very same result as a run told to use the CPU."""
-  flags = ["--config=configs/default.py:smoke", "--config.train.num_steps=4", "--config.orbit.render_after_training=false",
-           "--config.eval.max_views=1"]
+  flags = ["--config=configs/default.py:smoke", "--config.train.num_steps=4",
+           "--config.orbit.render_after_training=false", "--config.eval.max_views=1"]
   results = {}
   for name, platforms in (("unset", None), ("cpu", "cpu")):
     env = procs.environment(1)

@@ -270,16 +270,18 @@ def format_report(report: dict) -> str:
   if "step" in report and report["step"]["seconds"] is not None:
     s = report["step"]
     split = s["seconds_split"]
-    lines.append(f"  step time: {_duration(split['matmul_bound'])} matmul-bound ops, {_duration(split['memory_bound'])} "
-                 f"memory-bound (of which gathers/scatters {_duration(split['gather_scatter'])}), "
+    lines.append(f"  step time: {_duration(split['matmul_bound'])} matmul-bound ops, "
+                 f"{_duration(split['memory_bound'])} memory-bound (of which gathers/scatters "
+                 f"{_duration(split['gather_scatter'])}), "
                  f"{_duration(split['collectives'])} collectives; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
     for c in s["collectives"]:
       lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips, x{c['count']:g}")
     verdict = "; ".join(s["unexpected_collectives"]) or "the gradient all-reduce and scalars only"
     lines.append(f"  step collectives: {verdict}")
     lines.append(f"  {report['num_steps']} steps (train.num_steps): {_duration(s['run_seconds'])} estimated")
-  lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip {_size(report['chip']['hbm_bytes'])}"
-               f" ({report['chip']['source']}); XLA cost-model estimates, not measurements")
+  lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip "
+               f"{_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
+               f"compiled program on the chip's published peaks: nerfpod.hlo_cost), not measurements")
   return "\n".join(lines)
 
 
