@@ -108,3 +108,15 @@ def test_a_cpu_run_with_libtpu_installed_behaves_as_without_it(tmp_path):
     assert noise not in unset.stderr, unset.stderr
   assert results["unset"][1]["views"] == results["cpu"][1]["views"]
   assert "1 device(s)" in unset.stdout and os.cpu_count()
+
+
+@pytest.mark.parametrize("name,chips,hosts,kind", [
+    ("v4-8", 4, 1, "v4"), ("v4-32", 16, 4, "v4"), ("v5p-128", 64, 16, "v5p"), ("v5e-16", 16, 4, "v5e"),
+    ("v5litepod-64", 64, 16, "v5e"), ("v5e-256", 256, 64, "v5e"), ("v6e-64", 64, 16, "v6e")])
+def test_named_pods_have_the_chips_and_hosts_of_their_accelerator_type(name, chips, hosts, kind):
+  """v4 and v5p names count TensorCores (two per chip), v5e and v6e names count chips; 4 chips per host."""
+  from nerfpod import pods
+  pod = pods.lookup(name)
+  assert (pod.num_chips, pod.num_hosts, pod.generation) == (chips, hosts, kind)
+  assert pod.chip.hbm_bytes >= 16 * 2**30 and pod.chip.source.startswith("https://cloud.google.com/tpu/docs/")
+  assert pods.lookup("v5e-17") is None
