@@ -26,6 +26,8 @@ _CONFIGS = flags.DEFINE_list("configs", ["default", "tiny", "blender", "blender_
 _SCALING = flags.DEFINE_list("scaling", ["v5e-16", "v5e-32", "v5e-64", "v5e-128", "v5e-256"],
                              "Pods of the weak-scaling table (default, 256 rays per chip).")
 _OUT = flags.DEFINE_string("out", None, "Also write the tables (markdown) to this file.")
+_SECTIONS = flags.DEFINE_list("sections", ["configs", "scaling", "formulations"],
+                              "Which tables (several processes can share the work).")
 
 
 def load_config(name: str, **overrides):
@@ -82,17 +84,20 @@ def _row(name: str, report: dict, note: list) -> str:
 def main(argv):
   del argv
   started = time.perf_counter()
-  out = ["| config | pod | rays/chip | memory/chip (peak) | step | rays/s/chip | rays/s pod | bf16 peak | "
-         "whole run |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-  for name in _CONFIGS.value:
+  out = []
+  if "configs" in _SECTIONS.value:
+    out += ["| config | pod | rays/chip | memory/chip (peak) | step | rays/s/chip | rays/s pod | bf16 peak | "
+            "whole run |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+  for name in _CONFIGS.value if "configs" in _SECTIONS.value else ():
     for pod_name in _PODS.value:
       config, note = load_config(name), []
       report = _report(config, pods.lookup(pod_name), note)
       out.append(_row(name, report, note))
       print(out[-1], flush=True)
-  out += ["", "| pod | chips | hosts | batch | step | all-reduce | its share | rays/s pod |",
-          "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-  for pod_name in _SCALING.value:
+  if "scaling" in _SECTIONS.value:
+    out += ["", "| pod | chips | hosts | batch | step | all-reduce | its share | rays/s pod |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+  for pod_name in _SCALING.value if "scaling" in _SECTIONS.value else ():
     pod = pods.lookup(pod_name)
     config = load_config("default", **{"train.batch_size": 256 * pod.num_chips})
     step = _report(config, pod, [])["step"]
@@ -101,10 +106,11 @@ def main(argv):
                f"{_time(step['seconds'])} | {_time(collective)} | {100 * collective / step['seconds']:.2f}% | "
                f"{step['rays_per_s']:,.0f} |")
     print(out[-1], flush=True)
-  out += ["", "| config | formulation | step | memory-bound | gathers/scatters | matmul FLOPs/chip | "
-          "memory/chip |", "| --- | --- | --- | --- | --- | --- | --- |"]
+  if "formulations" in _SECTIONS.value:
+    out += ["", "| config | formulation | step | memory-bound | gathers/scatters | matmul FLOPs/chip | "
+            "memory/chip |", "| --- | --- | --- | --- | --- | --- | --- |"]
   pod = pods.lookup("v5e-64")
-  for name, label, overrides in (
+  for name, label, overrides in () if "formulations" not in _SECTIONS.value else (
       ("default", "hash grid: gather + scatter-add", {"compile.hashgrid_lookup": "gather"}),
       ("default", "hash grid: matmul for dense levels (auto on TPU)", {}),
       ("blender_fast", "hash grid: gather + scatter-add", {"compile.hashgrid_lookup": "gather"}),
