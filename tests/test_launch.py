@@ -197,3 +197,26 @@ def test_check_devices_refuses_a_host_without_its_tpu_chips_in_one_sentence():
   lines = out.stderr.strip().splitlines()
   assert len(lines) == 1 and "expected 4 TPU chips here and 16 in all (v4-32) but JAX sees 1 device(s) here " \
                              "(cpu:cpu)" in lines[0], out.stderr
+
+
+def test_preflight_prints_the_figures_and_refuses_only_what_does_not_fit():
+  sys.path.insert(0, str(REPO / "launch"))
+  import preflight
+  gib = 2**30
+  report = {"pod": "v5litepod-16", "chips": 16, "hosts": 4, "num_steps": 30000, "rays_per_chip": 256,
+            "microbatches": 1, "chip": {"hbm_bytes": 16 * gib},
+            "step": {"seconds": 0.02, "rays_per_s": 204800.0, "run_seconds": 600.0, "fits_hbm": True,
+                     "memory": {"peak_bytes": 3 * gib, "argument_bytes": gib, "temp_bytes": 2 * gib}}}
+  assert preflight.summary(report) == (
+      "v5litepod-16 (16 chips, 4 hosts): per chip 3.00 GiB of 16.00 GiB HBM (arguments 1.00 GiB, temporaries "
+      "2.00 GiB); step 0.02 s, 204,800 rays/s; 30000 steps in about 10.0 min (XLA cost-model estimate, not a "
+      "measurement)")
+  assert preflight.refusal(report) is None
+  report["step"].update(fits_hbm=False, memory={"peak_bytes": 20 * gib, "argument_bytes": gib,
+                                                "temp_bytes": 19 * gib})
+  assert preflight.refusal(report).startswith(
+      "the train step needs 20.00 GiB per chip on v5litepod-16 (temporaries 19.00 GiB, arguments 1.00 GiB) but "
+      "a chip has 16.00 GiB of HBM; split each chip's 256 rays into more micro-batches "
+      "(--config.train.microbatches=2 or more)")
+  assert preflight.config_args(["--config=c.py", "--config.train.num_steps=5", "--mode=eval"]) == [
+      "--config=c.py", "--config.train.num_steps=5"]
