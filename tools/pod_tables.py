@@ -42,12 +42,14 @@ def load_config(name: str, **overrides):
 
 
 def _report(config, pod, note: list):
+  """compile_pod's report of the step; None (with the reason in `note`) where the batch does not split."""
   from tools import aot
   try:
     return aot.compile_pod(config, pod, ("step",))
-  except UserError:
-    if config.train.microbatches == 1:
-      raise
+  except UserError as e:
+    if config.train.microbatches == 1 or config.train.batch_size % pod.num_chips:
+      note.append(str(e))
+      return None
     note.append(f"{config.train.microbatches} micro-batches do not split over {pod.num_chips} chips: 1")
     config.train.microbatches = 1
     return aot.compile_pod(config, pod, ("step",))
@@ -69,7 +71,9 @@ def _gib(n) -> str:
   return f"{n / 2**30:.2f} GiB"
 
 
-def _row(name: str, report: dict, note: list) -> str:
+def _row(name: str, report: dict | None, note: list) -> str:
+  if report is None:
+    return f"| `{name}` | | | refused: {' '.join(note)} | | | | | |"
   step = report["step"]
   memory = step["memory"]
   if step["seconds"] is None:
@@ -92,7 +96,7 @@ def main(argv):
     for pod_name in _PODS.value:
       config, note = load_config(name), []
       report = _report(config, pods.lookup(pod_name), note)
-      out.append(_row(name, report, note))
+      out.append(_row(name, report, note) if report else _row(name, None, [f"{pod_name}: "] + note))
       print(out[-1], flush=True)
   if "scaling" in _SECTIONS.value:
     out += ["", "| pod | chips | hosts | batch | step | all-reduce | its share | rays/s pod |",
