@@ -1,9 +1,17 @@
 #!/usr/bin/env python3
-"""Trains on a Cloud TPU VM pod: create (or reuse) the pod, copy this project to every worker, install it,
-start the same command on all workers, and stream worker 0's log until the run ends.
+"""Trains on a Cloud TPU VM pod: compile the job for the pod here first (preflight), create (or reuse) the
+pod, copy this project to every worker, set up a supported Python there with the pinned versions, check
+that every worker sees its TPU chips, start the same command on all workers, and stream worker 0's log
+until the run ends. With --gke, the same job runs as a Kubernetes JobSet on a GKE TPU slice instead.
 
     python launch/tpu_pod.py --name=nerf-pod --zone=us-central2-b --accelerator-type=v4-32 \
         --workdir=gs://my-bucket/lego -- --config=configs/blender.py:scene=lego
+
+Preflight (launch/preflight.py) compiles the train step for the pod's topology on this machine (it needs
+the `tpu` extra here), prints the predicted per-chip memory and time, and refuses a job that does not fit
+a chip's HBM; --skip-preflight launches without it. The workers' images are Ubuntu 22.04 (Python 3.10),
+which today's JAX no longer supports: each worker gets Python --python (3.11) through uv, in a virtual
+environment (~/nerfpod-venv) holding the versions of constraints.txt and the TPU runtime of that JAX.
 
 Everything after `--` goes to `python -m nerfpod.main` on every worker. The workdir must be a gs:// bucket
 that every worker can write (orbax, tensorstore and tensorboardX write gs:// themselves); the bucket is
@@ -25,10 +33,19 @@ import subprocess
 import sys
 import tempfile
 
+import gke
+import preflight
 from _cli import split_forwarded  # launch/ is on sys.path: these run as scripts
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+from nerfpod import pods  # noqa: E402  (standard library only: the pods' names and sizes)
+
 REMOTE_DIR = "nerfpod"  # under each worker's home
+VENV = "~/nerfpod-venv"  # each worker's virtual environment, of Python --python
+# The TPU VM software images Google lists for JAX, per generation.
+RUNTIME_IMAGES = {"v4": "tpu-ubuntu2204-base", "v5e": "v2-alpha-tpuv5-lite", "v5p": "v2-alpha-tpuv5",
+                  "v6e": "v2-alpha-tpuv6e"}
 LOG = f"~/{REMOTE_DIR}/run.log"
 PID = f"~/{REMOTE_DIR}/run.pid"
 STATUS = f"~/{REMOTE_DIR}/run.status"
@@ -45,11 +62,20 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   p.add_argument("--zone", required=True, help="e.g. us-central2-b")
   p.add_argument("--project", default="", help="GCP project; default: gcloud's configured one")
   p.add_argument("--accelerator-type", default="v4-32", help="for a new pod, e.g. v4-32, v5litepod-16")
-  p.add_argument("--version", default="tpu-ubuntu2204-base", help="for a new pod: the TPU VM software version")
+  p.add_argument("--version", default="", help="for a new pod: the TPU VM software version (default: the "
+                                             "image Google lists for the generation, e.g. v2-alpha-tpuv5-lite)")
   p.add_argument("--spot", action="store_true", help="for a new pod: a Spot VM (cheaper, may be preempted)")
   p.add_argument("--workdir", required=True, help="gs://bucket/path shared by all workers")
   p.add_argument("--skip-setup", action="store_true", help="do not copy and install the project again")
-  p.add_argument("--jax-spec", default="jax[tpu]", help="pip requirement for JAX with its TPU runtime")
+  p.add_argument("--python", default="3.11", help="the Python version set up on every worker (JAX's supported)")
+  p.add_argument("--skip-preflight", action="store_true", help="launch without compiling the job here first")
+  p.add_argument("--gke", action="store_true", help="run as a JobSet on a GKE TPU slice (kubectl's current "
+                                                    "cluster) instead of on TPU VMs")
+  p.add_argument("--manifest", default="", help="--gke: where to write the JobSet manifest (default: "
+                                                "NAME-jobset.yaml here)")
+  p.add_argument("--image", default="python:3.11-slim", help="--gke: the container image (a Python >= 3.11)")
+  p.add_argument("--max-restarts", type=int, default=10, help="--gke: JobSet restarts (each resumes from the "
+                                                                "newest checkpoint) before it is declared failed")
   p.add_argument("--dry-run", action="store_true", help="print every command instead of running it")
   args = p.parse_args(own)
   if not args.workdir.startswith("gs://") or len(args.workdir) <= len("gs://"):
@@ -57,6 +83,12 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   if any(a.startswith(("--workdir", "--coordinator_address", "--num_processes", "--process_id"))
          for a in forwarded):
     p.error("pass --workdir to this script, not after `--`; on TPU the processes find each other by themselves")
+  pod = pods.lookup(args.accelerator_type)
+  if pod is None:
+    p.error(f"--accelerator-type={args.accelerator_type} is not a pod this script knows; known: "
+            f"{', '.join(pods.known_names())}")
+  if not args.version:
+    args.version = RUNTIME_IMAGES[pod.generation]
   return args, forwarded
 
 
@@ -76,7 +108,8 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
   project = [f"--project={args.project}"] if args.project else []
   create = _tpu(args, "create", args.name, f"--accelerator-type={args.accelerator_type}",
                 f"--version={args.version}") + (["--spot"] if args.spot else [])
-  train = shlex.join(["python3", "-m", "nerfpod.main", *forwarded, f"--workdir={args.workdir}"])
+  train = shlex.join([f"{VENV}/bin/python", "-m", "nerfpod.main", *forwarded, f"--workdir={args.workdir}"])
+  train = train.replace(f"'{VENV}/bin/python'", f"{VENV}/bin/python")  # let the worker's shell expand ~
   # Detached, so that it outlives this ssh session; its exit status is kept for the log follower.
   detached = shlex.quote(f"{train} > {LOG} 2>&1; echo $? > {STATUS}")
   start = (f"cd ~/{REMOTE_DIR} && rm -f {STATUS} && "
@@ -93,14 +126,18 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
   if not args.skip_setup:
     steps += [
         ("pack the project", ["tar", "-czf", tarball, "--exclude=.git", "--exclude=__pycache__",
-                              "-C", REPO, "."], False),
+                              "--exclude=.venv", "-C", REPO, "."], False),
         ("copy it to every worker", _tpu(args, "scp", tarball, f"{args.name}:~/nerfpod-src.tar.gz",
                                          "--worker=all"), False),
-        ("unpack and install on every worker", _on_workers(
-            args, f"mkdir -p ~/{REMOTE_DIR} && tar -xzf ~/nerfpod-src.tar.gz -C ~/{REMOTE_DIR} && "
-                  f"cd ~/{REMOTE_DIR} && python3 -m pip install -q -U '{args.jax_spec}' -e . gcsfs "
-                  f"google-cloud-storage"), False),
+        ("unpack it and set up Python " + args.python + " with the pinned versions on every worker",
+         _on_workers(args, f"mkdir -p ~/{REMOTE_DIR} && tar -xzf ~/nerfpod-src.tar.gz -C ~/{REMOTE_DIR} && "
+                           f"cd ~/{REMOTE_DIR} && {setup_commands(args.python)}"), False),
     ]
+  steps += [
+      ("check that every worker sees its TPU chips", _on_workers(
+          args, f"cd ~/{REMOTE_DIR} && " + device_check(pods.lookup(args.accelerator_type), "python").replace(
+              "python", f"{VENV}/bin/python", 1)), False),
+  ]
   steps += [
       ("start the same command on every worker", _on_workers(args, start), False),
       ("stream worker 0's log until the run ends", _on_workers(args, follow, worker="0"), False),
@@ -108,9 +145,34 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
   return steps
 
 
+def setup_commands(python: str) -> str:
+  """Shell commands (in the unpacked project) that give a worker Python `python` in a virtual environment
+  with exactly the versions of constraints.txt, the TPU runtime matched to that JAX (the `tpu` extra) and
+  the Cloud Storage filesystem orbax and tensorstore write gs:// with. The TPU VM images' own Python is
+  3.10, which today's JAX does not support: uv (installed for the user with the image's pip) fetches a
+  standalone build of `python`."""
+  uv = "~/.local/bin/uv"
+  return (f"python3 -m pip install -q --user -U uv && {uv} python install {python} && "
+          f"{uv} venv -q --allow-existing --python {python} {VENV} && "
+          f"{uv} pip install -q --python {VENV}/bin/python -c constraints.txt -e '.[tpu]' gcsfs google-cloud-storage")
+
+
+def device_check(pod, python: str) -> str:
+  """The shell command (in the unpacked project) that fails in one sentence unless a host sees its chips."""
+  return shlex.join([python, "launch/check_devices.py", f"--pod={pod.name}", f"--chips={pod.num_chips}",
+                     f"--per-host={pod.num_chips // pod.num_hosts}"])
+
+
 def main(argv: list[str]) -> int:
   args, forwarded = parse(argv)
+  if not args.skip_preflight:
+    code = preflight.run(forwarded, args.accelerator_type, args.dry_run, "launch/tpu_pod.py")
+    if code:
+      return code
   tarball = os.path.join(tempfile.gettempdir(), "nerfpod-src.tar.gz")
+  if args.gke:
+    pod = pods.lookup(args.accelerator_type)
+    return gke.launch(args, forwarded, tarball, pod, REPO, device_check(pod, "python"))
   steps = plan(args, forwarded, tarball)
   print(f"launch/tpu_pod.py: follow the log again: "
         f"{shlex.join(_on_workers(args, f'tail -n 50 -F {LOG}', worker='0'))}", flush=True)

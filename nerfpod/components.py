@@ -159,3 +159,55 @@ def build(config, mesh: Mesh | None = None) -> Components:
                                   xla_options.compiler_options(config))
   return Components(config, scene, mesh, model, optimizer, near, far, state_shapes(model, optimizer, mesh),
                     renderer)
+
+
+@dataclasses.dataclass(frozen=True)
+class Program:
+  """What compiling a config's step and renderer needs without its scene (the pod compile tool): the
+  model formulated for a backend, the optimiser, the state's and the batch's shapes on a mesh."""
+  config: Any
+  mesh: Mesh
+  model: nerf_model.NeRF
+  optimizer: optax.GradientTransformation
+  near: float
+  far: float
+  background: tuple
+  state_shapes: TrainState
+  batch_shapes: dict  # the global training batch as jax.ShapeDtypeStructs, sharded over the data axis
+
+  def renderer(self, mesh: Mesh | None = None):
+    """The renderer evaluation (on `mesh`, default the program's) and orbit frames (on one host's own
+    devices) compile."""
+    return render.make_renderer(self.model, mesh or self.mesh, self.near, self.far, self.background)
+
+
+def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool) -> dict:
+  """The global batch of data.LocalRayBatch's fields (less its host-side step) as ShapeDtypeStructs laid
+  over `mesh`'s data axis: each host's rows on its own devices, as distributed.to_global makes them."""
+  sharding = distributed.batch_sharding(mesh)
+  shapes = {"origins": ((batch_size, 3), jnp.float32), "directions": ((batch_size, 3), jnp.float32),
+            "rgb": ((batch_size, 3), jnp.float32), "ray_ids": ((batch_size,), jnp.int32)}
+  if with_alpha:
+    shapes["alpha"] = ((batch_size,), jnp.float32)
+  return {k: jax.ShapeDtypeStruct(shape, dtype, sharding=sharding) for k, (shape, dtype) in shapes.items()}
+
+
+# Ray bounds for a program compiled without its scene where the config leaves them to the scene: the values
+# are constants of the program and change neither its shapes nor its cost.
+_PLACEHOLDER_BOUNDS = (2.0, 6.0)
+# Likewise the NDC cube's camera (fx, fy, width, height) of a forward-facing scene: LLFF's at images_8.
+_PLACEHOLDER_NDC_CAMERA = (421.0, 421.0, 504.0, 378.0)
+
+
+def build_program(config, mesh: Mesh, backend: str) -> Program:
+  """The step's and renderers' pieces for `config` on `mesh` (any devices: a TPU topology's too), the
+  model formulated for `backend`, without loading the scene: the batch carries alpha where the scene
+  format has it (scenes.HAS_ALPHA)."""
+  model = nerf_model.from_config(config, _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None,
+                                 backend)
+  optimizer = make_optimizer(config.train)
+  near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
+  far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
+  with_alpha = scenes.HAS_ALPHA.get(config.data.kind, True)
+  return Program(config, mesh, model, optimizer, float(near), float(far), (1.0, 1.0, 1.0),
+                 state_shapes(model, optimizer, mesh), batch_shapes(config.train.batch_size, mesh, with_alpha))

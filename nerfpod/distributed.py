@@ -4,7 +4,7 @@ import os
 import jax
 import numpy as np
 from jax.experimental import multihost_utils
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
 
 from nerfpod.errors import UserError
 
@@ -67,6 +67,29 @@ def wait_for_all(name: str, timeout_s: float = 600.0) -> None:
     client.wait_at_barrier(name, timeout_in_ms=int(timeout_s * 1000))
 
 
+def keep_off_absent_tpu() -> bool:
+  """Leaves the TPU runtime alone where it is installed but no TPU chip is: returns whether it did so.
+
+  With libtpu installed (the `tpu` extra, for the pod compile tool), JAX would try to start a TPU backend
+  on every run, printing pages of TPU initialisation errors on a machine without one before it falls back
+  to the CPU. Where no TPU chip is attached, no platform was chosen (JAX_PLATFORMS) and the CPU is the only
+  other backend, this picks the CPU, so that a CPU run with the extra behaves exactly as one without it.
+  Must run before the first JAX computation.
+  """
+  if os.environ.get("JAX_PLATFORMS") or jax.config.jax_platforms:
+    return False
+  try:
+    from jax._src import hardware_utils, xla_bridge  # no public way to list the backends before they start
+    factories = set(xla_bridge._backend_factories)
+    chips, _ = hardware_utils.num_available_tpu_chips_and_device_id()
+  except Exception:  # a JAX whose internals moved: leave JAX's own choice
+    return False
+  if "tpu" not in factories or chips > 0 or factories - {"tpu"} != {"cpu"}:
+    return False
+  jax.config.update("jax_platforms", "cpu")
+  return True
+
+
 def _on_cloud_tpu_vm() -> bool:
   """True on a Cloud TPU VM (JAX found TPU chips and libtpu at import), where initialize() needs no
   arguments: it reads the pod's workers from the VM's metadata (a single-host VM makes a pod of one)."""
@@ -79,9 +102,19 @@ def _on_cloud_tpu_vm() -> bool:
   return bool(getattr(cloud_tpu_init, "running_in_cloud_tpu_vm", False))
 
 
-def make_mesh() -> Mesh:
-  """A 1-D mesh over every device of every host; batches are split along its one axis."""
-  return jax.make_mesh((jax.device_count(),), (DATA_AXIS,))
+def make_mesh(devices=None) -> Mesh:
+  """A 1-D mesh over every device of every host (or over `devices`, e.g. a TPU topology's for an
+  ahead-of-time compile); batches are split along its one axis.
+
+  Devices are ordered host by host (process index, then device id): each host's devices then hold one
+  contiguous block of the global batch, the rows local_slice gives it. (jax.make_mesh orders a TPU pod's
+  chips along the torus instead, which interleaves hosts, e.g. 0,0,1,1,1,1,0,2,... on a v5e 4x4, and the
+  rows a host loads would not be the rows its chips hold. The step's only collective, the all-reduce over
+  every chip, does not depend on the order.)
+  """
+  devices = jax.devices() if devices is None else devices
+  ordered = sorted(devices, key=lambda d: (d.process_index, d.id))
+  return Mesh(np.array(ordered), (DATA_AXIS,), axis_types=(AxisType.Explicit,))  # as jax.make_mesh's
 
 
 def batch_sharding(mesh: Mesh) -> NamedSharding:

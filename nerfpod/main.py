@@ -59,6 +59,7 @@ def main(argv):
       print(f"nerfpod: note: config field {old} is now {schema.LEGACY_NAMES[old]}", file=sys.stderr)
     schema.validate(config)  # every mistake, before JAX starts: no process waits for a peer in vain
     from nerfpod import distributed  # imports jax; no JAX call happens before initialize
+    distributed.keep_off_absent_tpu()
     distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
                            heartbeat_timeout_seconds=_HEARTBEAT.value,
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)

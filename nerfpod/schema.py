@@ -186,6 +186,8 @@ FIELDS: dict[str, Field] = {
 
     "compile.cpu_ynnpack": boolean(),
     "compile.cpu_memory_gib": number(above=0.0, example=3.0),
+    "compile.hashgrid_lookup": choice("auto", "gather", "matmul"),
+    "compile.matmul_max_rows": integer(0, example=30000),
 
     "checkpoint.every_steps": integer(1, example=500),
     "checkpoint.max_to_keep": integer(1, example=3),

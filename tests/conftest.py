@@ -5,6 +5,7 @@ import pathlib
 import jax
 
 jax.config.update("jax_num_cpu_devices", 8)
+jax.config.update("jax_platforms", "cpu")  # CPU only, also where libtpu (the `tpu` extra) is installed
 
 import pytest  # noqa: E402
 

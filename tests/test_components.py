@@ -85,3 +85,27 @@ def test_render_image_is_its_rays_in_row_major_order():
                             directions.reshape(-1, 3), 16)
   assert image["rgb"].shape == (5, 6, 3) and image["depth"].shape == (5, 6)
   np.testing.assert_array_equal(image["rgb"].reshape(-1, 3), rays["rgb"])
+
+
+def test_the_program_without_a_scene_has_a_runs_state_and_batch_shapes():
+  """What the pod compile tool compiles from: the same state as components.build's and the batch the data
+  pipeline yields, laid over the mesh's data axis, without loading the scene."""
+  from nerfpod import data
+  config = smoke_config()
+  mesh = distributed.make_mesh()
+  built = components.build(config, mesh)
+  program = components.build_program(config, mesh, backend="cpu")
+  same = lambda a, b: jax.tree.map(lambda x, y: (x.shape, x.dtype, x.sharding) == (y.shape, y.dtype, y.sharding),
+                                   a, b)
+  assert all(jax.tree.leaves(same(program.state_shapes, built.state_shapes)))
+  batch = next(iter(data.ray_batches(built.scene.split("train"), 0, config.train.batch_size,
+                                     slice(0, config.train.batch_size), config.data.pixel_center, 1)))
+  batch.pop("step")
+  assert sorted(program.batch_shapes) == sorted(batch)  # alpha too: the procedural scene has it
+  for name, value in batch.items():
+    shape = program.batch_shapes[name]
+    assert (shape.shape, shape.dtype) == (value.shape, value.dtype), name
+    assert shape.sharding == distributed.batch_sharding(mesh)
+  assert program.model == built.model  # on CPU: the gather lookup, as training uses
+  tpu = components.build_program(config, mesh, backend="tpu").model
+  assert tpu.grid_matmul_max_rows == config.compile.matmul_max_rows and built.model.grid_matmul_max_rows == 0

@@ -87,3 +87,48 @@ def test_spherical_harmonics_are_orthonormal():
   sh = encodings.spherical_harmonics_deg4(dirs)
   gram = 4 * np.pi * np.asarray(sh.T @ sh) / len(dirs)
   np.testing.assert_allclose(gram, np.eye(16), atol=0.03)
+
+
+def test_axis_weights_factor_the_trilinear_weights():
+  x = jax.random.uniform(jax.random.key(3), (50, 3)).at[0].set(jnp.array([1.0, 0.0, 0.5]))
+  res = 5
+  corners, weights = encodings.trilinear_corners_and_weights(x, res)
+  w = np.asarray(encodings.axis_weights(x, res))
+  assert w.shape == (50, 3, res + 1)
+  c = np.asarray(corners)
+  outer = w[np.arange(50)[:, None], 0, c[..., 0]] * w[np.arange(50)[:, None], 1, c[..., 1]] * \
+      w[np.arange(50)[:, None], 2, c[..., 2]]
+  np.testing.assert_allclose(outer, weights, rtol=1e-6, atol=1e-7)
+  np.testing.assert_allclose(w.sum(-1), 1.0, rtol=1e-6)
+
+
+@pytest.mark.parametrize("res", [3, 6])
+def test_matmul_lookup_equals_the_gather_in_values_and_gradients(res):
+  """The TPU-suited formulation of a dense level: same features, same table gradient (no scatter-add)."""
+  side = res + 1
+  table = jax.random.normal(jax.random.key(0), (side**3, 2))
+  x = jax.random.uniform(jax.random.key(1), (300, 3))
+  x = x.at[:3].set(jnp.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.5, 1.0, 0.0]]))  # edges and vertices
+  cotangent = jax.random.normal(jax.random.key(2), (300, 2))
+  loss = lambda f: lambda t: jnp.sum(f(t, x, res) * cotangent)
+  lookup = lambda f: jax.jit(f, static_argnums=2)(table, x, res)
+  np.testing.assert_allclose(lookup(encodings.dense_level_matmul), lookup(encodings.level_gather),
+                             rtol=1e-5, atol=1e-6)
+  grad_gather = jax.jit(jax.grad(loss(encodings.level_gather)))(table)
+  grad_matmul = jax.jit(jax.grad(loss(encodings.dense_level_matmul)))(table)
+  assert np.abs(np.asarray(grad_gather)).max() > 0.1  # a real gradient
+  np.testing.assert_allclose(grad_matmul, grad_gather, rtol=1e-5, atol=1e-5)
+
+
+def test_encoding_with_matmul_levels_equals_the_gather_encoding():
+  gather, params = _grid_and_params()
+  matmul = encodings.HashGridEncoding(num_levels=3, features_per_level=2, log2_table_size=8,
+                                      base_resolution=4, max_resolution=8, matmul_max_rows=256)
+  x = jax.random.uniform(jax.random.key(4), (200, 3))
+  # Levels 0 and 1 (5^3, 6^3 rows) take the matmul; level 2 (hashed) still gathers: the jaxpr shows both.
+  ops = str(jax.make_jaxpr(lambda p: matmul.apply(p, x))(params))
+  assert ops.count("dot_general") >= 6 and "gather" in ops
+  value_and_grad = lambda m: jax.jit(jax.value_and_grad(lambda p: jnp.sum(m.apply(p, x) ** 2)))
+  (value_matmul, grads_matmul), (value_gather, grads_gather) = [value_and_grad(m)(params) for m in (matmul, gather)]
+  np.testing.assert_allclose(value_matmul, value_gather, rtol=1e-5)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), grads_matmul, grads_gather)

@@ -93,7 +93,7 @@ def _tpu_pod(tmp_path, *args, fake_gcloud_exists=None, run_status=0):
 
 
 POD_ARGS = ("--name=nerf-pod", "--zone=us-central2-b", "--project=my-proj", "--accelerator-type=v4-32",
-            "--workdir=gs://my-bucket/runs/lego", "--", "--config=configs/default.py",
+            "--skip-preflight", "--workdir=gs://my-bucket/runs/lego", "--", "--config=configs/default.py",
             "--config.train.num_steps=500")
 
 
@@ -113,19 +113,28 @@ def test_tpu_pod_dry_run_prints_every_command_and_runs_none(tmp_path):
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
+      ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
   ]
-  bucket_create, _, pod_create, _, scp, install, start, follow = commands[1:]
+  bucket_create, _, pod_create, _, scp, install, check, start, follow = commands[1:]
   assert "--location=us-central2" in bucket_create
   assert pod_create[5] == "nerf-pod" and "--accelerator-type=v4-32" in pod_create
   assert "--zone=us-central2-b" in pod_create and "--project=my-proj" in pod_create
   assert "--worker=all" in scp and "nerf-pod:~/nerfpod-src.tar.gz" in scp
+  # v4's runtime image (Ubuntu 22.04, Python 3.10): each worker gets Python 3.11 in a virtual environment
+  # with the suite's pinned versions and the TPU runtime of that JAX, then shows its chips before training.
+  assert "--version=tpu-ubuntu2204-base" in pod_create
   assert "--worker=all" in install
-  assert "pip install" in _command(install) and "-e ." in _command(install)
-  assert "gcsfs" in _command(install)  # what epath (orbax) needs for gs://
+  setup = _command(install)
+  assert "uv python install 3.11" in setup and "venv" in setup and "--python 3.11 ~/nerfpod-venv" in setup
+  assert "pip install -q --python ~/nerfpod-venv/bin/python -c constraints.txt -e '.[tpu]'" in setup
+  assert "gcsfs" in setup  # what epath (orbax) needs for gs://
+  assert "--worker=all" in check
+  assert shlex.split(_command(check).split("&& ", 1)[1]) == [
+      "~/nerfpod-venv/bin/python", "launch/check_devices.py", "--pod=v4-32", "--chips=16", "--per-host=4"]
   # The same command on every worker, writing into the bucket; then worker 0's log, to the run's end.
   assert "--worker=all" in start
   inner = shlex.split(shlex.split(_command(start).split("nohup sh -c ", 1)[1])[0])
-  assert inner[:3] == ["python3", "-m", "nerfpod.main"]
+  assert inner[:3] == ["~/nerfpod-venv/bin/python", "-m", "nerfpod.main"]
   assert inner[3:6] == ["--config=configs/default.py", "--config.train.num_steps=500",
                         "--workdir=gs://my-bucket/runs/lego"]
   assert "--worker=0" in follow and "tail --pid=" in _command(follow)
@@ -141,7 +150,7 @@ def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
   verbs = [" ".join(c.split()[:4]) for c in calls]
   assert verbs == ["storage buckets describe gs://my-bucket", "storage buckets create gs://my-bucket",
                    "compute tpus tpu-vm describe", "compute tpus tpu-vm scp", "compute tpus tpu-vm ssh",
-                   "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
+                   "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
   assert (tmp_path / "nerfpod-src.tar.gz").stat().st_size > 0  # the project, packed for the workers
 
 
@@ -157,7 +166,85 @@ def test_tpu_pod_passes_a_preempted_runs_status_75_on_with_how_to_resume(tmp_pat
 @pytest.mark.parametrize("bad,message", [
     (("--workdir=/tmp/local",), "must be a gs:// path"),
     (("--workdir=gs://b/x", "--", "--workdir=gs://b/y"), "pass --workdir to this script"),
+    (("--workdir=gs://b/x", "--accelerator-type=v9-8"), "--accelerator-type=v9-8 is not a pod this script knows"),
 ])
 def test_tpu_pod_refuses_what_cannot_work_on_a_pod(tmp_path, bad, message):
   result, calls = _tpu_pod(tmp_path, "--name=p", "--zone=us-central2-b", "--dry-run", *bad)
   assert result.returncode == 2 and message in result.stderr and calls == []
+
+
+def test_tpu_pod_on_gke_writes_a_valid_jobset_with_one_process_per_host(tmp_path):
+  """--gke: the same job as a JobSet on a GKE TPU slice; the manifest is checked against the JobSet schema
+  (kubectl's client-side dry run needs the cluster's API discovery for a custom resource, so not here)."""
+  import json
+
+  import jsonschema
+  import yaml
+  manifest_path = tmp_path / "job.yaml"
+  args = [a for a in POD_ARGS if not a.startswith("--accelerator-type")]
+  result, calls = _tpu_pod(tmp_path, "--dry-run", "--gke", f"--manifest={manifest_path}",
+                           "--accelerator-type=v5litepod-16", "--max-restarts=7", *args)
+  assert result.returncode == 0, result.stderr
+  assert calls == []  # a dry run: nothing uploaded or applied
+  commands = [shlex.split(line) for line in result.stdout.splitlines()
+              if line and not line.startswith(("#", "launch/tpu_pod.py:"))]
+  assert commands[1][:3] == ["gcloud", "storage", "cp"]
+  assert commands[1][-1] == "gs://my-bucket/runs/lego/_launch/nerfpod-src.tar.gz"
+  assert commands[2] == ["kubectl", "apply", "-f", str(manifest_path)]
+  job = yaml.safe_load(manifest_path.read_text())
+  schema = json.loads((REPO / "tests" / "data" / "jobset_v1alpha2.schema.json").read_text())
+  jsonschema.validate(job, schema)
+  assert job["metadata"]["annotations"]["alpha.jobset.sigs.k8s.io/exclusive-topology"] == \
+      "cloud.google.com/gke-nodepool"
+  assert job["spec"]["failurePolicy"]["maxRestarts"] == 7
+  workers = job["spec"]["replicatedJobs"][0]["template"]["spec"]
+  assert workers["parallelism"] == workers["completions"] == 4  # v5litepod-16: 4 hosts of 4 chips
+  assert workers["completionMode"] == "Indexed"
+  pod = workers["template"]["spec"]
+  assert pod["nodeSelector"] == {"cloud.google.com/gke-tpu-accelerator": "tpu-v5-lite-podslice",
+                                 "cloud.google.com/gke-tpu-topology": "4x4"}
+  assert pod["terminationGracePeriodSeconds"] >= 60  # time to save a checkpoint after SIGTERM
+  container = pod["containers"][0]
+  assert container["resources"]["limits"]["google.com/tpu"] == 4
+  script = container["command"][-1].splitlines()
+  assert "pip install -q -c constraints.txt -e '.[tpu]' gcsfs" in script
+  assert "python launch/check_devices.py --pod=v5litepod-16 --chips=16 --per-host=4" in script
+  assert shlex.split(script[-1]) == ["exec", "python", "-m", "nerfpod.main", "--config=configs/default.py",
+                                     "--config.train.num_steps=500", "--workdir=gs://my-bucket/runs/lego"]
+  # A broken manifest fails the same check.
+  del pod["containers"][0]["image"]
+  with pytest.raises(jsonschema.ValidationError):
+    jsonschema.validate(job, schema)
+
+
+def test_check_devices_refuses_a_host_without_its_tpu_chips_in_one_sentence():
+  out = subprocess.run([sys.executable, str(REPO / "launch" / "check_devices.py"), "--pod=v4-32", "--chips=16",
+                        "--per-host=4"], capture_output=True, text=True, timeout=120, cwd=REPO,
+                       env=procs.environment(1))
+  assert out.returncode == 1
+  lines = out.stderr.strip().splitlines()
+  assert len(lines) == 1 and "expected 4 TPU chips here and 16 in all (v4-32) but JAX sees 1 device(s) here " \
+                             "(cpu:cpu)" in lines[0], out.stderr
+
+
+def test_preflight_prints_the_figures_and_refuses_only_what_does_not_fit():
+  sys.path.insert(0, str(REPO / "launch"))
+  import preflight
+  gib = 2**30
+  report = {"pod": "v5litepod-16", "chips": 16, "hosts": 4, "num_steps": 30000, "rays_per_chip": 256,
+            "microbatches": 1, "chip": {"hbm_bytes": 16 * gib},
+            "step": {"seconds": 0.02, "rays_per_s": 204800.0, "run_seconds": 600.0, "fits_hbm": True,
+                     "memory": {"peak_bytes": 3 * gib, "argument_bytes": gib, "temp_bytes": 2 * gib}}}
+  assert preflight.summary(report) == (
+      "v5litepod-16 (16 chips, 4 hosts): per chip 3.00 GiB of 16.00 GiB HBM (arguments 1.00 GiB, temporaries "
+      "2.00 GiB); step 0.02 s, 204,800 rays/s; 30000 steps in about 10.0 min (XLA cost-model estimate, not a "
+      "measurement)")
+  assert preflight.refusal(report) is None
+  report["step"].update(fits_hbm=False, memory={"peak_bytes": 20 * gib, "argument_bytes": gib,
+                                                "temp_bytes": 19 * gib})
+  assert preflight.refusal(report).startswith(
+      "the train step needs 20.00 GiB per chip on v5litepod-16 (temporaries 19.00 GiB, arguments 1.00 GiB) but "
+      "a chip has 16.00 GiB of HBM; split each chip's 256 rays into more micro-batches "
+      "(--config.train.microbatches=2 or more)")
+  assert preflight.config_args(["--config=c.py", "--config.train.num_steps=5", "--mode=eval"]) == [
+      "--config=c.py", "--config.train.num_steps=5"]

@@ -16,7 +16,7 @@ FLOORS = {
     "nerf": 0, "nerf.cameras": 1, "nerf.sampling": 1, "nerf.stepfun": 1, "nerf.encodings": 1,
     "nerf.compositing": 1, "nerf.coord": 1, "nerf.paths": 2, "nerf.poses": 1,
     "nerf.fields": 2, "nerf.model": 3,
-    "metrics": 1, "xla_options": 1, "config_util": 1,
+    "metrics": 1, "xla_options": 1, "config_util": 1, "pods": 1, "hlo_cost": 1,
     "scenes.base": 2, "scenes.procedural": 3, "scenes.tiny": 3, "scenes.blender": 3, "scenes": 4,
     "scenes.capture": 2, "scenes.llff": 3, "scenes.colmap": 3, "scenes.nerfstudio": 3,
     "schema": 5, "video": 1, "monitor": 1,

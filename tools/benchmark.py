@@ -210,7 +210,8 @@ def time_to_quality(config, max_seconds: float, eval_every: int) -> dict:
 def main(argv):
   del argv
   import jax
-  from nerfpod import xla_options
+  from nerfpod import distributed, xla_options
+  distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU
   config = _CONFIG.value
   result = {"config": {"field": config.model.field, "samples": config.render.num_samples,
                        "importance": config.render.num_importance,

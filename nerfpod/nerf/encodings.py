@@ -1,4 +1,5 @@
 """Input encodings: NeRF's positional (Fourier) encoding and a multiresolution hash grid (Instant-NGP)."""
+import functools
 import math
 
 import flax.linen as nn
@@ -85,6 +86,8 @@ class HashGridEncoding(nn.Module):
   base_resolution: int
   max_resolution: int
 
+  matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
+
   @nn.compact
   def __call__(self, x_Nx3):
     table_size = 2**self.log2_table_size
@@ -93,11 +96,54 @@ class HashGridEncoding(nn.Module):
                                                   self.max_resolution)):
       rows = min(table_size, (res + 1)**3)
       table = self.param(f"level_{level}", _symmetric_uniform(1e-4), (rows, self.features_per_level))
-      corners, weights = trilinear_corners_and_weights(x_Nx3, res)
-      idx = grid_indices(corners, res, rows)
-      feats = jnp.take(table, idx, axis=0)
-      outputs.append(jnp.sum(weights[..., None] * feats, axis=-2))
+      if rows == (res + 1)**3 and rows <= self.matmul_max_rows:
+        outputs.append(dense_level_matmul(table, x_Nx3, res))
+      else:
+        outputs.append(level_gather(table, x_Nx3, res))
     return jnp.concatenate(outputs, axis=-1)
+
+
+def level_gather(table_RxF, x_Nx3, resolution: int):
+  """A level's trilinearly interpolated features (N, F) by gathering its 8 corners' rows (Instant-NGP's
+  formulation; its gradient is a scatter-add into the table)."""
+  corners, weights = trilinear_corners_and_weights(x_Nx3, resolution)
+  feats = jnp.take(table_RxF, grid_indices(corners, resolution, len(table_RxF)), axis=0)
+  return jnp.sum(weights[..., None] * feats, axis=-2)
+
+
+def axis_weights(x_Nx3, resolution: int):
+  """Per-axis linear-interpolation weights (N, 3, side) over a grid's side = resolution + 1 vertices: at
+  most two non-zero per axis, (1 - frac) at the lower vertex and frac at the upper. Their outer product over
+  the three axes is exactly the trilinear weights of trilinear_corners_and_weights."""
+  scaled = x_Nx3 * resolution
+  base = jnp.clip(jnp.floor(scaled), 0, resolution - 1)
+  frac = scaled - base
+  vertex = jnp.arange(resolution + 1, dtype=x_Nx3.dtype)
+  lower = (vertex == base[..., None]).astype(x_Nx3.dtype)
+  upper = (vertex == base[..., None] + 1).astype(x_Nx3.dtype)
+  return lower * (1.0 - frac[..., None]) + upper * frac[..., None]
+
+
+def dense_level_matmul(table_RxF, x_Nx3, resolution: int):
+  """The same interpolated features as level_gather for a dense level, with no gather or scatter.
+
+  The trilinear weights factor over the axes, so the lookup is three contractions with per-axis weight
+  rows: first a matmul (N, side) @ (side, side^2 F) over the last axis, then two small per-point
+  reductions. Its gradient with respect to the table is again a matmul (weights^T @ cotangents) instead of
+  a scatter-add. It costs 2 N side^3 F FLOPs and an (N, side^2 F) intermediate, so it pays where matmuls are
+  cheap and gathers dear (TPUs: multinerf and Zip-NeRF avoid gathers there for the same reason), on the
+  coarse levels only.
+  """
+  side = resolution + 1
+  features = table_RxF.shape[-1]
+  w = axis_weights(x_Nx3, resolution)                       # (N, 3, side)
+  grid = table_RxF.reshape(side, side, side, features)      # rows are c0 side^2 + c1 side + c2
+  # Full float32 precision: on TPU a float32 matmul otherwise runs as one bfloat16 pass, which would round
+  # the table's values; the cost model counts the extra passes.
+  einsum = functools.partial(jnp.einsum, precision=jax.lax.Precision.HIGHEST)
+  by_last = einsum("nk,ijkf->nijf", w[:, 2], grid)       # the matmul
+  by_middle = einsum("nj,nijf->nif", w[:, 1], by_last)
+  return einsum("ni,nif->nf", w[:, 0], by_middle)
 
 
 def spherical_harmonics_deg4(dirs_Nx3):

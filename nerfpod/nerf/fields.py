@@ -66,6 +66,7 @@ class HashGridField(nn.Module):
   geo_features: int
   use_viewdirs: bool
   dtype: jnp.dtype
+  matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
 
   @nn.compact
   def __call__(self, points_Nx3, viewdirs_Nx3=None):
@@ -73,7 +74,7 @@ class HashGridField(nn.Module):
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, name="grid")(jnp.clip(unit, 0.0, 1.0))
+        self.max_resolution, self.matmul_max_rows, name="grid")(jnp.clip(unit, 0.0, 1.0))
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
     h = dense(1 + self.geo_features, "density_out")(h).astype(jnp.float32)
@@ -102,6 +103,7 @@ class ProposalField(nn.Module):
   max_resolution: int
   hidden_width: int
   dtype: jnp.dtype
+  matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
 
   @nn.compact
   def __call__(self, points_Nx3):
@@ -109,26 +111,28 @@ class ProposalField(nn.Module):
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, name="grid")(jnp.clip(unit, 0.0, 1.0))
+        self.max_resolution, self.matmul_max_rows, name="grid")(jnp.clip(unit, 0.0, 1.0))
     h = nn.relu(nn.Dense(self.hidden_width, dtype=self.dtype, name="hidden")(features))
     raw = nn.Dense(1, dtype=self.dtype, name="density")(h).astype(jnp.float32)[..., 0]
     return jnp.where(inside, jnp.exp(jnp.minimum(raw, 15.0)), 0.0)
 
 
-def make_proposal_field(model_config, dtype, name: str | None = None) -> ProposalField:
-  """A proposal field sized by config.model.proposal, in the box of config.model.hashgrid.bound."""
+def make_proposal_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0) -> ProposalField:
+  """A proposal field sized by config.model.proposal, in the box of config.model.hashgrid.bound;
+  `matmul_max_rows` as for make_field."""
   return ProposalField(bound=model_config.hashgrid.bound,
                        features_per_level=model_config.hashgrid.features_per_level,
-                       **dict(model_config.proposal), dtype=dtype, name=name)
+                       **dict(model_config.proposal), dtype=dtype, matmul_max_rows=matmul_max_rows, name=name)
 
 
-def make_field(model_config, dtype, name: str | None = None) -> nn.Module:
-  """The field named by `model.field` ('mlp' or 'hashgrid'), sized by config.model.mlp or .hashgrid."""
+def make_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0) -> nn.Module:
+  """The field named by `model.field` ('mlp' or 'hashgrid'), sized by config.model.mlp or .hashgrid;
+  `matmul_max_rows`: the hash grid's dense levels up to that many rows are looked up by matmuls."""
   if model_config.field == "mlp":
     mlp = dict(model_config.mlp)
     return MLPField(**dict(mlp, skips=tuple(mlp["skips"])), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
                     name=name)
   if model_config.field == "hashgrid":
     return HashGridField(**dict(model_config.hashgrid), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
-                         name=name)
+                         matmul_max_rows=matmul_max_rows, name=name)
   raise ValueError(f"unknown model.field {model_config.field!r}")  # nerfpod.schema refuses it first

@@ -2,6 +2,7 @@
 from typing import Any
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 from nerfpod.nerf import compositing, coord, fields, sampling, stepfun
@@ -48,6 +49,7 @@ class NeRF(nn.Module):
     if self.proposal_samples:
       return tuple(self.proposal_samples) + (self.num_samples,)
     return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
+  grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background):
     points = self._points(origins, directions, t_RxS)
@@ -94,7 +96,8 @@ class NeRF(nn.Module):
       return [self._proposal_render(origins_Rx3, directions_Rx3, viewdirs, near, far, background, uniforms)]
     t = self._distances(near, far, self.num_samples, uniforms[0])
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
-    coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse")
+    coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
+                                   matmul_max_rows=self.grid_matmul_max_rows)
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background)
     if self.num_importance == 0:
       return [coarse]
@@ -104,7 +107,8 @@ class NeRF(nn.Module):
     s_fine = sampling.sample_pdf(mids, coarse["weights"][..., 1:-1], self.num_importance, uniforms[1])
     t_fine = s_fine if self.spacing == "linear" else coord.s_to_t(s_fine, near, far, self.spacing)
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
-    fine_field = fields.make_field(self.model_config, self.dtype, name="fine")
+    fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
+                                   matmul_max_rows=self.grid_matmul_max_rows)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background)
     return [coarse, fine]
 
@@ -127,7 +131,8 @@ class NeRF(nn.Module):
       t_edges = warp(s_edges)
       t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
       points = self._points(origins, directions, t_mids)
-      field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}")
+      field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
+                                         matmul_max_rows=self.grid_matmul_max_rows)
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
       proposals.append({"s_edges": s_edges, "weights": weights})
@@ -136,7 +141,8 @@ class NeRF(nn.Module):
     t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     points = self._points(origins, directions, t_mids)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
-    field = fields.make_field(self.model_config, self.dtype, name="coarse")
+    field = fields.make_field(self.model_config, self.dtype, name="coarse",
+                              matmul_max_rows=self.grid_matmul_max_rows)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3))
     out = compositing.composite_intervals(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_edges,
                                           directions, background=background)
@@ -144,12 +150,28 @@ class NeRF(nn.Module):
     return self._in_world_units(out, t_mids)
 
 
-def from_config(config, ndc_camera=None) -> NeRF:
-  """The NeRF model that `config.model` and `config.render` describe. `ndc_camera` (fx, fy, width, height):
-  the camera whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera)."""
+def grid_matmul_max_rows(config, backend: str) -> int:
+  """How many rows a hash-grid level may have to be looked up by matmuls on `backend` (0: all gather).
+
+  compile.hashgrid_lookup 'auto' takes matmuls on TPUs, where gathers and scatter-adds are slow (the README's
+  pod section has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row cheaply). The
+  parameters are the same either way, so a checkpoint moves freely between backends.
+  """
+  lookup = config.compile.get("hashgrid_lookup", "gather")
+  if lookup == "auto":
+    lookup = "matmul" if backend == "tpu" else "gather"
+  return int(config.compile.get("matmul_max_rows", 0)) if lookup == "matmul" else 0
+
+
+def from_config(config, ndc_camera=None, backend: str | None = None) -> NeRF:
+  """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
+  JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
+  whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera)."""
   dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
+  backend = backend or jax.default_backend()
   render = config.render
   return NeRF(model_config=config.model, num_samples=render.num_samples, num_importance=render.num_importance,
               last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
               proposal_samples=tuple(render.proposal_samples),
-              ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera))
+              ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
+              grid_matmul_max_rows=grid_matmul_max_rows(config, backend))

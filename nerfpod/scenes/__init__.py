@@ -35,6 +35,10 @@ def detect(path: str) -> str:
   raise UserError(f"cannot tell the format of {path!r}: it holds none of transforms.json, sparse/0/, "
                   f"poses_bounds.npy, transforms_train.json; set --config.data.kind to one of "
                   f"{', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
+# Whether a format's images carry alpha (then training batches do too): what the pod compile tool needs to
+# know of a scene without loading it. Captures are opaque (their loaders drop alpha).
+HAS_ALPHA = {"procedural": True, "tiny": False, "blender": True, "llff": False, "colmap": False,
+             "nerfstudio": False}
 
 
 def load(data_config) -> Scene:

@@ -1,0 +1,149 @@
+"""The same job as a Kubernetes JobSet on a GKE TPU slice: `launch/tpu_pod.py --gke ...`.
+
+Google steers new TPU work to GKE (the Cloud TPU VM API is no longer developed and does not serve TPU7x).
+This writes a JobSet (jobset.x-k8s.io/v1alpha2; the JobSet controller must be installed in the cluster,
+as GKE's TPU guides do) of one Job whose Indexed pods are the slice's hosts, one process per host:
+
+- each pod lands on a node of one TPU node pool of the pod's type and topology
+  (`cloud.google.com/gke-tpu-accelerator`, `cloud.google.com/gke-tpu-topology`, the
+  `alpha.jobset.sigs.k8s.io/exclusive-topology` annotation) and asks for that host's chips
+  (`google.com/tpu`);
+- it fetches this project from the workdir's bucket (uploaded there first), installs it with the pinned
+  versions and the `tpu` extra into the image's Python (>= 3.11), checks that it sees its TPU chips, and
+  runs the same `python -m nerfpod.main ... --workdir=gs://...` as on TPU VMs; jax.distributed finds the
+  peers from the variables GKE sets on TPU pods;
+- preemption as on TPU VMs: the pod gets SIGTERM and `terminationGracePeriodSeconds` to save a checkpoint;
+  a failed or lost host restarts the whole JobSet (up to --max-restarts), which resumes from the newest
+  checkpoint. Running the script again resumes the same way.
+
+Standard library only: the manifest is written as YAML by the small emitter below.
+"""
+import json
+import os
+import shlex
+import subprocess
+import sys
+
+# GKE's node labels of each TPU generation's slices.
+ACCELERATOR_LABELS = {"v4": "tpu-v4-podslice", "v5e": "tpu-v5-lite-podslice", "v5p": "tpu-v5p-slice",
+                      "v6e": "tpu-v6e-slice"}
+GRACE_SECONDS = 300  # after SIGTERM: long enough for every host to agree on a step and save it
+
+
+def _yaml_scalar(value) -> str:
+  if isinstance(value, bool):
+    return "true" if value else "false"
+  if isinstance(value, (int, float)):
+    return str(value)
+  return json.dumps(str(value))  # a JSON string is a valid YAML scalar, quoted and escaped
+
+
+def to_yaml(value, indent: int = 0) -> str:
+  """Dicts, lists and scalars as block YAML."""
+  pad = " " * indent
+  if isinstance(value, dict):
+    if not value:
+      return pad + "{}\n"
+    out = ""
+    for key, item in value.items():
+      if isinstance(item, (dict, list)) and item:
+        out += f"{pad}{key}:\n{to_yaml(item, indent + 2)}"
+      else:
+        out += f"{pad}{key}: {to_yaml(item).strip() if isinstance(item, (dict, list)) else _yaml_scalar(item)}\n"
+    return out
+  if isinstance(value, list):
+    if not value:
+      return pad + "[]\n"
+    out = ""
+    for item in value:
+      text = to_yaml(item, indent + 2) if isinstance(item, (dict, list)) else pad + "  " + _yaml_scalar(item) + "\n"
+      out += f"{pad}- {text.lstrip()}"
+    return out
+  return pad + _yaml_scalar(value) + "\n"
+
+
+def source_url(workdir: str) -> str:
+  """Where the project's tarball goes for the pods to fetch."""
+  return workdir.rstrip("/") + "/_launch/nerfpod-src.tar.gz"
+
+
+def container_script(workdir: str, forwarded: list[str], device_check: str) -> str:
+  """What each pod runs: fetch and install the project, check its chips, then the job itself."""
+  fetch = ("from google.cloud import storage; storage.Blob.from_string(" + json.dumps(source_url(workdir))
+           + ", client=storage.Client()).download_to_filename('/tmp/nerfpod-src.tar.gz')")
+  train = shlex.join(["python", "-m", "nerfpod.main", *forwarded, f"--workdir={workdir}"])
+  return "\n".join([
+      "set -e",
+      "pip install -q google-cloud-storage",
+      f"python -c {shlex.quote(fetch)}",
+      "mkdir -p /nerfpod && tar -xzf /tmp/nerfpod-src.tar.gz -C /nerfpod && cd /nerfpod",
+      "pip install -q -c constraints.txt -e '.[tpu]' gcsfs",
+      device_check,
+      f"exec {train}",
+  ])
+
+
+def manifest(name: str, pod, image: str, script: str, max_restarts: int) -> dict:
+  """The JobSet of `pod` (a nerfpod.pods.Pod) running `script` on each of its hosts."""
+  hosts = pod.num_hosts
+  return {
+      "apiVersion": "jobset.x-k8s.io/v1alpha2",
+      "kind": "JobSet",
+      "metadata": {"name": name,
+                   "annotations": {"alpha.jobset.sigs.k8s.io/exclusive-topology": "cloud.google.com/gke-nodepool"}},
+      "spec": {
+          "failurePolicy": {"maxRestarts": max_restarts},
+          "network": {"enableDNSHostnames": True},
+          "replicatedJobs": [{
+              "name": "workers",
+              "replicas": 1,
+              "template": {"spec": {
+                  "parallelism": hosts,
+                  "completions": hosts,
+                  "completionMode": "Indexed",
+                  "backoffLimit": 0,
+                  "template": {"spec": {
+                      "restartPolicy": "Never",
+                      "terminationGracePeriodSeconds": GRACE_SECONDS,
+                      "nodeSelector": {"cloud.google.com/gke-tpu-accelerator": ACCELERATOR_LABELS[pod.generation],
+                                       "cloud.google.com/gke-tpu-topology": pod.topology},
+                      "containers": [{
+                          "name": "nerfpod",
+                          "image": image,
+                          "command": ["bash", "-c", script],
+                          "ports": [{"containerPort": 8471}, {"containerPort": 8080}],
+                          "resources": {"limits": {"google.com/tpu": pod.num_chips // hosts}},
+                      }],
+                  }},
+              }},
+          }],
+      },
+  }
+
+
+def launch(args, forwarded: list[str], tarball: str, pod, repo: str, device_check: str) -> int:
+  """Packs and uploads the project, writes the manifest and applies it (or, with --dry-run, prints all).
+  `device_check`: the command that fails in one sentence unless a host sees its TPU chips."""
+  path = args.manifest or f"{args.name}-jobset.yaml"
+  script = container_script(args.workdir, forwarded, device_check)
+  with open(path, "w") as f:
+    f.write(to_yaml(manifest(args.name, pod, args.image, script, args.max_restarts)))
+  steps = [
+      ("pack the project", ["tar", "-czf", tarball, "--exclude=.git", "--exclude=__pycache__",
+                            "--exclude=.venv", "-C", repo, "."]),
+      ("upload it next to the workdir", ["gcloud", "storage", "cp", tarball, source_url(args.workdir)]),
+      ("start the JobSet on the cluster", ["kubectl", "apply", "-f", path]),
+  ]
+  print(f"launch/tpu_pod.py: wrote the JobSet manifest {path}; follow the logs with: "
+        f"kubectl logs -f -l jobset.sigs.k8s.io/jobset-name={args.name} --max-log-requests={pod.num_hosts}",
+        flush=True)
+  for what, cmd in steps:
+    if args.dry_run:
+      print(f"# {what}\n{shlex.join(cmd)}", flush=True)
+      continue
+    print(f"launch/tpu_pod.py: {what}\n  {shlex.join(cmd)}", flush=True)
+    code = subprocess.call(cmd)
+    if code != 0:
+      print(f"launch/tpu_pod.py: failed ({what}) with exit status {code}", file=sys.stderr, flush=True)
+      return code
+  return 0

@@ -1,0 +1,370 @@
+"""A roofline time estimate of a compiled XLA program, op by op, from its optimised HLO text.
+
+XLA's own `cost_analysis()` for TPU programs is not usable as it comes for nerfpod's steps: its
+`optimal_seconds` came back negative, and its `bytes accessed` counts a gather or scatter-add as touching
+its whole table (hundreds of GB per step for the Instant-NGP grid). This module costs each executed HLO
+instruction itself:
+
+- time = max(FLOPs / matmul peak, bytes / HBM bandwidth) per instruction (a roofline per op: each op is
+  bound by the one it needs more of), summed over the program; collectives at the chip's all-reduce
+  bandwidth instead;
+- FLOPs are the matmuls' (`dot` and `convolution`: 2 per multiply-add), at the chip's bf16 peak; a float32
+  dot at HIGHEST precision is counted as the 6 bf16 passes it takes (HIGH: 3). Elementwise work runs on the
+  vector unit, whose peak Google does not publish: it is costed by its memory traffic only;
+- bytes are each op's operands and results as laid out in HBM (padded to the layout's tiles, which the HLO
+  names), except that a gather moves only the slices it gathers, a scatter only its updates (read and
+  written), a dynamic slice or update only its slice; each slice counts at least one tile row of its
+  operand's layout (the unit XLA lays memory out in);
+- a fusion is costed as one op: its operands and results cross HBM once, its inner ops are free except for
+  their matmul FLOPs; loops with a known trip count multiply their body; a conditional costs its dearest
+  branch.
+
+What it leaves out: overlap of independent ops (an upper bound for compute-bound and a fair figure for
+bandwidth-bound programs), vector-unit limits, collective latency (the all-reduce term is bandwidth only),
+and the host (input pipeline). The estimate is XLA's program on the chip's published peaks, not a
+measurement.
+"""
+import dataclasses
+import math
+import re
+
+_DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4, "u32": 4,
+                "f32": 4, "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16, "f8e4m3fn": 1, "f8e5m2": 1,
+                "s4": 1, "u4": 1, "token": 0}
+_ARRAY = re.compile(r"([a-z][a-z0-9]*)\[([0-9,]*)\](\{[^}]*\})?")
+_LINE = re.compile(r"^\s*(ROOT\s+)?%?([\w.\-]+)\s*=\s*(.+?)\s+([a-z][\w\-]*)\((.*)$")
+_FREE = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all", "partition-id",
+         "replica-id", "iota", "copy-done", "all-reduce-done", "all-gather-done", "collective-permute-done",
+         "async-done", "async-update", "send-done", "recv-done", "opt-barrier"}
+COLLECTIVES = ("all-reduce", "all-gather", "reduce-scatter", "all-to-all", "collective-permute",
+               "collective-broadcast", "ragged-all-to-all")
+# Passes of the bf16 matmul unit a float32 dot takes at each precision (DEFAULT: one bf16 pass on TPU).
+_PRECISION_PASSES = {"default": 1, "high": 3, "highest": 6}
+
+
+@dataclasses.dataclass(frozen=True)
+class Array:
+  dtype: str
+  dims: tuple[int, ...]
+  layout: str  # e.g. "{1,0:T(8,128)}"
+
+  @property
+  def elements(self) -> int:
+    return math.prod(self.dims)
+
+  def tile(self) -> tuple[int, ...]:
+    match = re.search(r"T\(([0-9,]+)\)", self.layout)
+    return tuple(int(t) for t in match.group(1).split(",")) if match else ()
+
+  def physical_dims(self) -> list[int]:
+    """Dims from major to minor (the layout's minor_to_major, reversed)."""
+    match = re.match(r"\{([0-9,]*)", self.layout)
+    if not match or not match.group(1):
+      return list(self.dims)
+    order = [int(i) for i in match.group(1).split(",")]
+    return [self.dims[i] for i in reversed(order)] if len(order) == len(self.dims) else list(self.dims)
+
+  @property
+  def payload_bytes(self) -> int:
+    """Bytes of the values alone (what a collective sends), without layout padding."""
+    return self.elements * _DTYPE_BYTES.get(self.dtype, 4)
+
+  @property
+  def bytes(self) -> int:
+    """Bytes in memory: the minor dims padded to the layout's (first) tile."""
+    dims = self.physical_dims()
+    tile = self.tile()
+    for k, t in enumerate(reversed(tile[:len(dims)])):
+      dims[-1 - k] = -(-dims[-1 - k] // t) * t
+    return math.prod(dims) * _DTYPE_BYTES.get(self.dtype, 4)
+
+  def slice_bytes(self, slice_dims) -> int:
+    """Bytes a slice of `slice_dims` (same rank) touches: its minor dim padded to the layout tile's minor
+    size, i.e. at least one tile row (e.g. 128 values of an (8, 128) tile: 512 bytes of float32)."""
+    order = re.match(r"\{([0-9,]*)", self.layout)
+    ranks = [int(i) for i in order.group(1).split(",")][::-1] if order and order.group(1) else list(
+        range(len(self.dims)))
+    sliced = [slice_dims[i] for i in ranks] if len(ranks) == len(slice_dims) else list(slice_dims)
+    tile = self.tile()
+    if tile and sliced:
+      minor = self.physical_dims()[-1]
+      sliced[-1] = min(-(-minor // tile[-1]) * tile[-1], -(-sliced[-1] // tile[-1]) * tile[-1])
+    return math.prod(sliced) * _DTYPE_BYTES.get(self.dtype, 4)
+
+
+def parse_shape(text: str) -> list[Array]:
+  """The arrays of a shape string, a tuple's flattened."""
+  return [Array(m.group(1), tuple(int(d) for d in m.group(2).split(",") if d), m.group(3) or "")
+          for m in _ARRAY.finditer(re.sub(r"/\*.*?\*/", "", text)) if m.group(1) in _DTYPE_BYTES]
+
+
+@dataclasses.dataclass
+class Instruction:
+  name: str
+  opcode: str
+  shape: list[Array]
+  operands: list[str]
+  attributes: str
+  root: bool
+  raw_operands: str = ""
+
+  def attr(self, key: str) -> str | None:
+    match = re.search(rf"\b{re.escape(key)}=(%?[\w.\-]+|\{{[^}}]*\}})", self.attributes)
+    return match.group(1) if match else None
+
+  @property
+  def bytes_out(self) -> int:
+    return sum(a.bytes for a in self.shape)
+
+
+def _split_call(rest: str) -> tuple[str, str]:
+  """'a, b), attr=...' -> ('a, b', 'attr=...'): the operand list up to its closing parenthesis."""
+  depth = 1
+  for i, ch in enumerate(rest):
+    depth += {"(": 1, ")": -1}.get(ch, 0)
+    if depth == 0:
+      return rest[:i], rest[i + 1:]
+  return rest, ""
+
+
+def parse_module(text: str) -> tuple[dict[str, list[Instruction]], str]:
+  """{computation name: its instructions}, and the entry computation's name."""
+  computations, entry, current = {}, None, None
+  for line in text.splitlines():
+    header = re.match(r"^(ENTRY\s+)?%?([\w.\-]+)\s.*\{\s*$", line)
+    if header and not line.startswith(" "):
+      current = header.group(2)
+      computations[current] = []
+      if header.group(1):
+        entry = current
+      continue
+    match = _LINE.match(line)
+    if match and current is not None:
+      operands, attributes = _split_call(match.group(5))
+      computations[current].append(Instruction(
+          name=match.group(2), opcode=match.group(4), shape=parse_shape(match.group(3)),
+          operands=re.findall(r"%([\w.\-]+)", operands), attributes=attributes, root=bool(match.group(1)),
+          raw_operands=operands))
+  return computations, entry
+
+
+@dataclasses.dataclass
+class Chip:
+  """What the roofline needs of a chip: peaks and bandwidths (nerfpod.pods names their sources)."""
+  bf16_flops: float       # matmul peak, FLOP/s
+  hbm_bytes_per_s: float
+  allreduce_bytes_per_s: float  # per chip
+
+
+@dataclasses.dataclass
+class Cost:
+  flops: float = 0.0
+  bytes: float = 0.0
+  seconds: float = 0.0
+  compute_seconds: float = 0.0   # the ops whose matmul term was the larger
+  memory_seconds: float = 0.0    # the ops whose memory term was the larger
+  collective_seconds: float = 0.0
+  gather_scatter_seconds: float = 0.0
+  collectives: list = dataclasses.field(default_factory=list)  # {"op", "bytes", "group", "count"}
+
+  def add(self, other: "Cost", times: float = 1.0) -> None:
+    for f in ("flops", "bytes", "seconds", "compute_seconds", "memory_seconds", "collective_seconds",
+              "gather_scatter_seconds"):
+      setattr(self, f, getattr(self, f) + times * getattr(other, f))
+    for c in other.collectives:
+      self.collectives.append(dict(c, count=c["count"] * times))
+
+
+class Program:
+  """An HLO module's roofline on a chip."""
+
+  def __init__(self, hlo_text: str, chip: Chip, num_devices: int):
+    self.computations, self.entry = parse_module(hlo_text)
+    self.chip, self.num_devices = chip, num_devices
+    self._shapes = {c: {i.name: i for i in instrs} for c, instrs in self.computations.items()}
+
+  def cost(self) -> Cost:
+    return self._computation(self.entry)
+
+  def _computation(self, name: str) -> Cost:
+    total = Cost()
+    for instr in self.computations.get(name, []):
+      total.add(self._instruction(name, instr))
+    return total
+
+  def _operand(self, computation: str, name: str) -> Instruction | None:
+    return self._shapes[computation].get(name)
+
+  def _operand_bytes(self, computation: str, instr: Instruction) -> int:
+    return sum(op.bytes_out for op in (self._operand(computation, n) for n in instr.operands) if op)
+
+  def _instruction(self, computation: str, instr: Instruction) -> Cost:
+    op = instr.opcode
+    if op in _FREE:
+      return Cost()
+    if op == "while":
+      trips = re.search(r'"known_trip_count":\{"n":"(\d+)"', instr.attributes)
+      body = self._computation(instr.attr("body").lstrip("%"))
+      cost = Cost()
+      cost.add(body, int(trips.group(1)) if trips else 1)
+      return cost
+    if op in ("call", "async-start"):
+      called = instr.attr("to_apply") or instr.attr("calls")
+      return self._computation(called.lstrip("%")) if called else Cost()
+    if op == "conditional":
+      branches = re.findall(r"%([\w.\-]+)", instr.attr("branch_computations") or "")
+      costs = [self._computation(b) for b in branches] or [Cost()]
+      return max(costs, key=lambda c: c.seconds)
+    base = op.removesuffix("-start")
+    if base in COLLECTIVES:
+      return self._collective(computation, instr, base)
+    flops, moved, gathers = self._flops_and_bytes(computation, instr)
+    compute, memory = flops / self.chip.bf16_flops, moved / self.chip.hbm_bytes_per_s
+    seconds = max(compute, memory)
+    return Cost(flops=flops, bytes=moved, seconds=seconds,
+                compute_seconds=seconds if compute >= memory else 0.0,
+                memory_seconds=seconds if memory > compute else 0.0,
+                gather_scatter_seconds=seconds if gathers else 0.0)
+
+  def _collective(self, computation: str, instr: Instruction, base: str) -> Cost:
+    operands = [self._operand(computation, n) for n in instr.operands]
+    size = (sum(a.payload_bytes for o in operands if o for a in o.shape) if base != "all-gather"
+            else sum(a.payload_bytes for a in instr.shape[-1:]))
+    groups = re.search(r"replica_groups=\{\{([0-9,]+)\}", instr.attributes)
+    iota = re.search(r"replica_groups=\[(\d+),(\d+)\]", instr.attributes)
+    group = (len(groups.group(1).split(",")) if groups else int(iota.group(2)) if iota else self.num_devices)
+    # A ring all-reduce sends and receives 2 (n - 1) / n of the data per chip; the others (n - 1) / n.
+    factor = (2.0 if base == "all-reduce" else 1.0) * (group - 1) / max(group, 1)
+    seconds = factor * size / self.chip.allreduce_bytes_per_s
+    return Cost(seconds=seconds, collective_seconds=seconds,
+                collectives=[{"op": base, "bytes": size, "group": group, "count": 1}])
+
+  def _flops_and_bytes(self, computation: str, instr: Instruction) -> tuple[float, float, bool]:
+    """(matmul FLOPs, HBM bytes, whether it gathers or scatters) of one top-level op or fusion."""
+    operands = [self._operand(computation, n) for n in instr.operands]
+    if instr.opcode == "fusion":
+      fused = instr.attr("calls").lstrip("%")
+      inner = self.computations.get(fused, [])
+      flops = sum(self._matmul_flops(fused, i) for i in inner)
+      params = self._parameter_numbers(fused)
+      moved, gathers = 0.0, False
+      for pname, number in params.items():
+        if number >= len(operands) or operands[number] is None:
+          continue
+        full = operands[number].bytes_out
+        partial = self._partial_read(fused, pname, operands[number])
+        gathers |= partial is not None and partial[1]
+        moved += min(full, partial[0]) if partial is not None else full
+      root = next((i for i in inner if i.root), None)
+      written = self._written_bytes(fused, root) if root is not None else None
+      gathers |= written is not None and written[1]
+      moved += written[0] if written is not None else instr.bytes_out
+      return flops, moved, gathers
+    flops = self._matmul_flops(computation, instr)
+    table = operands[0] if operands else None
+    if instr.opcode == "gather" and table is not None:
+      return flops, (self._gather_bytes(instr, table) + instr.bytes_out
+                     + self._operand_bytes_from(operands[1:])), True
+    if instr.opcode == "scatter" and table is not None:
+      updates = operands[-1].bytes_out if operands[-1] else 0
+      return flops, 2 * updates + self._operand_bytes_from(operands[1:-1]), True
+    if instr.opcode == "copy-start":  # an asynchronous copy: its result tuple holds source and destination
+      return flops, 2 * self._operand_bytes_from(operands), False
+    if instr.opcode in ("dynamic-slice", "slice"):
+      return flops, 2 * instr.bytes_out, False
+    if instr.opcode == "dynamic-update-slice":
+      update = operands[1].bytes_out if len(operands) > 1 and operands[1] else 0
+      return flops, 2 * update, False
+    return flops, self._operand_bytes_from(operands) + instr.bytes_out, False
+
+  @staticmethod
+  def _operand_bytes_from(operands) -> int:
+    return sum(o.bytes_out for o in operands if o is not None)
+
+  def _parameter_numbers(self, computation: str) -> dict[str, int]:
+    return {i.name: int(i.raw_operands) for i in self.computations.get(computation, [])
+            if i.opcode == "parameter" and i.raw_operands.strip().isdigit()}
+
+  def _gather_bytes(self, gather: Instruction, table: Instruction) -> float:
+    """Slices gathered x the bytes each touches (at least a tile row of the table's layout)."""
+    sizes = re.search(r"slice_sizes=\{([0-9,]*)\}", gather.attributes)
+    array = table.shape[0] if table.shape else None
+    if not sizes or array is None:
+      return gather.bytes_out
+    slice_dims = [int(s) for s in sizes.group(1).split(",") if s]
+    slice_elements = max(1, math.prod(slice_dims))
+    count = max(1, gather.shape[0].elements // slice_elements) if gather.shape else 1
+    return count * array.slice_bytes(slice_dims)
+
+  def _partial_read(self, fused: str, param: str, operand: Instruction) -> tuple[float, bool] | None:
+    """Bytes a fusion reads of parameter `param` when every use reads only part of it (gather, slices,
+    scatter's in-place operand), with whether a gather or scatter does; None when some use reads it whole."""
+    users = [i for i in self.computations[fused] if param in i.operands]
+    if not users:
+      return 0.0, False
+    total, gathers = 0.0, False
+    for user in users:
+      first = user.operands and user.operands[0] == param
+      if user.opcode == "gather" and first:
+        total += self._gather_bytes(user, operand)
+        gathers = True
+      elif user.opcode in ("dynamic-slice", "slice") and first:
+        total += user.bytes_out
+      elif user.opcode in ("scatter", "dynamic-update-slice") and first:
+        gathers |= user.opcode == "scatter"  # in place: its updates are counted where it writes
+      else:
+        return None
+    return total, gathers
+
+  def _written_bytes(self, fused: str, root: Instruction) -> tuple[float, bool] | None:
+    """Bytes a fusion writes when its result is an in-place update (scatter: updates read and written)."""
+    shapes = self._shapes[fused]
+    roots = [shapes[n] for n in root.operands if n in shapes] if root.opcode == "tuple" else [root]
+    total, any_partial, gathers = 0.0, False, False
+    for r in roots:
+      if r.opcode == "scatter":
+        updates = shapes.get(r.operands[-1])
+        total += 2 * (updates.bytes_out if updates else 0)
+        any_partial = gathers = True
+      elif r.opcode == "dynamic-update-slice":
+        update = shapes.get(r.operands[1])
+        total += 2 * (update.bytes_out if update else 0)
+        any_partial = True
+      else:
+        total += r.bytes_out
+    return (total, gathers) if any_partial else None
+
+  def _matmul_flops(self, computation: str, instr: Instruction) -> float:
+    if instr.opcode not in ("dot", "convolution") or not instr.shape:
+      return 0.0
+    operands = [self._operand(computation, n) for n in instr.operands]
+    if any(o is None or not o.shape for o in operands[:2]):
+      return 0.0
+    lhs, rhs, out = operands[0].shape[0], operands[1].shape[0], instr.shape[0]
+    labels = re.search(r"dim_labels=(\w+)_(\w+)->(\w+)", instr.attributes)
+    if instr.opcode == "dot":
+      dims = re.search(r"lhs_contracting_dims=\{([0-9,]*)\}", instr.attributes)
+      macs = out.elements * (math.prod(lhs.dims[int(d)] for d in dims.group(1).split(",") if d) if dims else 1)
+    elif labels and len(labels.group(1)) == len(lhs.dims) and len(labels.group(2)) == len(rhs.dims) \
+        and len(labels.group(3)) == len(out.dims):
+      macs = self._convolution_macs(lhs, rhs, out, *labels.groups())
+    else:
+      macs = out.elements
+    precision = re.search(r"operand_precision=\{(\w+)", instr.attributes)
+    passes = _PRECISION_PASSES.get(precision.group(1), 1) if precision and lhs.dtype == "f32" else 1
+    return 2.0 * macs * passes
+
+  @staticmethod
+  def _convolution_macs(lhs: Array, rhs: Array, out: Array, lhs_labels: str, rhs_labels: str,
+                        out_labels: str) -> float:
+    """Multiply-adds of a convolution that touch real input, padding excluded: XLA on TPU writes some
+    matmuls as convolutions over zero-padded windows (e.g. a window of 17 padded by 16 on each side of a
+    single input position), whose padded taps are no work. Per spatial dimension, the (input, output)
+    position pairs a window covers: at most input x window, and at most output x window."""
+    macs = lhs.dims[lhs_labels.index("b")] * rhs.dims[rhs_labels.index("o")] * rhs.dims[rhs_labels.index("i")]
+    for label in rhs_labels:
+      if label.isdigit() and label in lhs_labels and label in out_labels:
+        window, size_in, size_out = (rhs.dims[rhs_labels.index(label)], lhs.dims[lhs_labels.index(label)],
+                                     out.dims[out_labels.index(label)])
+        macs *= min(size_in * min(window, size_out), size_out * window)
+    return macs

@@ -1,0 +1,122 @@
+"""The pod compile tool (tools/aot.py), the launcher's preflight, and a CPU run with libtpu installed.
+
+Compiling for a TPU topology needs libtpu (the `tpu` extra); those tests skip, saying so, where it is absent.
+They compile the smoke config only, on small multi-host pods, and are marked slow."""
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+import procs
+from procs import REPO
+
+HAS_LIBTPU = importlib.util.find_spec("libtpu") is not None
+needs_libtpu = pytest.mark.skipif(not HAS_LIBTPU, reason="libtpu is not installed (pip install -e '.[tpu]')")
+
+
+def _aot(*args, timeout=600) -> subprocess.CompletedProcess:
+  env = procs.environment(1)
+  env.pop("JAX_PLATFORMS")  # the tool chooses its own
+  return subprocess.run([sys.executable, "-m", "tools.aot", *args], cwd=REPO, env=env, capture_output=True,
+                        text=True, timeout=timeout)
+
+
+def test_unknown_topology_is_refused_in_one_sentence_listing_the_known_ones():
+  out = _aot("--config=configs/default.py:smoke", "--topology=v9-1024")
+  assert out.returncode == 2
+  lines = out.stderr.strip().splitlines()
+  assert len(lines) == 1 and "unknown --topology=v9-1024; known pods:" in lines[0]
+  for name in ("v4-8", "v4-32", "v5litepod-16", "v5litepod-64", "v5litepod-256", "v5p-128", "v6e-64"):
+    assert name in lines[0]
+
+
+def test_a_batch_that_does_not_split_over_the_pod_is_refused():
+  out = _aot("--config=configs/default.py:smoke", "--config.train.batch_size=100", "--topology=v5e-64")
+  assert out.returncode == 2
+  assert "train.batch_size=100 does not split over 64 devices" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.slow
+@needs_libtpu
+def test_smoke_step_and_renderers_compile_for_a_multi_host_pod(tmp_path):
+  report_path = tmp_path / "report.json"
+  out = _aot("--config=configs/default.py:smoke", "--topology=v4-16", f"--json={report_path}")
+  assert out.returncode == 0, out.stderr
+  assert "Failed to find host bounds" not in out.stderr + out.stdout  # libtpu's start-up noise kept out
+  report = json.loads(report_path.read_text())
+  assert (report["chips"], report["hosts"]) == (8, 2)  # v4-16: 8 chips (megacore) on 2 hosts
+  assert report["host_rows_contiguous"]  # each host's chips hold the rows that host loads
+  for name in ("step", "eval", "orbit"):
+    program = report[name]
+    assert program["fits_hbm"] and 0 < program["memory"]["peak_bytes"] <= 32 * 2**30
+    assert program["seconds"] > 0 and program["rays_per_s"] > 0
+    assert program["rays_per_s_per_chip"] == pytest.approx(
+        program["rays_per_s"] / (report["chips"] if name != "orbit" else report["chips"] // report["hosts"]))
+  step = report["step"]
+  # A data-parallel step's only cross-chip traffic: one all-reduce of the gradients and a few scalars.
+  assert [c["op"] for c in step["collectives"]] == ["all-reduce"]
+  reduced = sum(c["bytes"] * c["count"] for c in step["collectives"])
+  assert report["param_bytes"] <= reduced <= report["param_bytes"] + 64
+  assert step["unexpected_collectives"] == []
+  assert all(c["group"] == 8 for c in step["collectives"])
+  assert step["run_seconds"] == pytest.approx(step["seconds"] * report["num_steps"])
+  assert report["eval"]["collectives"] == [] and report["orbit"]["collectives"] == []
+  assert "v4-16 (v4:2x2x2, 8 chips of TPU v4 on 2 hosts)" in out.stdout
+  assert "step collectives: the gradient all-reduce and scalars only" in out.stdout
+
+
+@pytest.mark.slow
+@needs_libtpu
+def test_the_launchers_preflight_refuses_a_job_too_large_for_the_chips_with_the_figures(tmp_path):
+  from test_launch import _tpu_pod
+  result, calls = _tpu_pod(tmp_path, "--dry-run", "--name=p", "--zone=us-central2-b",
+                           "--accelerator-type=v5litepod-16", "--workdir=gs://b/x", "--",
+                           "--config=configs/default.py:smoke", "--config.train.batch_size=16777216")
+  assert result.returncode == 2, result.stdout + result.stderr
+  assert calls == []  # refused before any pod is created or used
+  assert "-m tools.aot --config=configs/default.py:smoke --config.train.batch_size=16777216 " \
+         "--topology=v5litepod-16 --what=step" in result.stdout
+  assert "preflight: v5litepod-16 (16 chips, 4 hosts): per chip" in result.stdout
+  error = result.stderr.strip().splitlines()[-1]
+  assert "the train step needs" in error and "of HBM" in error
+  assert "--config.train.microbatches=2" in error  # the fix, with the figures
+  assert "gcloud" not in result.stdout.split("preflight:")[-1]  # no pod command was even printed
+
+
+@pytest.mark.slow
+@needs_libtpu
+def test_a_cpu_run_with_libtpu_installed_behaves_as_without_it(tmp_path):
+  """No JAX_PLATFORMS given: nerfpod keeps JAX off the absent TPU (no start-up errors) and trains on the
+  CPU to the very same result as a run told to use the CPU."""
+  flags = ["--config=configs/default.py:smoke", "--config.train.num_steps=4",
+           "--config.orbit.render_after_training=false", "--config.eval.max_views=1"]
+  results = {}
+  for name, platforms in (("unset", None), ("cpu", "cpu")):
+    env = procs.environment(1)
+    env.pop("JAX_PLATFORMS")
+    if platforms:
+      env["JAX_PLATFORMS"] = platforms
+    out = subprocess.run([sys.executable, "-m", "nerfpod.main", *flags, f"--workdir={tmp_path / name}"], cwd=REPO,
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    results[name] = (out, json.loads((tmp_path / name / "eval" / "metrics.json").read_text()))
+  unset, _ = results["unset"]
+  for noise in ("TPU", "libtpu", "Failed to find host bounds"):
+    assert noise not in unset.stderr, unset.stderr
+  assert results["unset"][1]["views"] == results["cpu"][1]["views"]
+  assert "1 device(s)" in unset.stdout and os.cpu_count()
+
+
+@pytest.mark.parametrize("name,chips,hosts,kind", [
+    ("v4-8", 4, 1, "v4"), ("v4-32", 16, 4, "v4"), ("v5p-128", 64, 16, "v5p"), ("v5e-16", 16, 4, "v5e"),
+    ("v5litepod-64", 64, 16, "v5e"), ("v5e-256", 256, 64, "v5e"), ("v6e-64", 64, 16, "v6e")])
+def test_named_pods_have_the_chips_and_hosts_of_their_accelerator_type(name, chips, hosts, kind):
+  """v4 and v5p names count TensorCores (two per chip), v5e and v6e names count chips; 4 chips per host."""
+  from nerfpod import pods
+  pod = pods.lookup(name)
+  assert (pod.num_chips, pod.num_hosts, pod.generation) == (chips, hosts, kind)
+  assert pod.chip.hbm_bytes >= 16 * 2**30 and pod.chip.source.startswith("https://cloud.google.com/tpu/docs/")
+  assert pods.lookup("v5e-17") is None

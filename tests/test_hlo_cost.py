@@ -1,0 +1,138 @@
+"""nerfpod.hlo_cost: the per-op roofline of an optimised HLO module, on hand-written HLO with known answers."""
+import pytest
+
+from nerfpod import hlo_cost
+
+CHIP = hlo_cost.Chip(bf16_flops=100e12, hbm_bytes_per_s=1e12, allreduce_bytes_per_s=100e9)
+
+
+def _cost(text: str, devices: int = 4) -> hlo_cost.Cost:
+  return hlo_cost.Program(text, CHIP, devices).cost()
+
+
+def test_layout_padding_and_tile_rows():
+  padded = hlo_cost.parse_shape("f32[100,2]{1,0:T(8,128)}")[0]
+  assert padded.bytes == 104 * 128 * 4            # rows to 8, the 2 features to 128 lanes
+  assert padded.payload_bytes == 100 * 2 * 4
+  compact = hlo_cost.parse_shape("f32[4096,2]{0,1:T(2,128)}")[0]
+  assert compact.bytes == 4096 * 2 * 4            # the rows are the minor dim: no padding
+  assert padded.slice_bytes([1, 2]) == 128 * 4    # one gathered row touches a tile row of 128 values
+  assert hlo_cost.parse_shape("(f32[3]{0}, s32[])")[1].bytes == 4
+
+
+def test_a_dot_is_bound_by_the_larger_of_its_flops_and_bytes():
+  m, k, n = 512, 256, 128
+  text = f"""HloModule m
+
+ENTRY %main (a: f32[{m},{k}], b: f32[{k},{n}]) -> f32[{m},{n}] {{
+  %a = f32[{m},{k}]{{1,0}} parameter(0)
+  %b = f32[{k},{n}]{{1,0}} parameter(1)
+  ROOT %d = f32[{m},{n}]{{1,0}} dot(%a, %b), lhs_contracting_dims={{1}}, rhs_contracting_dims={{0}}
+}}
+"""
+  cost = _cost(text)
+  flops, moved = 2 * m * k * n, 4 * (m * k + k * n + m * n)
+  assert cost.flops == flops and cost.bytes == moved
+  assert cost.seconds == pytest.approx(max(flops / CHIP.bf16_flops, moved / CHIP.hbm_bytes_per_s))
+  highest = _cost(text.replace("rhs_contracting_dims={0}", "rhs_contracting_dims={0}, "
+                                                            "operand_precision={highest,highest}"))
+  assert highest.flops == 6 * flops  # float32 at HIGHEST: six bf16 passes
+
+
+def test_a_convolution_over_a_padded_window_counts_only_real_taps():
+  # XLA's TPU form of (N, 17) x (17, 17*17*2): output (N, 17, 17, 2), window 17x2 padded by 16 and 1.
+  text = """HloModule m
+
+ENTRY %main (x: f32[64,17,1,1], w: f32[17,17,17,2]) -> f32[64,17,17,2] {
+  %x = f32[64,17,1,1]{3,2,1,0} parameter(0)
+  %w = f32[17,17,17,2]{3,2,1,0} parameter(1)
+  ROOT %c = f32[64,17,17,2]{3,2,1,0} convolution(%x, %w), window={size=17x2 pad=16_16x1_1 rhs_reversal=1x1}, dim_labels=bf01_0oi1->b0f1
+}
+"""
+  assert _cost(text).flops == 2 * 64 * 17 * 17 * 17 * 2  # N side^3 F multiply-adds, not the padded window's
+
+
+def test_a_gather_moves_its_rows_not_its_table_and_a_scatter_its_updates():
+  text = """HloModule m
+
+%add (a: f32[], b: f32[]) -> f32[] {
+  %a = f32[] parameter(0)
+  %b = f32[] parameter(1)
+  ROOT %s = f32[] add(%a, %b)
+}
+
+ENTRY %main (t: f32[1048576,2], i: s32[1000,1], u: f32[1000,2]) -> (f32[1000,2], f32[1048576,2]) {
+  %t = f32[1048576,2]{0,1:T(2,128)} parameter(0)
+  %i = s32[1000,1]{1,0} parameter(1)
+  %u = f32[1000,2]{1,0} parameter(2)
+  %g = f32[1000,2]{1,0} gather(%t, %i), offset_dims={1}, collapsed_slice_dims={0}, start_index_map={0}, index_vector_dim=1, slice_sizes={1,2}
+  %s = f32[1048576,2]{0,1:T(2,128)} scatter(%t, %i, %u), update_window_dims={1}, inserted_window_dims={0}, scatter_dims_to_operand_dims={0}, index_vector_dim=1, to_apply=%add
+  ROOT %r = (f32[1000,2]{1,0}, f32[1048576,2]{0,1:T(2,128)}) tuple(%g, %s)
+}
+"""
+  cost = _cost(text)
+  table = 1048576 * 2 * 4
+  # Gather: 1000 slices of [1, 2] in a layout whose minor dim is the rows (tile (2, 128)): 2 x 128 values
+  # each, plus the indices and its result. Scatter: its updates read and written, plus the indices.
+  gather = 1000 * 2 * 128 * 4 + 1000 * 4 + 1000 * 2 * 4
+  scatter = 2 * 1000 * 2 * 4 + 1000 * 4
+  assert cost.bytes == gather + scatter
+  assert cost.bytes < table / 2
+  assert cost.gather_scatter_seconds == pytest.approx(cost.seconds)
+
+
+def test_a_loop_counts_its_body_trip_count_times_and_collectives_their_ring_traffic():
+  text = """HloModule m
+
+%body (p: (s32[], f32[1024])) -> (s32[], f32[1024]) {
+  %p = (s32[], f32[1024]{0}) parameter(0)
+  %i = s32[] get-tuple-element(%p), index=0
+  %x = f32[1024]{0} get-tuple-element(%p), index=1
+  %y = f32[1024]{0} exponential(%x)
+  ROOT %t = (s32[], f32[1024]{0}) tuple(%i, %y)
+}
+
+%cond (p: (s32[], f32[1024])) -> pred[] {
+  %p = (s32[], f32[1024]{0}) parameter(0)
+  ROOT %c = pred[] constant(true)
+}
+
+ENTRY %main (x: f32[1024]) -> f32[1024] {
+  %x = f32[1024]{0} parameter(0)
+  %z = s32[] constant(0)
+  %t = (s32[], f32[1024]{0}) tuple(%z, %x)
+  %w = (s32[], f32[1024]{0}) while(%t), condition=%cond, body=%body, backend_config={"known_trip_count":{"n":"10"}}
+  %y = f32[1024]{0} get-tuple-element(%w), index=1
+  ROOT %r = f32[1024]{0} all-reduce(%y), replica_groups={{0,1,2,3}}, to_apply=%add
+}
+"""
+  cost = _cost(text)
+  assert cost.bytes == 10 * 2 * 1024 * 4  # the body's exp, read and written, ten times
+  assert cost.collectives == [{"op": "all-reduce", "bytes": 4096, "group": 4, "count": 1}]
+  assert cost.collective_seconds == pytest.approx(2 * 3 / 4 * 4096 / CHIP.allreduce_bytes_per_s)
+  assert cost.seconds == pytest.approx(cost.collective_seconds + 10 * 8192 / CHIP.hbm_bytes_per_s)
+
+
+def test_a_fusion_crosses_memory_once_and_reads_a_gathered_operand_in_part():
+  text = """HloModule m
+
+%fused (p0: f32[65536,2], p1: s32[100,1], p2: f32[100,2]) -> f32[100,2] {
+  %p0 = f32[65536,2]{0,1:T(2,128)} parameter(0)
+  %p1 = s32[100,1]{1,0} parameter(1)
+  %p2 = f32[100,2]{1,0} parameter(2)
+  %g = f32[100,2]{1,0} gather(%p0, %p1), offset_dims={1}, collapsed_slice_dims={0}, start_index_map={0}, index_vector_dim=1, slice_sizes={1,2}
+  %m = f32[100,2]{1,0} multiply(%g, %p2)
+  ROOT %e = f32[100,2]{1,0} exponential(%m)
+}
+
+ENTRY %main (t: f32[65536,2], i: s32[100,1], w: f32[100,2]) -> f32[100,2] {
+  %t = f32[65536,2]{0,1:T(2,128)} parameter(0)
+  %i = s32[100,1]{1,0} parameter(1)
+  %w = f32[100,2]{1,0} parameter(2)
+  ROOT %f = f32[100,2]{1,0} fusion(%t, %i, %w), kind=kLoop, calls=%fused
+}
+"""
+  cost = _cost(text)
+  gathered = 100 * 2 * 128 * 4  # the rows' tile rows (the gathered values stay inside the fusion)
+  assert cost.bytes == gathered + 100 * 4 + 100 * 2 * 4 + 100 * 2 * 4  # + indices, weights, result
+  assert cost.flops == 0

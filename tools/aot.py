@@ -1,0 +1,321 @@
+"""The pod, proven before it is paid for: compile a config's train step and renderers for a TPU pod, here.
+
+    python -m tools.aot --config=configs/blender_fast.py --topology=v5e-64 [--json=FILE]
+
+XLA compiles for a TPU topology ahead of time on a machine without TPUs (it needs libtpu: `pip install -e
+'.[tpu]'`). This builds the pod's device mesh as a run on it would (distributed.make_mesh over the
+topology's chips, hosts in order), lays the global batch over it as each host feeds it (ShapeDtypeStructs
+with the batch's sharding: no data is loaded), and compiles the very functions a run compiles:
+train.make_train_step, the evaluation renderer over the whole pod (eval.chunk rays) and the orbit renderer
+over one host's chips (orbit.chunk rays). It reports per-chip memory against the chip's HBM, FLOPs and
+bytes per step, the estimated step time (nerfpod.hlo_cost's roofline; XLA's own figures beside it where
+they are sane), rays/s per chip and for the pod, every collective in the step with its size, and the
+estimated time of the config's train.num_steps. Estimates from XLA's program and the chips' published
+peaks, not measurements.
+
+A topology it does not know, or a config whose batch does not split over the pod, is refused in one
+sentence (exit 2).
+"""
+import json
+import os
+import sys
+import time
+
+from absl import app, flags
+from ml_collections import config_flags
+
+from nerfpod import pods, schema
+from nerfpod.errors import UserError
+
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
+                                          lock_config=True)
+_TOPOLOGY = flags.DEFINE_string("topology", None, "The pod: an accelerator type, e.g. v4-32, v5e-64 (= "
+                                "v5litepod-64), v5p-128, v6e-64; several, comma-separated.")
+_WHAT = flags.DEFINE_list("what", ["step", "eval", "orbit"], "What to compile: step, eval, orbit.")
+_JSON = flags.DEFINE_string("json", None, "Also write the report as JSON to this file ('-': stdout only).")
+
+
+def _quiet_libtpu() -> None:
+  """libtpu, loaded to compile for a TPU on a machine without one, looks for the VM's TPU metadata and
+  prints pages of warnings when it finds none; naming a stand-in host and type keeps the output readable.
+  Nothing runs on a TPU here: the TPU backend only compiles."""
+  os.environ.setdefault("TPU_ACCELERATOR_TYPE", "v5litepod-4")
+  os.environ.setdefault("TPU_WORKER_HOSTNAMES", "localhost")
+  os.environ.setdefault("TPU_SKIP_MDS_QUERY", "1")
+  # libtpu takes a machine-wide lock file (/tmp/libtpu_lockfile) so that two processes never drive one TPU;
+  # compiling drives none, so several of these tools (and a test suite) may run side by side.
+  os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
+  os.environ.setdefault("JAX_PLATFORMS", "cpu")  # the process itself runs nothing on a device
+
+
+def resolve_pods(names: str) -> list[pods.Pod]:
+  out = []
+  for name in [n.strip() for n in names.split(",") if n.strip()]:
+    pod = pods.lookup(name)
+    if pod is None:
+      raise UserError(f"unknown --topology={name}; known pods: {', '.join(pods.known_names())} (v5e-N is "
+                      f"v5litepod-N).")
+    out.append(pod)
+  return out
+
+
+def topology_devices(pod: pods.Pod):
+  """The pod's TPU devices (every host's), from libtpu's description of the topology."""
+  try:
+    from jax.experimental import topologies
+    return topologies.get_topology_desc(platform="tpu", topology_name=pod.topology_name,
+                                        chip_config_name=pod.chip_config,
+                                        chips_per_host_bounds=pod.chips_per_host, num_slices=1).devices
+  except Exception as e:  # no libtpu, or one that does not know the generation
+    raise UserError(f"cannot describe the {pod.name} topology on this machine ({str(e).splitlines()[0][:200]}); "
+                    f"install the TPU compiler with pip install -c constraints.txt -e '.[tpu]'.") from None
+
+
+def _memory(compiled) -> dict:
+  m = compiled.memory_analysis()
+  argument, output, temp = m.argument_size_in_bytes, m.output_size_in_bytes, m.temp_size_in_bytes
+  alias = m.alias_size_in_bytes
+  return {"argument_bytes": argument, "output_bytes": output, "temp_bytes": temp, "alias_bytes": alias,
+          "code_bytes": m.generated_code_size_in_bytes,
+          # Donated arguments are reused for the outputs they alias: they are not held twice.
+          "peak_bytes": argument + output - alias + temp + m.generated_code_size_in_bytes}
+
+
+def _xla_cost(compiled) -> dict:
+  cost = compiled.cost_analysis()
+  cost = cost[0] if isinstance(cost, (list, tuple)) else (cost or {})
+  optimal = float(cost.get("optimal_seconds", -1.0))
+  return {"flops": float(cost.get("flops", 0.0)), "bytes_accessed": float(cost.get("bytes accessed", 0.0)),
+          # XLA's TPU estimate: kept only where it is a time at all (it came back negative for these steps).
+          "optimal_seconds": optimal if optimal > 0 else None}
+
+
+def _roofline(compiled, pod: pods.Pod, num_devices: int):
+  from nerfpod import hlo_cost
+  chip = hlo_cost.Chip(pod.chip.bf16_flops, pod.chip.hbm_bytes_per_s, pod.chip.allreduce_bytes_per_s)
+  return hlo_cost.Program(compiled.as_text(), chip, num_devices).cost()
+
+
+def _program_report(compiled, pod: pods.Pod, num_devices: int, rays: int, seconds_to_compile: float) -> dict:
+  cost = _roofline(compiled, pod, num_devices)
+  memory = _memory(compiled)
+  seconds = cost.seconds
+  return {
+      "compile_seconds": round(seconds_to_compile, 1),
+      "memory": memory, "fits_hbm": memory["peak_bytes"] <= pod.chip.hbm_bytes,
+      "hbm_bytes": pod.chip.hbm_bytes,
+      "flops_per_chip": cost.flops, "bytes_per_chip": cost.bytes,
+      "seconds": seconds,
+      "seconds_split": {"matmul_bound": cost.compute_seconds, "memory_bound": cost.memory_seconds,
+                        "gather_scatter": cost.gather_scatter_seconds, "collectives": cost.collective_seconds},
+      "bf16_peak_share": (cost.flops / seconds / pod.chip.bf16_flops) if seconds > 0 else 0.0,
+      "rays": rays, "rays_per_s": rays / seconds if seconds > 0 else None,
+      "rays_per_s_per_chip": rays / seconds / num_devices if seconds > 0 else None,
+      "collectives": _merge_collectives(cost.collectives),
+      "xla": _xla_cost(compiled),
+  }
+
+
+_SIZE_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def _out_of_memory_report(error: Exception, pod: pods.Pod, rays: int, seconds_to_compile: float) -> dict | None:
+  """The report of a program XLA refused to compile because it does not fit the chip's HBM (None: the
+  error is another). XLA's message names what it needed and what the chip has, e.g. 'the total memory
+  required for HLO temporaries (108.00G) exceeds available HBM (15.75G)'."""
+  import re
+  text = " ".join(str(error).split())
+  if "RESOURCE_EXHAUSTED" not in text and "Ran out of memory" not in text:
+    return None
+  sizes = [float(n) * _SIZE_UNITS[u] for n, u in re.findall(r"\(([0-9.]+)([KMGT]?)i?B?\)", text)]
+  needed, available = (sizes + [float("nan"), float("nan")])[:2]
+  return {
+      "compile_seconds": round(seconds_to_compile, 1), "compile_error": text[:400],
+      "memory": {"argument_bytes": 0, "output_bytes": 0, "temp_bytes": needed, "alias_bytes": 0, "code_bytes": 0,
+                 "peak_bytes": needed, "xla_available_bytes": available},
+      "fits_hbm": False, "hbm_bytes": pod.chip.hbm_bytes, "flops_per_chip": None, "bytes_per_chip": None,
+      "seconds": None, "seconds_split": None, "bf16_peak_share": None, "rays": rays, "rays_per_s": None,
+      "rays_per_s_per_chip": None, "collectives": [], "xla": None,
+  }
+
+
+def _compile(lowered, pod: pods.Pod, num_devices: int, rays: int) -> dict:
+  """Compiles and reports; a program too large for the chip is a report too (fits_hbm false), not a crash."""
+  import jax
+  start = time.perf_counter()
+  try:
+    compiled = lowered.compile()
+  except jax.errors.JaxRuntimeError as e:
+    report = _out_of_memory_report(e, pod, rays, time.perf_counter() - start)
+    if report is None:
+      raise
+    return report
+  return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start)
+
+
+def _merge_collectives(collectives: list) -> list:
+  merged = {}
+  for c in collectives:
+    key = (c["op"], c["bytes"], c["group"])
+    merged[key] = merged.get(key, 0) + c["count"]
+  return [{"op": op, "bytes": size, "group": group, "count": count}
+          for (op, size, group), count in sorted(merged.items())]
+
+
+def check_collectives(step: dict, state_bytes: int) -> list[str]:
+  """What in the step's collectives is not a data-parallel step's: anything but all-reduces, or
+  all-reduces beyond the gradients plus a few scalars."""
+  problems = [f"{c['op']} of {c['bytes']} bytes" for c in step["collectives"] if c["op"] != "all-reduce"]
+  reduced = sum(c["bytes"] * c["count"] for c in step["collectives"] if c["op"] == "all-reduce")
+  if reduced > state_bytes + 4096:
+    problems.append(f"all-reduces of {reduced} bytes, more than the gradients' {state_bytes}")
+  return problems
+
+
+def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
+  """Compiles `config`'s programs for `pod` and reports on them (see the module's docstring)."""
+  import jax
+  import numpy as np
+  from jax.sharding import Mesh
+  from nerfpod import components, distributed, train
+
+  schema.validate(config, pod.num_chips)  # e.g. a batch that does not split over the pod's chips
+  devices = topology_devices(pod)
+  mesh = distributed.make_mesh(devices)
+  program = components.build_program(config, mesh, backend="tpu")
+  tc = config.train
+  hosts = sorted({d.process_index for d in devices})
+  order = [d.process_index for d in mesh.devices.flat]
+  report = {
+      "pod": pod.name, "topology": pod.topology_name, "chips": pod.num_chips, "hosts": len(hosts),
+      "chip": {"kind": pod.chip.name, "bf16_flops": pod.chip.bf16_flops, "hbm_bytes": pod.chip.hbm_bytes,
+               "hbm_bytes_per_s": pod.chip.hbm_bytes_per_s,
+               "allreduce_bytes_per_s": pod.chip.allreduce_bytes_per_s, "source": pod.chip.source},
+      "batch": tc.batch_size, "rays_per_chip": tc.batch_size // pod.num_chips, "microbatches": tc.microbatches,
+      "compute_dtype": config.model.compute_dtype,
+      "hashgrid_matmul_max_rows": program.model.grid_matmul_max_rows,
+      # Each host's chips hold one contiguous block of the batch: the rows distributed.local_slice loads.
+      "host_rows_contiguous": all(order[i] <= order[i + 1] for i in range(len(order) - 1)),
+      "num_steps": tc.num_steps,
+  }
+  state_bytes = sum(int(np.prod(s.shape)) * s.dtype.itemsize for s in jax.tree.leaves(program.state_shapes.params))
+  report["param_bytes"] = state_bytes
+  key = jax.ShapeDtypeStruct((), jax.random.key(0).dtype, sharding=distributed.replicated(mesh))
+  if "step" in what:
+    step_fn = train.make_train_step(program.model, program.optimizer, mesh, program.near, program.far,
+                                    program.background, tc.random_background, tc.microbatches)
+    step = _compile(step_fn.lower(program.state_shapes, program.batch_shapes, key), pod, pod.num_chips,
+                    tc.batch_size)
+    step["unexpected_collectives"] = check_collectives(step, state_bytes)
+    step["run_seconds"] = step["seconds"] * tc.num_steps if step["seconds"] is not None else None
+    report["step"] = step
+  params = program.state_shapes.params
+  if "eval" in what:
+    chunk = max(pod.num_chips, config.eval.chunk - config.eval.chunk % pod.num_chips)
+    rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
+    report["eval"] = _compile(program.renderer().lower(params, rays, rays), pod, pod.num_chips, chunk)
+  if "orbit" in what:
+    host_mesh = Mesh(np.array([d for d in mesh.devices.flat if d.process_index == hosts[0]]),
+                     (distributed.DATA_AXIS,))
+    local = host_mesh.size
+    chunk = max(local, config.orbit.chunk - config.orbit.chunk % local)
+    rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(host_mesh))
+    host_params = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype,
+                                                              sharding=distributed.replicated(host_mesh)), params)
+    report["orbit"] = _compile(program.renderer(host_mesh).lower(host_params, rays, rays), pod, local, chunk)
+  return report
+
+
+def _size(n: float) -> str:
+  for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+    if n >= scale:
+      return f"{n / scale:.1f} {unit}"
+  return f"{int(n)} B"
+
+
+def _duration(seconds: float) -> str:
+  if seconds >= 3600:
+    return f"{seconds / 3600:.1f} h"
+  if seconds >= 60:
+    return f"{seconds / 60:.1f} min"
+  if seconds >= 1:
+    return f"{seconds:.2f} s"
+  return f"{seconds * 1e3:.3g} ms"
+
+
+def format_report(report: dict) -> str:
+  """The report as a readable table."""
+  lines = [f"{report['pod']} ({report['topology']}, {report['chips']} chips of {report['chip']['kind']} on "
+           f"{report['hosts']} hosts): batch {report['batch']} rays, {report['rays_per_chip']} per chip, "
+           f"{report['microbatches']} micro-batch(es), {report['compute_dtype']} matmuls, hash-grid matmul "
+           f"lookup up to {report['hashgrid_matmul_max_rows']} rows",
+           f"  {'program':<7} {'args':>9} {'temp':>9} {'out':>9} {'peak':>9} {'HBM':>8} {'GFLOP':>9} "
+           f"{'GB':>8} {'est. time':>10} {'XLA est.':>9} {'rays/s/chip':>12} {'rays/s pod':>12} {'compile':>8}"]
+  for name in ("step", "eval", "orbit"):
+    if name not in report:
+      continue
+    r = report[name]
+    m = r["memory"]
+    if r["seconds"] is None:
+      lines.append(f"  {name:<7} does not fit: XLA needs {_size(m['peak_bytes'])} of temporaries, the chip has "
+                   f"{_size(m['xla_available_bytes'])} ({r['compile_error'][:160]})")
+      continue
+    xla = r["xla"]["optimal_seconds"]
+    lines.append(
+        f"  {name:<7} {_size(m['argument_bytes']):>9} {_size(m['temp_bytes']):>9} {_size(m['output_bytes']):>9} "
+        f"{_size(m['peak_bytes']):>9} {('fits' if r['fits_hbm'] else 'OVER'):>8} {r['flops_per_chip'] / 1e9:>9.3f} "
+        f"{r['bytes_per_chip'] / 1e9:>8.3f} {_duration(r['seconds']):>10} "
+        f"{(_duration(xla) if xla else 'n/a'):>9} {r['rays_per_s_per_chip'] or 0:>12,.0f} "
+        f"{(r['rays_per_s'] or 0):>12,.0f} {r['compile_seconds']:>7.1f}s")
+  if "step" in report and report["step"]["seconds"] is not None:
+    s = report["step"]
+    split = s["seconds_split"]
+    lines.append(f"  step time: {_duration(split['matmul_bound'])} matmul-bound ops, "
+                 f"{_duration(split['memory_bound'])} memory-bound (of which gathers/scatters "
+                 f"{_duration(split['gather_scatter'])}), "
+                 f"{_duration(split['collectives'])} collectives; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
+    for c in s["collectives"]:
+      lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips, x{c['count']:g}")
+    verdict = "; ".join(s["unexpected_collectives"]) or "the gradient all-reduce and scalars only"
+    lines.append(f"  step collectives: {verdict}")
+    lines.append(f"  {report['num_steps']} steps (train.num_steps): {_duration(s['run_seconds'])} estimated")
+  lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip "
+               f"{_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
+               f"compiled program on the chip's published peaks: nerfpod.hlo_cost), not measurements")
+  return "\n".join(lines)
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+  try:
+    config = _CONFIG.value
+    config.keys()
+    schema.migrate(config)
+    schema.validate(config)
+    chosen = resolve_pods(_TOPOLOGY.value)
+    unknown = set(_WHAT.value) - {"step", "eval", "orbit"}
+    if unknown:
+      raise UserError(f"--what={','.join(_WHAT.value)}: choose among step, eval, orbit.")
+    reports = []
+    for pod in chosen:
+      report = compile_pod(config, pod, tuple(_WHAT.value))
+      print(format_report(report), flush=True)
+      reports.append(report)
+  except UserError as e:
+    for message in getattr(e, "messages", None) or [str(e)]:
+      print(f"tools.aot: error: {message}", file=sys.stderr, flush=True)
+    sys.exit(2)
+  if _JSON.value:
+    text = json.dumps(reports if len(reports) > 1 else reports[0], indent=2)
+    if _JSON.value == "-":
+      print(text)
+    else:
+      with open(_JSON.value, "w") as f:
+        f.write(text)
+
+
+if __name__ == "__main__":
+  flags.mark_flags_as_required(["config", "topology"])  # here: tools.pod_tables imports this module
+  _quiet_libtpu()
+  app.run(main)
