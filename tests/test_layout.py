@@ -14,6 +14,7 @@ from conftest import REPO
 FLOORS = {
     "errors": 0,
     "nerf": 0, "nerf.cameras": 1, "nerf.sampling": 1, "nerf.encodings": 1, "nerf.compositing": 1,
+    "nerf.keyframes": 1,
     "nerf.fields": 2, "nerf.model": 3,
     "metrics": 1, "xla_options": 1, "config_util": 1,
     "scenes.base": 2, "scenes.procedural": 3, "scenes.tiny": 3, "scenes.blender": 3, "scenes": 4,
