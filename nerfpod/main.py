@@ -86,7 +86,11 @@ def _parse_flags(argv):
 
 
 def run():
-  """Console-script entry point."""
+  """Console-script entry point; `nerfpod view ...` is the viewer's (nerfpod.view), with its own flags."""
+  if len(sys.argv) > 1 and sys.argv[1] == "view":
+    from nerfpod import view
+    view.run(sys.argv[2:])
+    return
   app.run(main, flags_parser=_parse_flags)
 
 

@@ -21,7 +21,7 @@ FLOORS = {
     "schema": 5, "video": 1, "monitor": 1,
     "distributed": 2, "camera_path": 2, "data": 5, "checkpoints": 6, "archive": 2, "render": 3,
     "components": 7,
-    "train": 8, "evaluate": 8, "orbit": 8,
+    "train": 8, "evaluate": 8, "orbit": 8, "view": 8,
     "modes": 9,
     "main": 10,
 }
