@@ -222,7 +222,7 @@ class Viewer:
     """One picture (H, W, 3) uint8 of `channel` from camera (pose, intrinsics); None if `cancelled()` turned
     true between chunks. Every renderer call has `self.chunk` rays (the last padded): one compilation."""
     params = self.params if params is None else params
-    origins, directions = cameras.image_rays(np.asarray(pose_4x4, np.float32), intr,
+    origins, directions = cameras.image_rays(np.asarray(pose_4x4, np.float64), intr,
                                              self.config.data.pixel_center)
     origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
     n, pieces = len(origins), []
@@ -412,9 +412,11 @@ class Viewer:
     path = self.camera_path()
     os.makedirs(self.paths_dir, exist_ok=True)
     out = os.path.join(self.paths_dir, name if name.endswith(".json") else name + ".json")
-    camera_paths.write(out, path, keyframes=[
+    partial = out + ".partial"  # whole or not at all: a renderer may be watching the folder
+    camera_paths.write(partial, path, keyframes=[
         {"matrix": pose.reshape(16).tolist(), "fov": fov} for pose, fov in self.keyframes],
         is_cycle=bool(self._path_loop.value))
+    os.replace(partial, out)
     return out
 
   def _save_clicked(self):
