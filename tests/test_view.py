@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import REPO, smoke_config
+from conftest import LEGO, REPO, TINY_NPZ, require, smoke_config
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -83,10 +83,10 @@ def _assert_shows(picture, frame, reference):
 
 @pytest.fixture(scope="module")
 def trained_workdir(tmp_path_factory):
-  """A smoke run of 40 steps (checkpoints at 20 and 40), trained in this process."""
+  """A smoke run of 20 steps (checkpoints at 10 and 20), trained in this process."""
   from nerfpod import modes
   workdir = tmp_path_factory.mktemp("view") / "run"
-  config = smoke_config(**{"train.num_steps": 40, "checkpoint.every_steps": 20, "eval.max_views": 1,
+  config = smoke_config(**{"train.num_steps": 20, "checkpoint.every_steps": 10, "eval.max_views": 1,
                            "orbit.render_after_training": False})
   modes.train_and_evaluate(config, str(workdir))
   return workdir
@@ -130,7 +130,7 @@ def test_page_shows_nerfpods_rendering_of_its_camera_and_follows_a_drag(page):
   viewer, driver, client = page
   _click(driver, "Show cameras")  # hide the frustums: the canvas then shows the rendered frame alone
   frame = _full_frame(viewer, client)
-  assert frame.step == 40 and frame.channel == "rgb"
+  assert frame.step == 20 and frame.channel == "rgb"
   assert (frame.intrinsics.width, frame.intrinsics.height) == (client.camera.image_width,
                                                                 client.camera.image_height)
   picture = _canvas(client, frame)
@@ -181,15 +181,15 @@ def test_a_checkpoint_written_while_the_page_is_open_appears(page, trained_workd
   viewer, driver, client = page
   old = _full_frame(viewer, client)
   # The training run's next save, as it would write it: here, the same state with brighter colours.
-  with checkpoints.Checkpoints(str(trained_workdir), 20, 5) as ckpt:
+  with checkpoints.Checkpoints(str(trained_workdir), 10, 5) as ckpt:
     state, position = ckpt.restore(viewer.comps.state_shapes)
     params = jax.tree_util.tree_map_with_path(
         lambda path, x: x + 1.0 if jax.tree_util.keystr(path).endswith("['rgb']['bias']") else x, state.params)
-    ckpt.save(60, state.replace(params=params, step=state.step + 20), {"next_step": 60}, force=True)
-  _wait(lambda: driver.find_elements(By.XPATH, "//*[contains(text(), 'step 60')]"), 30,
-        "the page to show step 60")
-  frame = _wait(lambda: (f := viewer.browsers()[client.client_id].last).step == 60 and f.full and f, 60,
-                "a frame of step 60")
+    ckpt.save(30, state.replace(params=params, step=state.step + 10), {"next_step": 30}, force=True)
+  _wait(lambda: driver.find_elements(By.XPATH, "//*[contains(text(), 'step 30')]"), 30,
+        "the page to show step 30")
+  frame = _wait(lambda: (f := viewer.browsers()[client.client_id].last).step == 30 and f.full and f, 60,
+                "a frame of step 30")
   picture = _canvas(client, frame)
   _assert_shows(picture, frame, _reference(viewer, client, frame, params))
   assert np.abs(picture.astype(int) - old.image).mean() > 1, "the new checkpoint shows the same picture"
@@ -263,16 +263,60 @@ def test_nerfpod_view_serves_the_page_and_stops_on_ctrl_c(trained_workdir):
   with socket.socket() as s:
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
+  before = sorted(p.name for p in (trained_workdir / "checkpoints").iterdir())
   proc = subprocess.Popen([sys.executable, "-m", "nerfpod.view", f"--workdir={trained_workdir}", f"--port={port}"],
                           cwd=REPO, env=environment(1), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
   try:
-    line = proc.stdout.readline()
-    assert f"step 40 of {trained_workdir} at http://127.0.0.1:{port}" in line, line + proc.stderr.read()
+    lines = []
+    while not lines or (lines[-1] and not lines[-1].startswith("nerfpod: view:")):
+      lines.append(proc.stdout.readline())  # '' at the end of the output
+    from nerfpod import checkpoints
+    step = checkpoints.latest_step(str(trained_workdir))  # 20, or 30 after the test that writes one
+    assert f"step {step} of {trained_workdir} at http://127.0.0.1:{port}" in lines[-1], "".join(lines)
     page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10).read().decode()
     assert "<html" in page.lower()
-    assert not (trained_workdir / "checkpoints" / "40.orbax-checkpoint-tmp").exists()
+    assert sorted(p.name for p in (trained_workdir / "checkpoints").iterdir()) == before, "the viewer wrote"
     proc.send_signal(signal.SIGINT)
     assert proc.wait(timeout=30) == 0
   finally:
     proc.kill()
     proc.wait()
+
+
+def _workdir_of(config, workdir):
+  """A workdir as training writes it, of `config`'s initial state (step 0): config.json and a checkpoint."""
+  from nerfpod import checkpoints, components
+  comps = components.build(config)
+  state = comps.init_state()
+  checkpoints.write_config(str(workdir), json.loads(config.to_json_best_effort()))
+  with checkpoints.Checkpoints(str(workdir), 10, 2) as ckpt:
+    ckpt.save(0, state, {"next_step": 0}, force=True)
+  return comps, state.params
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["procedural", "tiny", "blender"])
+def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_path):
+  from nerfpod import render, video, view
+  from nerfpod.config_util import sibling_config
+  if kind == "procedural":
+    config = smoke_config()
+  elif kind == "tiny":
+    config = sibling_config(str(REPO / "configs" / "x.py"), "tiny_fast", f"path={require(TINY_NPZ)},smoke")
+  else:
+    config = sibling_config(str(REPO / "configs" / "x.py"), "blender", "smoke")
+    config.data.path = str(require(LEGO))
+  comps, params = _workdir_of(config, tmp_path / "run")
+  viewer = view.Viewer(str(tmp_path / "run"), port=0)
+  try:
+    assert viewer.step == 0 and viewer.comps.scene.name == comps.scene.name
+    split = comps.scene.split(config.eval.split)
+    intr = view.camera_intrinsics(2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy), 24, 20)
+    got = viewer.render(split.poses[0], intr, "rgb")
+    want = render.render_image(comps.renderer, params, comps.mesh, split.poses[0], intr, config.data.pixel_center,
+                               256)
+    assert got.shape == (20, 24, 3)
+    assert np.abs(got.astype(int) - video.to_uint8(want["rgb"])).max() <= 1
+    assert len(viewer._frustums) == sum(len(s) for s in comps.scene.splits.values())
+  finally:
+    viewer.close()
