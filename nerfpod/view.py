@@ -49,6 +49,7 @@ CHANNELS = video.CHANNELS
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])  # camera axes: x right, y down, z forward <-> y up, z back
 STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
 THUMBNAIL_PIXELS = 64     # longest side of the images shown in the frustums
+INITIAL_PULL_BACK = 1.3   # a new page's camera: this many times farther back than the first held-out camera
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
@@ -134,7 +135,7 @@ class _Browser:
     self.changed_at = 0.0
     self.wake = threading.Event()
     self.frames = 0
-    self.sent: list[tuple[bool, int, int]] = []  # (full, width, height) of every frame sent, in order
+    self.coarse_frames = 0  # of those, the quick previews
     self.last: Frame | None = None
     self.closed = False
 
@@ -261,8 +262,8 @@ class Viewer:
     # PNG for the full picture (exact, what the tests compare); JPEG for the quick coarse ones.
     browser.client.scene.set_background_image(image, format="png" if full else "jpeg", jpeg_quality=90)
     browser.last = Frame(pose, intr, channel, step, full, image, seconds, version)
-    browser.sent.append((full, width, height))
     browser.frames += 1
+    browser.coarse_frames += not full
     if full:
       self._frame_text.content = f"{width}x{height} {channel} in {seconds * 1000:.0f} ms"
     return True
@@ -317,7 +318,7 @@ class Viewer:
     clear.on_click(lambda _: self.clear_keyframes())
     save.on_click(lambda _: self._save_clicked())
     self._frustums = []
-    scale = 0.05 * self._scene_extent()
+    scale = 0.03 * self._scene_extent()
     colours = {"train": (40, 90, 220)}
     for name, split in self.comps.scene.splits.items():
       fov = 2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy)
@@ -337,16 +338,18 @@ class Viewer:
       frustum.visible = visible
 
   def _initial_view(self, camera):
-    """A new page starts at the first held-out camera, with the scene's up direction."""
+    """A new page looks where the first held-out camera looks, with its field of view and the scene's up
+    direction, from INITIAL_PULL_BACK times as far (so that the cameras around it are in sight too)."""
     split = self.comps.scene.split(self.config.eval.split)
     pose = np.asarray(split.poses[0], np.float64)
     up = np.concatenate([s.poses[:, :3, 1] for s in self.comps.scene.splits.values()]).mean(0)
     forward = -pose[:3, 2]
-    distance = max(float(np.linalg.norm(pose[:3, 3])), 1e-3)
+    distance = max(float(np.linalg.norm(pose[:3, 3])), 1e-3)  # to the point in front nearest the origin
+    target = pose[:3, 3] + forward * distance
     camera.up_direction = up / (np.linalg.norm(up) or 1.0)
     camera.fov = float(2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy))
-    camera.position = pose[:3, 3]
-    camera.look_at = pose[:3, 3] + forward * distance
+    camera.position = target - forward * distance * INITIAL_PULL_BACK
+    camera.look_at = target
 
   def _connected(self, client):
     browser = _Browser(client)

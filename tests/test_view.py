@@ -81,6 +81,45 @@ def _assert_shows(picture, frame, reference):
   assert psnr > 40, f"the page shows another picture than nerfpod's rendering (PSNR {psnr:.1f} dB)"
 
 
+def test_viewer_cameras_and_nerfpod_poses_convert_both_ways():
+  from nerfpod import view
+  from nerfpod.nerf import cameras
+  pose = cameras.look_at(np.array([1.0, -3.0, 2.0]))  # OpenGL: looks down -z at the origin, +y up
+  wxyz, position = view.pose_to_viewer_camera(pose)
+  np.testing.assert_allclose(view.viewer_camera_to_pose(wxyz, position), pose, atol=1e-12)
+  # viser's camera (OpenCV) looks down its +z and has +y down: the same direction and the opposite up.
+  import viser.transforms as tf
+  rotation = tf.SO3(wxyz).as_matrix()
+  np.testing.assert_allclose(rotation[:, 2], -pose[:3, 2], atol=1e-12)
+  np.testing.assert_allclose(rotation[:, 1], -pose[:3, 1], atol=1e-12)
+  np.testing.assert_allclose(rotation[:, 2], -position / np.linalg.norm(position), atol=1e-12)
+
+
+def test_frame_sizes_and_cameras_of_the_page():
+  from nerfpod import view
+  assert view.fit_resolution(1000, 500, 256) == (256, 128)
+  assert view.fit_resolution(200, 100, 256) == (200, 100)  # never enlarged
+  assert view.fit_resolution(300, 1, 64) == (64, 1)
+  intr = view.camera_intrinsics(np.radians(90.0), 40, 20)  # tan(45 deg) = 1: focal = half the height
+  assert (intr.fx, intr.fy, intr.cx, intr.cy) == pytest.approx((10.0, 10.0, 20.0, 10.0))
+
+
+def test_a_busy_port_and_a_workdir_without_config_are_user_errors(tmp_path):
+  from nerfpod import view
+  from nerfpod.errors import UserError
+  with socket.socket() as busy:
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    with pytest.raises(UserError, match="another program uses it"):
+      view.check_port_free("127.0.0.1", busy.getsockname()[1])
+  view.check_port_free("127.0.0.1", 0)
+  with pytest.raises(UserError, match="holds no config.json"):
+    view.read_config(str(tmp_path))
+  (tmp_path / "config.json").write_text("{not json")
+  with pytest.raises(UserError, match="is not valid JSON"):
+    view.read_config(str(tmp_path))
+
+
 @pytest.fixture(scope="module")
 def trained_workdir(tmp_path_factory):
   """A smoke run of 20 steps (checkpoints at 10 and 20), trained in this process."""
@@ -140,14 +179,15 @@ def test_page_shows_nerfpods_rendering_of_its_camera_and_follows_a_drag(page):
   # Drag on the canvas: the camera orbits, a coarse preview comes first, then the full frame of the new view.
   from selenium.webdriver.common.action_chains import ActionChains
   from selenium.webdriver.common.by import By
-  before, frames = np.array(client.camera.position), viewer.browsers()[client.client_id].frames
+  browser = viewer.browsers()[client.client_id]
+  before, frames, coarse = np.array(client.camera.position), browser.frames, browser.coarse_frames
   canvas = driver.find_elements(By.TAG_NAME, "canvas")[0]
   # Left of the control panel and below the notification that software WebGL is in use.
   ActionChains(driver).move_to_element_with_offset(canvas, 30 - canvas.size["width"] // 2, canvas.size["height"] // 4) \
       .click_and_hold().move_by_offset(40, 0).move_by_offset(40, 5).release().perform()
   _wait(lambda: np.linalg.norm(client.camera.position - before) > 0.1, 20, "the drag to move the camera")
   moved = _full_frame(viewer, client, after=frames + 1)
-  assert any(not full for full, _, _ in viewer.browsers()[client.client_id].sent[frames:]), "no coarse preview"
+  assert browser.coarse_frames > coarse, "no coarse preview came while the camera moved"
   _assert_shows(_canvas(client, moved), moved, _reference(viewer, client, moved))
   assert np.abs(_canvas(client, moved).astype(int) - picture).mean() > 1, "the view did not change"
 
@@ -306,6 +346,7 @@ def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_pat
   else:
     config = sibling_config(str(REPO / "configs" / "x.py"), "blender", "smoke")
     config.data.path = str(require(LEGO))
+    config.eval.split = "val"  # the shared lego_400 has no test split
   comps, params = _workdir_of(config, tmp_path / "run")
   viewer = view.Viewer(str(tmp_path / "run"), port=0)
   try:
