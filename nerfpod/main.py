@@ -4,6 +4,9 @@ Parses flags, checks the whole config (nerfpod.schema) before JAX starts, starts
 there is one, and runs the mode (nerfpod.modes): `train` (the default: train_and_evaluate, which trains,
 evaluates and renders the orbit), `eval` or `render` (from the workdir's newest checkpoint). A user's
 mistake is printed as one sentence per problem with exit code 2.
+
+`nerfpod view --workdir=DIR` (or `python -m nerfpod.main view ...`) is the live web viewer, nerfpod.view,
+with its own flags: it needs no --config.
 """
 import sys
 

@@ -416,8 +416,10 @@ class Viewer:
     os.makedirs(self.paths_dir, exist_ok=True)
     out = os.path.join(self.paths_dir, name if name.endswith(".json") else name + ".json")
     partial = out + ".partial"  # whole or not at all: a renderer may be watching the folder
-    camera_paths.write(partial, path, keyframes=[
-        {"matrix": pose.reshape(16).tolist(), "fov": fov} for pose, fov in self.keyframes],
+    # The keyframes under a key of our own: nerfstudio's viewer reads "keyframes" in its own (three.js)
+    # layout when it loads a path, and would misread ours.
+    camera_paths.write(partial, path, nerfpod_keyframes=[
+        {"camera_to_world": pose.reshape(16).tolist(), "fov": fov} for pose, fov in self.keyframes],
         is_cycle=bool(self._path_loop.value))
     os.replace(partial, out)
     return out
