@@ -70,7 +70,12 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
   except ValueError as e:
     raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
   schema.migrate(config)
-  schema.validate(config)
+  try:
+    schema.validate(config)
+  except schema.ConfigError as e:  # its fixes name command-line overrides, which the viewer does not take
+    raise UserError(f"{path} holds a config this nerfpod version refuses ({e.messages[0]}"
+                    f"{f' and {len(e.messages) - 1} more' if len(e.messages) > 1 else ''}); view it with the "
+                    f"nerfpod version that trained it.") from None
   return config
 
 

@@ -118,6 +118,14 @@ def test_a_busy_port_and_a_workdir_without_config_are_user_errors(tmp_path):
   (tmp_path / "config.json").write_text("{not json")
   with pytest.raises(UserError, match="is not valid JSON"):
     view.read_config(str(tmp_path))
+  config = json.loads(smoke_config().to_json_best_effort())
+  config["train"]["log_every"] = 0
+  (tmp_path / "config.json").write_text(json.dumps(config))
+  with pytest.raises(UserError, match="refuses .*train.log_every=0"):
+    view.read_config(str(tmp_path))
+  config["train"]["log_every"] = 5
+  (tmp_path / "config.json").write_text(json.dumps(config))
+  assert view.read_config(str(tmp_path)).train.log_every == 5
 
 
 @pytest.fixture(scope="module")

@@ -93,7 +93,7 @@ def main():
         "devices": f"{jax.device_count()} x {jax.devices()[0].platform}",
         "start_to_serving_s": round(serving, 2), "start_to_first_frame_s": round(first_frame, 2),
         "first_frame_s (compile included)": round(first, 2),
-        f"frame_{args.size}x{args.size}_s": round(frame_s, 3), f"rays_per_s": round(args.size ** 2 / frame_s),
+        f"frame_{args.size}x{args.size}_s": round(frame_s, 3), "rays_per_s": round(args.size ** 2 / frame_s),
         f"coarse_frame_{viewer.coarse_resolution}x{viewer.coarse_resolution}_s": round(coarse_s, 3),
         "load_average": os.getloadavg()[0],
     }
