@@ -165,7 +165,8 @@ class Viewer:
     try:
       step = checkpoints.latest_step(self.workdir)
     except Exception as e:  # noqa: BLE001 (an unreachable bucket)
-      raise UserError(f"could not list the checkpoints of {self.workdir} ({' '.join(str(e).split())[:300]}).")
+      raise UserError(f"could not list the checkpoints of {self.workdir} ({' '.join(str(e).split())[:300]}); "
+                      f"check the --workdir path and, for gs://, your network and credentials.") from None
     if step is None:
       raise UserError(f"workdir {self.workdir} holds no checkpoint yet; wait for the training run's first "
                       f"save (every checkpoint.every_steps={self.config.checkpoint.every_steps} steps) or pass "
