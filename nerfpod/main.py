@@ -6,6 +6,9 @@ evaluates and renders the orbit), `eval` or `render` (from the workdir's newest 
 mistake is printed as one sentence per problem with exit code 2. Exit codes: 0 finished; 2 bad input (or
 training diverged); checkpoint.preempted_exit_code (75) stopped early at a saved step (SIGTERM, preemption, a
 first Ctrl-C): run the same command again; 130 interrupted outside training's steps.
+
+`nerfpod view --workdir=DIR` (or `python -m nerfpod.main view ...`) is the live web viewer, nerfpod.view,
+with its own flags: it needs no --config.
 """
 import signal
 import sys
@@ -96,7 +99,11 @@ def _parse_flags(argv):
 
 
 def run():
-  """Console-script entry point."""
+  """Console-script entry point; `nerfpod view ...` is the viewer's (nerfpod.view), with its own flags."""
+  if len(sys.argv) > 1 and sys.argv[1] == "view":
+    from nerfpod import view
+    view.run(sys.argv[2:])
+    return
   app.run(main, flags_parser=_parse_flags)
 
 

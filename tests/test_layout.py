@@ -15,6 +15,7 @@ FLOORS = {
     "errors": 0,
     "nerf": 0, "nerf.cameras": 1, "nerf.sampling": 1, "nerf.stepfun": 1, "nerf.encodings": 1,
     "nerf.compositing": 1, "nerf.coord": 1, "nerf.paths": 2, "nerf.poses": 1,
+    "nerf.keyframes": 1,
     "nerf.fields": 2, "nerf.model": 3,
     "metrics": 1, "xla_options": 1, "config_util": 1, "pods": 1, "hlo_cost": 1,
     "scenes.base": 2, "scenes.procedural": 3, "scenes.tiny": 3, "scenes.blender": 3, "scenes": 4,
@@ -22,7 +23,7 @@ FLOORS = {
     "schema": 5, "video": 1, "monitor": 1,
     "distributed": 2, "camera_path": 2, "data": 5, "checkpoints": 6, "archive": 2, "render": 3,
     "components": 7,
-    "train": 8, "evaluate": 8, "orbit": 8,
+    "train": 8, "evaluate": 8, "orbit": 8, "view": 8,
     "modes": 9,
     "main": 10,
 }

@@ -1,0 +1,503 @@
+"""The live viewer: a web page (viser) showing a workdir's newest checkpoint, rendered by nerfpod's renderer.
+
+    nerfpod view --workdir=DIR [--port=7007] [--host=127.0.0.1]      # or: python -m nerfpod.view ...
+
+What it reads, and only reads: DIR/config.json (the run's resolved config: the scene, the model, the ray
+bounds, so a user passes nothing else) and DIR/checkpoints (restored read-only, as --mode=eval does, so
+it never writes, cleans or locks anything a running training job owns). DIR may be local or gs://.
+Training may still be running: the newest complete checkpoint is polled every `poll_seconds` and a newer
+one replaces the parameters on screen, without a restart.
+
+What the page shows: the scene from the camera the user drags, rendered on this machine's JAX devices (CPU
+or GPU) by the same compiled renderer evaluation and orbits use; the channel picked (rgb, depth, acc,
+disparity, coloured as the orbit videos are); the training and held-out cameras as frustums holding their
+images; the checkpoint's step. Rendering is progressive and never blocks the page: each browser has its
+own render thread; a moved camera is drawn first at `coarse_resolution` (one renderer call), and at full
+resolution (the canvas's size, at most the page's "Max resolution") once the camera has been still for
+`STILL_SECONDS`; a full render is abandoned between chunks as soon as the camera moves again. Every call
+to the renderer has the same number of rays (the last chunk padded), so it compiles once.
+
+Camera paths: "Add keyframe" records the browser's camera; "Save path" writes the keyframes' path
+(nerf/keyframes.py) as nerfstudio's camera_path.json (nerfpod.camera_path) into `paths_dir`, a local
+folder (default ./camera_paths; never the workdir, which belongs to the training job).
+
+Viewer cameras are viser's (OpenCV: looking down +z, +y down); nerfpod's poses are OpenGL (looking down -z,
++y up): the two differ by OPENCV_TO_OPENGL on the camera side.
+"""
+import argparse
+import dataclasses
+import json
+import os
+import socket
+import sys
+import threading
+import time
+
+import jax
+import ml_collections
+import numpy as np
+from absl import logging
+from etils import epath
+from jax.sharding import Mesh
+
+from nerfpod import camera_path as camera_paths
+from nerfpod import checkpoints, components, distributed, render, schema, video
+from nerfpod.errors import UserError
+from nerfpod.nerf import cameras, keyframes
+
+CHANNELS = video.CHANNELS
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])  # camera axes: x right, y down, z forward <-> y up, z back
+STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
+THUMBNAIL_PIXELS = 64     # longest side of the images shown in the frustums
+INITIAL_PULL_BACK = 1.3   # a new page's camera: this many times farther back than the first held-out camera
+
+
+def read_config(workdir: str) -> ml_collections.ConfigDict:
+  """The run's config from workdir/config.json (earlier field names renamed), checked by the schema; a
+  missing, unreadable or unreachable one is one sentence."""
+  path = epath.Path(workdir) / "config.json"
+  try:
+    text = path.read_text()
+  except FileNotFoundError:
+    raise UserError(f"workdir {workdir} holds no config.json; pass the --workdir of a training run "
+                    f"(it writes config.json when it starts).") from None
+  except Exception as e:  # noqa: BLE001 (gs:// without credentials or network, permissions, ...)
+    reason = " ".join(str(e).split())[:300] or type(e).__name__
+    raise UserError(f"could not read {path} ({reason}); check the --workdir path and, for gs://, your "
+                    f"network and credentials (gcloud auth application-default login).") from None
+  try:
+    config = ml_collections.ConfigDict(json.loads(text))
+  except ValueError as e:
+    raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
+  schema.migrate(config)
+  try:
+    schema.validate(config)
+  except schema.ConfigError as e:  # its fixes name command-line overrides, which the viewer does not take
+    raise UserError(f"{path} holds a config this nerfpod version refuses ({e.messages[0]}"
+                    f"{f' and {len(e.messages) - 1} more' if len(e.messages) > 1 else ''}); view it with the "
+                    f"nerfpod version that trained it.") from None
+  return config
+
+
+def check_port_free(host: str, port: int) -> None:
+  """Refuses a port that another program holds (viser would quietly move to the next free one, and the
+  user would open the wrong page). Port 0: any free port, picked when the server starts."""
+  if port == 0:
+    return
+  with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+    try:
+      s.bind((host, port))
+    except OSError as e:
+      raise UserError(f"cannot listen on {host}:{port} ({e.strerror or e}); another program uses it: pick "
+                      f"another with --port (or stop that program).") from None
+
+
+def viewer_camera_to_pose(wxyz, position) -> np.ndarray:
+  """A viser camera (orientation quaternion of its OpenCV camera-to-world, position) -> nerfpod's 4x4
+  OpenGL camera-to-world pose."""
+  pose = np.eye(4)
+  pose[:3, :3] = keyframes.quaternion_to_rotation(wxyz) @ OPENCV_TO_OPENGL
+  pose[:3, 3] = position
+  return pose
+
+
+def pose_to_viewer_camera(pose_4x4) -> tuple[np.ndarray, np.ndarray]:
+  """nerfpod's OpenGL camera-to-world pose -> viser's (wxyz of the OpenCV camera-to-world, position)."""
+  pose = np.asarray(pose_4x4, np.float64)
+  return keyframes.rotation_to_quaternion(pose[:3, :3] @ OPENCV_TO_OPENGL), pose[:3, 3].copy()
+
+
+def fit_resolution(width: int, height: int, longest: int) -> tuple[int, int]:
+  """(width, height) scaled down (never up) so that the longer side is at most `longest`, aspect kept."""
+  scale = min(1.0, longest / max(width, height, 1))
+  return max(1, round(width * scale)), max(1, round(height * scale))
+
+
+def camera_intrinsics(fov_y_rad: float, width: int, height: int) -> cameras.Intrinsics:
+  """A pinhole camera of `width` x `height` pixels with a vertical field of view of `fov_y_rad`."""
+  return cameras.Intrinsics.from_focal(width, height, 0.5 * height / np.tan(0.5 * fov_y_rad))
+
+
+@dataclasses.dataclass
+class Frame:
+  """What a browser was last sent: the camera it was rendered for and the picture."""
+  pose: np.ndarray               # (4, 4) OpenGL camera-to-world
+  intrinsics: cameras.Intrinsics
+  channel: str
+  step: int                      # the checkpoint's step
+  full: bool                     # full resolution (else the coarse preview)
+  image: np.ndarray              # (H, W, 3) uint8, as sent
+  seconds: float                 # render time
+  version: int                   # the page camera's version it was rendered for (_Browser.version)
+
+
+class _Browser:
+  """One connected page: its camera's version (bumped by every change) and its render thread."""
+
+  def __init__(self, client):
+    self.client = client
+    self.version = 0
+    self.changed_at = 0.0
+    self.wake = threading.Event()
+    self.frames = 0
+    self.coarse_frames = 0  # of those, the quick previews
+    self.last: Frame | None = None
+    self.closed = False
+
+  def changed(self):
+    self.version += 1
+    self.changed_at = time.monotonic()
+    self.wake.set()
+
+
+class Viewer:
+  """The viser server of one workdir; `close()` stops it. Construction restores the newest checkpoint (and
+  refuses a workdir without one) and starts serving."""
+
+  def __init__(self, workdir: str, host: str = "127.0.0.1", port: int = 7007, max_resolution: int = 512,
+               coarse_resolution: int = 64, paths_dir: str = "camera_paths", poll_seconds: float = 2.0):
+    try:
+      import viser
+    except ImportError:
+      raise UserError("the viewer needs viser: pip install 'nerfpod[viewer]' (or pip install viser).") from None
+    self.workdir, self.paths_dir, self.poll_seconds = str(workdir), paths_dir, poll_seconds
+    self.config = read_config(self.workdir)
+    try:
+      step = checkpoints.latest_step(self.workdir)
+    except Exception as e:  # noqa: BLE001 (an unreachable bucket)
+      raise UserError(f"could not list the checkpoints of {self.workdir} ({' '.join(str(e).split())[:300]}); "
+                      f"check the --workdir path and, for gs://, your network and credentials.") from None
+    if step is None:
+      raise UserError(f"workdir {self.workdir} holds no checkpoint yet; wait for the training run's first "
+                      f"save (every checkpoint.every_steps={self.config.checkpoint.every_steps} steps) or pass "
+                      f"the --workdir of a trained run.")
+    check_port_free(host, port)
+    mesh = Mesh(np.array(jax.local_devices()), (distributed.DATA_AXIS,))  # this machine's devices only
+    self.comps = components.build(self.config, mesh)
+    self.step, self.params = step, self._restore(step)
+    self.chunk = max(mesh.size, self.config.orbit.chunk - self.config.orbit.chunk % mesh.size)
+    self.max_resolution, self.coarse_resolution = int(max_resolution), int(coarse_resolution)
+    self.keyframes: list[tuple[np.ndarray, float]] = []  # (OpenGL pose, vertical fov in degrees)
+    self._browsers: dict[int, _Browser] = {}
+    self._lock = threading.Lock()
+    self._stop = threading.Event()
+    self.server = viser.ViserServer(host=host, port=port, label="nerfpod", verbose=False)
+    if port and self.server.get_port() != port:  # taken between our check and viser's bind
+      self.server.stop()
+      raise UserError(f"cannot listen on {host}:{port}: another program took it; pick another with --port.")
+    self._build_page()
+    self.server.on_client_connect(self._connected)
+    self.server.on_client_disconnect(self._disconnected)
+    self._poller = threading.Thread(target=self._poll_checkpoints, name="nerfpod-view-poll", daemon=True)
+    self._poller.start()
+
+  @property
+  def url(self) -> str:
+    host = self.server.get_host()
+    return f"http://{'localhost' if host in ('0.0.0.0', '::') else host}:{self.server.get_port()}"
+
+  # ---- checkpoints --------------------------------------------------------------------------------------
+
+  def _restore(self, step: int):
+    """The parameters of `step`, restored read-only onto this machine's devices."""
+    cc = self.config.checkpoint
+    with checkpoints.Checkpoints(self.workdir, cc.every_steps, cc.max_to_keep, read_only=True) as ckpt:
+      state, _ = ckpt.restore(self.comps.state_shapes, step)
+    return state.params
+
+  def _poll_checkpoints(self):
+    """Picks up a newer checkpoint while training goes on. A step deleted (max_to_keep) or unreadable while
+    being read is tried again at the next poll; what is on screen stays until then."""
+    while not self._stop.wait(self.poll_seconds):
+      try:
+        step = checkpoints.latest_step(self.workdir)
+        if step is None or step <= self.step:
+          continue
+        params = self._restore(step)
+      except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
+        print(f"nerfpod: view: could not read the newest checkpoint yet ({e}); trying again", file=sys.stderr)
+        continue
+      self.params, self.step = params, step
+      self._step_text.content = self._step_markdown()
+      print(f"nerfpod: view: now showing step {step}", flush=True)
+      self._all_changed()
+
+  # ---- rendering ----------------------------------------------------------------------------------------
+
+  def render(self, pose_4x4, intr: cameras.Intrinsics, channel: str = "rgb", params=None,
+             cancelled=lambda: False) -> np.ndarray | None:
+    """One picture (H, W, 3) uint8 of `channel` from camera (pose, intrinsics); None if `cancelled()` turned
+    true between chunks. Every renderer call has `self.chunk` rays (the last padded): one compilation."""
+    params = self.params if params is None else params
+    origins, directions = cameras.image_rays(np.asarray(pose_4x4, np.float64), intr,
+                                             self.config.data.pixel_center)
+    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+    n, pieces = len(origins), []
+    for start in range(0, n, self.chunk):
+      if cancelled():
+        return None
+      o, d = origins[start:start + self.chunk], directions[start:start + self.chunk]
+      if len(o) < self.chunk:
+        o, d = (np.concatenate([x, np.repeat(x[-1:], self.chunk - len(x), axis=0)]) for x in (o, d))
+      pieces.append(render.render_rays(self.comps.renderer, params, self.comps.mesh, o, d, self.chunk))
+    frame = {}
+    for k in render.OUTPUTS:
+      values = np.concatenate([p[k] for p in pieces])[:n]
+      frame[k] = values.reshape((intr.height, intr.width) + values.shape[1:])
+    style = video.ChannelStyle.fit([frame], self.comps.near, self.comps.far)
+    return style.image(channel, frame)
+
+  def _render_for(self, browser: _Browser, full: bool) -> bool:
+    """Renders the browser's current camera and sends it; False if the camera moved meanwhile."""
+    camera = browser.client.camera
+    version, step, params = browser.version, self.step, self.params
+    width, height = camera.image_width, camera.image_height
+    if width < 1 or height < 1:
+      return True
+    width, height = fit_resolution(width, height, int(self._max_resolution.value) if full
+                                   else self.coarse_resolution)
+    pose = viewer_camera_to_pose(camera.wxyz, camera.position)
+    intr = camera_intrinsics(camera.fov, width, height)
+    channel = self._channel.value
+    started = time.perf_counter()
+    image = self.render(pose, intr, channel, params,
+                        cancelled=lambda: browser.version != version or browser.closed or self._stop.is_set())
+    if image is None:
+      return False
+    seconds = time.perf_counter() - started
+    # PNG for the full picture (exact, what the tests compare); JPEG for the quick coarse ones.
+    browser.client.scene.set_background_image(image, format="png" if full else "jpeg", jpeg_quality=90)
+    browser.last = Frame(pose, intr, channel, step, full, image, seconds, version)
+    browser.frames += 1
+    browser.coarse_frames += not full
+    if full:
+      self._frame_text.content = f"{width}x{height} {channel} in {seconds * 1000:.0f} ms"
+    return True
+
+  def _render_loop(self, browser: _Browser):
+    """A coarse picture as soon as the camera changes; the full one once it has been still."""
+    coarse_done = full_done = -1
+    while not (browser.closed or self._stop.is_set()):
+      browser.wake.wait(0.05)
+      browser.wake.clear()
+      version = browser.version
+      try:
+        if version != coarse_done and version != full_done:
+          if self._render_for(browser, full=False):
+            coarse_done = version
+        elif version != full_done and time.monotonic() - browser.changed_at >= STILL_SECONDS:
+          if self._render_for(browser, full=True):
+            full_done = version
+      except Exception as e:  # noqa: BLE001 (a closed page mid-frame; keep the server alive)
+        if not browser.closed:
+          print(f"nerfpod: view: a frame failed ({e})", file=sys.stderr)
+        time.sleep(0.2)
+
+  # ---- the page -----------------------------------------------------------------------------------------
+
+  def _step_markdown(self) -> str:
+    return f"**Checkpoint** step {self.step}  \n`{self.workdir}`"
+
+  def _build_page(self):
+    gui, scene = self.server.gui, self.server.scene
+    gui.configure_theme(control_width="medium")
+    self._step_text = gui.add_markdown(self._step_markdown())
+    self._channel = gui.add_dropdown("Output", CHANNELS, initial_value="rgb")
+    self._max_resolution = gui.add_slider("Max resolution", 64, 2048, 32, self.max_resolution)
+    self._show_cameras = gui.add_checkbox("Show cameras", True)
+    self._frame_text = gui.add_markdown("")
+    for handle in (self._channel, self._max_resolution):
+      handle.on_update(lambda _: self._all_changed())
+    self._show_cameras.on_update(lambda _: self._set_cameras_visible(self._show_cameras.value))
+    with gui.add_folder("Camera path"):
+      add, clear = gui.add_button("Add keyframe"), gui.add_button("Clear keyframes")
+      intr = self.comps.scene.split(self.config.eval.split).intrinsics
+      self._path_frames = gui.add_number("Frames", 120, min=1, max=10000, step=1)
+      self._path_fps = gui.add_number("FPS", 30.0, min=1.0, max=240.0, step=1.0)
+      self._path_width = gui.add_number("Width", intr.width, min=1, max=8192, step=1)
+      self._path_height = gui.add_number("Height", intr.height, min=1, max=8192, step=1)
+      self._path_loop = gui.add_checkbox("Loop", False)
+      self._path_file = gui.add_text("File", "camera_path.json")
+      save = gui.add_button("Save path")
+      self._path_text = gui.add_markdown("No keyframes.")
+    add.on_click(lambda event: self.add_keyframe(event.client.camera))
+    clear.on_click(lambda _: self.clear_keyframes())
+    save.on_click(lambda _: self._save_clicked())
+    self._frustums = []
+    scale = 0.03 * self._scene_extent()
+    colours = {"train": (40, 90, 220)}
+    for name, split in self.comps.scene.splits.items():
+      fov = 2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy)
+      aspect = split.intrinsics.width / split.intrinsics.height
+      for i, (pose, image) in enumerate(zip(split.poses, split.images)):
+        wxyz, position = pose_to_viewer_camera(pose)
+        self._frustums.append(scene.add_camera_frustum(
+            f"/cameras/{name}/{i}", fov=float(fov), aspect=aspect, scale=scale, wxyz=wxyz, position=position,
+            color=colours.get(name, (230, 120, 30)), image=_thumbnail(image), format="jpeg"))
+
+  def _scene_extent(self) -> float:
+    positions = np.concatenate([s.poses[:, :3, 3] for s in self.comps.scene.splits.values()])
+    return float(np.linalg.norm(positions - positions.mean(0), axis=1).mean()) or 1.0
+
+  def _set_cameras_visible(self, visible: bool):
+    for frustum in self._frustums:
+      frustum.visible = visible
+
+  def _initial_view(self, camera):
+    """A new page looks where the first held-out camera looks, with its field of view and the scene's up
+    direction, from INITIAL_PULL_BACK times as far (so that the cameras around it are in sight too)."""
+    split = self.comps.scene.split(self.config.eval.split)
+    pose = np.asarray(split.poses[0], np.float64)
+    up = np.concatenate([s.poses[:, :3, 1] for s in self.comps.scene.splits.values()]).mean(0)
+    forward = -pose[:3, 2]
+    distance = max(float(np.linalg.norm(pose[:3, 3])), 1e-3)  # to the point in front nearest the origin
+    target = pose[:3, 3] + forward * distance
+    camera.up_direction = up / (np.linalg.norm(up) or 1.0)
+    camera.fov = float(2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy))
+    camera.position = target - forward * distance * INITIAL_PULL_BACK
+    camera.look_at = target
+
+  def _connected(self, client):
+    browser = _Browser(client)
+    with self._lock:
+      self._browsers[client.client_id] = browser
+    client.camera.on_update(lambda _: browser.changed())
+    self._initial_view(client.camera)
+    browser.changed()
+    threading.Thread(target=self._render_loop, args=(browser,), name=f"nerfpod-view-{client.client_id}",
+                     daemon=True).start()
+
+  def _disconnected(self, client):
+    with self._lock:
+      browser = self._browsers.pop(client.client_id, None)
+    if browser is not None:
+      browser.closed = True
+      browser.wake.set()
+
+  def _all_changed(self):
+    with self._lock:
+      browsers = list(self._browsers.values())
+    for browser in browsers:
+      browser.changed()
+
+  def browsers(self) -> dict[int, _Browser]:
+    with self._lock:
+      return dict(self._browsers)
+
+  # ---- camera paths -------------------------------------------------------------------------------------
+
+  def add_keyframe(self, camera):
+    """Records a browser camera as the next keyframe and draws it."""
+    pose = viewer_camera_to_pose(camera.wxyz, camera.position)
+    fov_deg = float(np.degrees(camera.fov))
+    self.keyframes.append((pose, fov_deg))
+    wxyz, position = pose_to_viewer_camera(pose)
+    self.server.scene.add_camera_frustum(
+        f"/keyframes/{len(self.keyframes) - 1}", fov=float(camera.fov), aspect=camera.aspect or 1.0,
+        scale=0.08 * self._scene_extent(), wxyz=wxyz, position=position, color=(230, 40, 40))
+    self._path_text.content = f"{len(self.keyframes)} keyframe(s)."
+
+  def clear_keyframes(self):
+    for i in range(len(self.keyframes)):
+      self.server.scene.remove_by_name(f"/keyframes/{i}")
+    self.keyframes.clear()
+    self._path_text.content = "No keyframes."
+
+  def camera_path(self) -> camera_paths.CameraPath:
+    """The path through the keyframes with the page's frame count, rate and size."""
+    if not self.keyframes:
+      raise UserError("add at least one keyframe before saving a camera path.")
+    poses, fov = keyframes.interpolate(np.stack([p for p, _ in self.keyframes]),
+                                       [f for _, f in self.keyframes], int(self._path_frames.value),
+                                       loop=bool(self._path_loop.value))
+    return camera_paths.CameraPath(poses, fov, int(self._path_width.value), int(self._path_height.value),
+                                   float(self._path_fps.value))
+
+  def save_path(self, name: str) -> str:
+    """Writes the keyframes' path as paths_dir/name (nerfstudio's camera_path.json); returns the path."""
+    name = name.strip()
+    if not name or os.path.basename(name) != name:
+      raise UserError(f"camera path file name {name!r} is not a plain file name; give e.g. camera_path.json.")
+    path = self.camera_path()
+    os.makedirs(self.paths_dir, exist_ok=True)
+    out = os.path.join(self.paths_dir, name if name.endswith(".json") else name + ".json")
+    partial = out + ".partial"  # whole or not at all: a renderer may be watching the folder
+    # The keyframes under a key of our own: nerfstudio's viewer reads "keyframes" in its own (three.js)
+    # layout when it loads a path, and would misread ours.
+    camera_paths.write(partial, path, nerfpod_keyframes=[
+        {"camera_to_world": pose.reshape(16).tolist(), "fov": fov} for pose, fov in self.keyframes],
+        is_cycle=bool(self._path_loop.value))
+    os.replace(partial, out)
+    return out
+
+  def _save_clicked(self):
+    try:
+      out = self.save_path(self._path_file.value)
+    except (UserError, OSError) as e:
+      self._path_text.content = f"Not saved: {e}"
+      return
+    self._path_text.content = f"Saved {int(self._path_frames.value)} frames to `{os.path.abspath(out)}`."
+    print(f"nerfpod: view: saved camera path {out}", flush=True)
+
+  def close(self):
+    self._stop.set()
+    for browser in self.browsers().values():
+      browser.closed = True
+      browser.wake.set()
+    self.server.stop()
+
+
+def _thumbnail(image_HxWx3) -> np.ndarray:
+  """A small uint8 copy of a training image for its frustum (every other pixel until it fits)."""
+  image = np.asarray(image_HxWx3)
+  step = max(1, -(-max(image.shape[:2]) // THUMBNAIL_PIXELS))
+  return video.to_uint8(image[::step, ::step])
+
+
+def _parse(argv):
+  parser = argparse.ArgumentParser(prog="nerfpod view", description="A live web viewer of a nerfpod workdir.")
+  parser.add_argument("--workdir", required=True, help="the training run's workdir (local or gs://)")
+  parser.add_argument("--port", type=int, default=7007, help="port to serve the page on (0: any free one)")
+  parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
+  parser.add_argument("--max_resolution", type=int, default=512,
+                      help="longest side of a still frame, pixels (the page's slider starts here)")
+  parser.add_argument("--coarse_resolution", type=int, default=64,
+                      help="longest side of the preview frames drawn while the camera moves")
+  parser.add_argument("--paths_dir", default="camera_paths", help="local folder where saved camera paths go")
+  parser.add_argument("--poll_seconds", type=float, default=2.0, help="how often to look for a newer checkpoint")
+  args = parser.parse_args(argv)
+  for name in ("max_resolution", "coarse_resolution"):
+    if getattr(args, name) < 8:
+      parser.error(f"--{name} must be at least 8 pixels")
+  if not 0 <= args.port < 65536:
+    parser.error("--port must be between 0 and 65535")
+  if not args.poll_seconds > 0:
+    parser.error("--poll_seconds must be positive")
+  return args
+
+
+def run(argv=None):
+  """`nerfpod view ...` and `python -m nerfpod.view ...`: serves until Ctrl-C; a user's mistake is one
+  sentence and exit code 2."""
+  started = time.perf_counter()
+  args = _parse(sys.argv[1:] if argv is None else argv)
+  logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore: keep the console readable
+  try:
+    viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
+                    args.paths_dir, args.poll_seconds)
+  except UserError as e:
+    print(f"nerfpod: error: {e}", file=sys.stderr, flush=True)
+    sys.exit(2)
+  print(f"nerfpod: view: step {viewer.step} of {args.workdir} at {viewer.url} (ready in "
+        f"{time.perf_counter() - started:.1f} s; Ctrl-C stops)", flush=True)
+  try:
+    while True:
+      time.sleep(3600)
+  except KeyboardInterrupt:
+    pass
+  finally:
+    viewer.close()
+
+
+if __name__ == "__main__":
+  run()
