@@ -260,12 +260,13 @@ def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
     pose[:3, :3] = tf.SO3(np.asarray(client.camera.wxyz)).as_matrix() @ np.diag([1.0, -1.0, -1.0])
     pose[:3, 3] = position
     placed.append((pose, np.degrees(client.camera.fov)))
+  viewer._path_frames.value = 8  # a short path: it is rendered below
   _click(driver, "Save path")
   saved = pathlib.Path(viewer.paths_dir) / "camera_path.json"
   _wait(saved.exists, 10, "the saved camera_path.json")
   path = camera_path.read(saved)
-  want_poses, want_fov = keyframes.interpolate(np.stack([p for p, _ in placed]), [f for _, f in placed], 120)
-  assert len(path) == 120 and (path.width, path.height) == (32, 32) and path.fps == 30
+  want_poses, want_fov = keyframes.interpolate(np.stack([p for p, _ in placed]), [f for _, f in placed], 8)
+  assert len(path) == 8 and (path.width, path.height) == (32, 32) and path.fps == 30
   np.testing.assert_allclose(path.poses, want_poses, atol=1e-6)
   np.testing.assert_allclose(path.fov_y_deg, want_fov, atol=1e-6)
   np.testing.assert_allclose(path.poses[0], placed[0][0], atol=1e-6)   # it starts and ends on the keyframes
@@ -273,6 +274,16 @@ def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
   saved_keyframes = json.loads(saved.read_text())["nerfpod_keyframes"]
   np.testing.assert_allclose([np.reshape(k["camera_to_world"], (4, 4)) for k in saved_keyframes],
                              [p for p, _ in placed], atol=1e-6)
+
+  # --mode=render renders the saved path into the archive: its cameras are the file's.
+  from nerfpod import archive, modes
+  config = smoke_config(**{"train.num_steps": 20, "checkpoint.every_steps": 10, "eval.max_views": 1,
+                           "orbit.render_after_training": False, "orbit.path": "file",
+                           "orbit.path_file": str(saved)})
+  modes.render_workdir(config, str(viewer.workdir))
+  rendered = archive.Archive.open(f"{viewer.workdir}/renders/orbit.zarr")
+  np.testing.assert_allclose(rendered.attributes["poses"], path.poses, atol=1e-6)
+  assert rendered.read_frame(0)["rgb"].shape == (32, 32, 3)
 
 
 def _view(*args, timeout=120):
