@@ -210,9 +210,34 @@ def test_auto_detects_each_format_and_says_which(lego, capsys):
     assert scenes.detect(str(root / folder)) == kind
   assert scenes.detect(str(root / "nerfstudio" / "transforms.json")) == "nerfstudio"
   scene = scenes.load(as_is("auto", root / "llff"))
-  assert scene.kind == "llff" and "holds a llff scene" in capsys.readouterr().out
+  assert scene.kind == "llff" and "holds a scene of kind 'llff'" in capsys.readouterr().out
   with pytest.raises(UserError, match="cannot tell the format"):
     scenes.detect(str(root / "llff" / "images"))
+
+
+def test_transforms_json_with_camera_angle_and_explicit_split_lists(lego, tmp_path):
+  """instant-ngp's camera_angle_x instead of fl_x, no w/h (the images' size), and nerfstudio's file lists,
+  which win over data.llffhold."""
+  names, images = lego["names"], lego["images"]
+  write_images(tmp_path / "images", names, images)
+  angle = 2 * np.arctan(0.5 * SIZE / lego["focal"])
+  meta = {"camera_angle_x": angle,
+          "train_filenames": [f"images/{n}" for n in names[2:]], "val_filenames": ["images/r_1.png"],
+          "test_filenames": ["./images/r_0.png"],
+          "frames": [{"file_path": f"images/{n}", "transform_matrix": p.tolist()}
+                     for n, p in zip(names, lego["poses"])]}
+  (tmp_path / "transforms.json").write_text(json.dumps(meta))
+  scene = scenes.load(as_is("nerfstudio", tmp_path))
+  assert {k: v.names for k, v in scene.splits.items() if k != "train"} == {
+      "val": ("images/r_1.png",), "test": ("images/r_0.png",)}
+  assert len(scene.split("train")) == NUM_FRAMES - 2
+  cam = scene.split("train").cameras[0]
+  assert (cam.width, cam.height, cam.cx, cam.cy) == (SIZE, SIZE, SIZE / 2, SIZE / 2)
+  assert cam.fx == pytest.approx(lego["focal"]) and cam.fy == pytest.approx(lego["focal"])
+  meta["test_filenames"] = ["images/r_99.png"]
+  (tmp_path / "transforms.json").write_text(json.dumps(meta))
+  with pytest.raises(UserError, match="test_filenames names 1 file"):
+    scenes.load(as_is("nerfstudio", tmp_path))
 
 
 def test_frames_of_different_sizes_and_lenses_in_one_split(lego, tmp_path):
@@ -249,6 +274,10 @@ def test_frames_of_different_sizes_and_lenses_in_one_split(lego, tmp_path):
                             split.cameras[f])
     np.testing.assert_allclose(xy, np.stack([col[sel], row[sel]], 1) + 0.5, atol=2e-3)
     np.testing.assert_array_equal(np.round(batch["rgb"][sel] * 255), split.image_uint8(f)[row[sel], col[sel]])
+  # Two hosts load the two halves of the same global batch.
+  halves = [data.LocalRayBatch(split, 0, 4096, slice(p * 2048, (p + 1) * 2048), 0.5).map(0) for p in (0, 1)]
+  for key in ("origins", "directions", "rgb"):
+    np.testing.assert_array_equal(np.concatenate([h[key] for h in halves]), batch[key])
 
 
 def _opencv_undistort_points(xd, yd, lens, iterations=500):
@@ -371,6 +400,11 @@ def test_nerfstudio_fox_loads_with_its_lens_and_refuses_the_frames_whose_images_
   cam = scene.split("train").cameras[0]
   assert (cam.width, cam.height) == (270, 480) and cam.fx == pytest.approx(1375.52 / 4)
   assert cam.distortion == (0.0578421, -0.0805099, 0.0, 0.0, -0.000980296, 0.00015575)
+  # Centred on what the cameras look at: every camera's optical axis points at the origin (within 16
+  # degrees; OpenCV axes taken for OpenGL's would point every one away from it).
+  everything = np.concatenate([scene.split("train").poses, scene.split("test").poses])
+  towards = -everything[:, :3, 3] / np.linalg.norm(everything[:, :3, 3], axis=1, keepdims=True)
+  assert np.einsum("ni,ni->n", -everything[:, :3, 2], towards).min() > 0.96
   with pytest.raises(UserError) as err:
     scenes.load(data_config("nerfstudio", FOX / "transforms_upstream_67frames.json", downscale=4))
   message = str(err.value)
@@ -417,6 +451,10 @@ BAD_CASES = {
                          [(SIZE, SIZE, (60.0, 60.0, 25.0, 25.0), n) for n in lego["names"][:2]]),
         write_images(root / "images", lego["names"][:1], lego["images"][:1])), "r_1.png"),
     "no sparse model": ("colmap", lambda root, lego: None, "holds no COLMAP sparse model"),
+    "colmap malformed": ("colmap", lambda root, lego: (
+        write_colmap_txt(root / "sparse" / "0", lego["poses"][:2],
+                         [(SIZE, SIZE, (60.0, 60.0, 25.0, 25.0), n) for n in lego["names"][:2]]),
+        (root / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 50\n")), "cannot be read"),
 }
 
 
@@ -444,3 +482,36 @@ def test_bad_capture_exits_2_with_one_sentence_through_the_command_line(tmp_path
   errors = [l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]
   assert len(errors) == 1 and "17 image(s) of its 67 frames that do not exist" in errors[0]
   assert "Traceback" not in result.stderr and not (tmp_path / "run" / "config.json").exists()
+
+
+@pytest.mark.slow
+def test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_line(tmp_path):
+  """The whole job on the fox (transforms.json, OpenCV lens, portrait frames), told apart by data.kind=auto:
+  scene.json records the normalisation, the held-out views are evaluated at their own size."""
+  require(FOX)
+  from procs import run_main
+  workdir = tmp_path / "run"
+  result = run_main("--config=configs/default.py:smoke", f"--workdir={workdir}", "--config.data.kind=auto",
+                    f"--config.data.path={FOX}", "--config.data.downscale=8", "--config.render.near=0.05",
+                    "--config.render.far=3", "--config.eval.max_views=1", "--config.orbit.num_frames=2",
+                    devices_per_process=2)
+  assert result.returncode == 0, result.stderr[-3000:]
+  assert f"data.kind=auto: {FOX} holds a scene of kind 'nerfstudio'" in result.stdout
+  scene = json.loads((workdir / "scene.json").read_text())
+  assert scene["kind"] == "nerfstudio" and scene["space"] == "unbounded" and scene["name"] == "nerfstudio_fox"
+  transform = np.array(scene["capture_to_scene"])
+  reloaded = scenes.load(data_config("nerfstudio", FOX, downscale=8))
+  np.testing.assert_allclose(transform, reloaded.transform, rtol=1e-12)
+  metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
+  assert metrics["views"][0]["name"] == "images/0001.jpg" and np.isfinite(metrics["mean"]["psnr"])
+
+
+def test_scene_report_tool_says_what_was_loaded(lego):
+  from tools import scene_report
+  config = smoke_config(**{"data.kind": "auto", "data.path": str(lego["root"] / "nerfstudio"),
+                            "data.orient": "none", "data.center": "none", "data.scale": 1.0})
+  result = scene_report.report(config, batch_size=256, batches=2)
+  assert result["kind"] == "nerfstudio" and result["space"] == "unbounded"
+  assert result["splits"]["train"]["frames"] == NUM_FRAMES - 1 and result["splits"]["train"]["sizes"] == ["50x50"]
+  assert result["splits"]["train"]["image_mib"] * 4 == pytest.approx(result["splits"]["train"]["as_float32_mib"])
+  assert result["capture_to_scene"] == np.eye(4).tolist() and result["pipeline_rays_per_s"] > 0

@@ -19,6 +19,9 @@ def test_main_writes_resolved_config_metrics_and_progress(smoke_run):
   workdir, result = smoke_run
   config = json.loads((workdir / "config.json").read_text())
   assert config["train"]["num_steps"] == 40 and config["data"]["kind"] == "procedural"
+  scene = json.loads((workdir / "scene.json").read_text())
+  assert scene["kind"] == "procedural" and scene["space"] == "object" and scene["near"] == 2.0
+  assert scene["capture_to_scene"] == [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
   metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
   assert metrics["step"] == 40 and metrics["scene"] == "procedural" and metrics["split"] == "test"
   assert [v["index"] for v in metrics["views"]] == [0, 1]

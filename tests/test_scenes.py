@@ -18,7 +18,7 @@ def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
     np.testing.assert_array_equal(a.splits[name].images, b.splits[name].images)
     assert a.splits[name].images.shape == (n, 24, 24, 3)
   assert (a.near, a.far, a.background) == (2.0, 6.0, (1.0, 1.0, 1.0))
-  images = a.splits["train"].images
+  images = np.asarray(a.splits["train"].images)
   assert (images == 1.0).all(-1).mean() > 0.2  # background visible
   assert (images < 0.9).any(-1).mean() > 0.2   # and the solids
   for pose in a.splits["train"].poses:
@@ -121,3 +121,27 @@ def test_dispatch_refuses_unknown_kinds_and_missing_paths():
   cfg.path = "/nonexistent/tiny.npz"
   with pytest.raises(UserError, match="not found"):
     scenes.load(cfg)
+
+
+def test_split_keeps_frames_of_any_size_as_uint8_and_gives_them_back_as_float():
+  from nerfpod.nerf.cameras import Cameras, Intrinsics
+  from nerfpod.scenes.base import Split, to_float, to_uint8
+  levels = np.arange(256, dtype=np.uint8)
+  np.testing.assert_array_equal(to_uint8(to_float(levels)), levels)  # exact on the 256 levels
+  rng = np.random.default_rng(0)
+  images = [rng.random((3, 4, 3)).astype(np.float32), rng.random((2, 5, 3)).astype(np.float32)]
+  cams = Cameras.stack([Intrinsics.from_focal(4, 3, 5.0), Intrinsics.from_focal(5, 2, 6.0)])
+  split = Split.from_images(images, np.tile(np.eye(4), (2, 1, 1)), cams, ["a", "b"])
+  assert split.pixels.dtype == np.uint8 and split.pixels.shape == (22, 3)
+  np.testing.assert_array_equal(split.offsets, [0, 12, 22])
+  for i in (0, 1):
+    np.testing.assert_allclose(split.image(i), images[i], atol=0.5 / 255 + 1e-7)
+  only_b = split.select([1])
+  assert only_b.names == ("b",) and only_b.cameras[0] == cams[1]
+  np.testing.assert_array_equal(only_b.image_uint8(0), split.image_uint8(1))
+  np.testing.assert_array_equal(split.images[1], split.image(1))  # one frame, converted when read
+  assert split.images.size == 66 and len(split.images) == 2
+  with pytest.raises(ValueError, match="differ in size"):
+    np.asarray(split.images)
+  with pytest.raises(UserError, match="frame b is 5x2 pixels but its camera is 4x3"):
+    Split.from_images(images, np.tile(np.eye(4), (2, 1, 1)), Intrinsics.from_focal(4, 3, 5.0), ["a", "b"])

@@ -52,7 +52,9 @@ def load(data_config) -> Scene:
   path = data_config.path
   if kind == "auto":
     kind = detect(path)
-    print(f"data: {path} holds a {kind} scene (data.kind=auto)", flush=True)
+    import jax  # started by now; only process 0 talks
+    if jax.process_index() == 0:
+      print(f"data.kind=auto: {path} holds a scene of kind {kind!r}", flush=True)
   if kind == "tiny":
     from nerfpod.scenes import tiny
     return tiny.load(path)

@@ -43,14 +43,21 @@ class Split:
     images = list(images)
     if isinstance(cameras, Intrinsics):
       cameras = Cameras.repeat(cameras, len(images))
+
     def flat(im, channels, name):
       im = np.asarray(im)
+      i = names.index(name)
+      if im.shape[:2] != (cameras.height[i], cameras.width[i]):
+        raise UserError(f"the image of frame {name} is {im.shape[1]}x{im.shape[0]} pixels but its camera is "
+                        f"{cameras.width[i]}x{cameras.height[i]}; use the images the cameras were made for.")
       if im.dtype != np.uint8:
         if not np.isfinite(im).all():
           raise UserError(f"the image of frame {name} contains NaN or infinity; fix or remove that frame.")
         im = to_uint8(im)
       return im.reshape(-1, channels)
     names = tuple(names)
+    if not len(images) == len(cameras) == len(names):
+      raise UserError(f"{len(images)} images, {len(cameras)} cameras and {len(names)} names do not match.")
     pixels = (np.concatenate([flat(im, 3, name) for im, name in zip(images, names)]) if images
               else np.zeros((0, 3), np.uint8))
     alpha = None if alphas is None else np.concatenate([flat(a, 1, name)[:, 0] for a, name in zip(alphas, names)])
@@ -91,12 +98,10 @@ class Split:
     return to_float(self.alphas[self.offsets[index]:self.offsets[index + 1]].reshape(h, w))
 
   @property
-  def images(self) -> np.ndarray:
-    """Every image stacked, (N, H, W, 3) float32 (4 bytes a channel: for small scenes and tests). Frames
-    of different sizes have no such array: use `image(i)`."""
-    if len(set(zip(self.cameras.width.tolist(), self.cameras.height.tolist()))) > 1:
-      raise ValueError("the frames of this split differ in size; read them one by one with Split.image(i)")
-    return np.stack([self.image(i) for i in range(len(self))])
+  def images(self) -> "FloatImages":
+    """The images as float32 in [0, 1], converted when read: `images[i]` is `image(i)`; `np.asarray(images)`,
+    `.shape` and any other indexing stack them all, (N, H, W, 3), for splits whose frames share one size."""
+    return FloatImages(self)
 
   def select(self, indices) -> "Split":
     """The split of frames `indices` (in that order)."""
@@ -106,6 +111,37 @@ class Split:
     return Split(take(self.pixels), self.poses[indices], self.cameras.select(indices),
                  tuple(self.names[i] for i in indices), take(self.alphas),
                  None if self.bounds is None else self.bounds[indices])
+
+
+class FloatImages:
+  """A split's images seen as float32, one frame converted at a time where one is asked for."""
+
+  def __init__(self, split: Split):
+    self._split = split
+
+  def __len__(self) -> int:
+    return len(self._split)
+
+  def __getitem__(self, key):
+    if isinstance(key, (int, np.integer)):
+      return self._split.image(int(key) % len(self._split))
+    return np.asarray(self)[key]
+
+  @property
+  def shape(self) -> tuple[int, ...]:
+    sizes = set(zip(self._split.cameras.height.tolist(), self._split.cameras.width.tolist()))
+    if len(sizes) > 1:
+      raise ValueError("the frames of this split differ in size; read them one by one with Split.image(i)")
+    return (len(self._split), *sizes.pop(), 3)
+
+  @property
+  def size(self) -> int:
+    return self._split.num_pixels * 3
+
+  def __array__(self, dtype=None, copy=None):
+    self.shape  # noqa: B018 (refuses frames of different sizes)
+    out = np.stack([self._split.image(i) for i in range(len(self._split))])
+    return out if dtype is None else out.astype(dtype)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -145,7 +181,8 @@ def capture_scene(name: str, kind: str, images, cams: Cameras, names, framing, w
   """A real capture's Scene from its frames and their framing (nerfpod.scenes.capture.frame): one split per
   list of frame indices, black background (captures are opaque)."""
   full = check_split(Split.from_images(images, framing.poses, cams, names, bounds=framing.bounds), where)
-  splits = {k: full.select(v) for k, v in framing.splits.items()}
+  selected: dict[tuple, Split] = {}  # val and test are often the same frames: one copy
+  splits = {k: selected.setdefault(tuple(v), full.select(v)) for k, v in framing.splits.items()}
   return Scene(name, splits, near=framing.near, far=framing.far, background=(0.0, 0.0, 0.0), space=framing.space,
                transform=framing.transform, kind=kind)
 

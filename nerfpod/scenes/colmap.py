@@ -62,8 +62,8 @@ def _reconstruction(folder: str):
   try:
     return pycolmap.Reconstruction(folder)
   except Exception as e:  # pycolmap raises its own error types for unreadable models
-    raise UserError(f"the COLMAP model in {folder} cannot be read ({str(e).strip().splitlines()[-1]}); "
-                    f"re-export it from COLMAP.") from e
+    reason = (str(e).strip().splitlines() or [type(e).__name__])[-1]
+    raise UserError(f"the COLMAP model in {folder} cannot be read ({reason}); re-export it from COLMAP.") from e
 
 
 def _depth_bounds(rec, image, w2c_3x4: np.ndarray) -> np.ndarray | None:
