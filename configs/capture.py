@@ -24,6 +24,8 @@ def get_config(arg: str | None = None):
   c.render.spacing = "inverse"
   c.render.num_samples = 48
   c.render.num_importance = 32
+  c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
+                                  # (with 0, dark pixels could be fitted as see-through onto black)
   c.model.use_viewdirs = True
   g = c.model.hashgrid
   g.bound, g.log2_table_size, g.max_resolution = 2.0, 19, 1024  # the contracted ball of radius 2

@@ -21,6 +21,8 @@ def get_config(arg: str | None = None):
   c.data.space = "forward_facing"
   c.render.space = "ndc"          # near/far default to the NDC cube's 0 and 1
   c.render.num_samples = 48
+  c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
+                                  # (with 0, dark pixels could be fitted as see-through onto black)
   c.model.use_viewdirs = True
   g = c.model.hashgrid
   # Offset cameras see up to |x|, |y| ~ 1.7 in NDC near the near plane (horns): a box of 2 keeps all of it,
