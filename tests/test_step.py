@@ -32,11 +32,12 @@ def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_opti
   return np.array(losses), jax.device_get(state.params)
 
 
-@pytest.mark.parametrize("field,importance", [("mlp", 8), ("hashgrid", 0)])
-def test_eight_devices_match_one_device(field, importance):
+@pytest.mark.parametrize("field,importance,proposals", [("mlp", 8, ()), ("hashgrid", 0, ()), ("hashgrid", 0, (16,))])
+def test_eight_devices_match_one_device(field, importance, proposals):
   config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
                            "model.mlp.skips": (1,), "model.use_viewdirs": True,
-                           "render.num_importance": importance, "train.batch_size": 128})
+                           "render.num_importance": importance, "render.proposal_samples": proposals,
+                           "train.batch_size": 128})
   assert jax.device_count() == 8
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   eight = distributed.make_mesh()
