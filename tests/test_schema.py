@@ -156,7 +156,7 @@ def test_an_unknown_config_argument_is_one_sentence(tmp_path):
   assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
   assert result.stderr.strip().splitlines() == [
       "nerfpod: error: unknown config argument 'foo' after the config file's colon; it takes: scene=..., "
-      "smoke (e.g. --config=configs/blender.py:scene=lego,smoke)."]
+      "cpu, smoke (e.g. --config=configs/blender.py:scene=lego,smoke)."]
 
 
 def test_config_json_of_a_run_holds_exactly_the_schemas_fields(tmp_path):
