@@ -29,6 +29,9 @@ ADDED_FIELDS = {
     "model.proposal.num_levels": 5, "model.proposal.log2_table_size": 17, "model.proposal.base_resolution": 16,
     "model.proposal.max_resolution": 128, "model.proposal.hidden_width": 16,  # unused without proposals
     "train.interlevel_weight": 1.0, "train.distortion_weight": 0.0,       # likewise
+    "render.space": "euclidean", "render.spacing": "linear",               # the world, samples even in distance
+    "data.llffhold": 8, "data.orient": "auto", "data.center": "auto",      # captures only: earlier versions
+    "data.scale": 0.0, "data.space": "auto",                               # loaded none
 }
 
 

@@ -176,3 +176,41 @@ def test_config_error_lists_every_mistake():
   with pytest.raises(schema.ConfigError) as error:
     schema.validate(config)
   assert [m.split("=")[0] for m in error.value.messages] == ["train.log_every", "orbit.fps"]
+
+
+# Every field of configs/default.py in the release before the real captures, proposal sampling, the pod
+# compile tool and the resilience work (commit 56b18de): a workdir written then has exactly these.
+EARLIER_RELEASE_FIELDS = (
+    "checkpoint.every_steps", "checkpoint.max_to_keep", "compile.cpu_ynnpack", "data.downscale",
+    "data.image_size", "data.kind", "data.path", "data.pixel_center",
+    "eval.chunk", "eval.max_views", "eval.split", "model.compute_dtype",
+    "model.field", "model.hashgrid.base_resolution", "model.hashgrid.bound", "model.hashgrid.features_per_level",
+    "model.hashgrid.geo_features", "model.hashgrid.hidden_width", "model.hashgrid.log2_table_size", "model.hashgrid.max_resolution",
+    "model.hashgrid.num_levels", "model.mlp.density_activation", "model.mlp.depth", "model.mlp.num_frequencies",
+    "model.mlp.skips", "model.mlp.viewdir_frequencies", "model.mlp.width", "model.use_viewdirs",
+    "orbit.chunk", "orbit.elevation", "orbit.focal", "orbit.fps",
+    "orbit.height", "orbit.num_frames", "orbit.radius", "orbit.render_after_training",
+    "orbit.width", "render.far", "render.last_delta", "render.near",
+    "render.num_importance", "render.num_samples", "train.adam_eps", "train.batch_size",
+    "train.grad_clip", "train.image_every", "train.log_every", "train.lr_final",
+    "train.lr_init", "train.lr_warmup_steps", "train.microbatches", "train.num_steps",
+    "train.random_background", "train.seed",
+)
+
+
+def test_a_workdir_of_the_earlier_release_resumes_evaluates_and_renders_with_todays_default():
+  """Each field added since is either in ADDED_FIELDS (read as what the earlier release did) or one that may
+  change on resume: the earlier workdir is not refused."""
+  from nerfpod import checkpoints
+  current = json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort())
+  flat = schema.flatten(current)
+  earlier = {k: v for k, v in flat.items() if k in EARLIER_RELEASE_FIELDS}
+  assert len(earlier) == len(EARLIER_RELEASE_FIELDS)
+  saved = {}
+  for dotted, value in earlier.items():
+    node = saved
+    *parents, leaf = dotted.split(".")
+    for p in parents:
+      node = node.setdefault(p, {})
+    node[leaf] = value
+  assert checkpoints.incompatible_fields(saved, current) == []
