@@ -189,6 +189,7 @@ FIELDS: dict[str, Field] = {
 
     "compile.cpu_ynnpack": boolean(),
     "compile.cpu_memory_gib": number(above=0.0, example=3.0),
+    "compile.gradient_mean": choice("auto", "ordered", "pmean"),
     "compile.hashgrid_lookup": choice("auto", "gather", "matmul"),
     "compile.matmul_max_rows": integer(0, example=30000),
 

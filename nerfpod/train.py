@@ -24,14 +24,15 @@ def per_ray_uniforms(key, ray_ids, count: int):
 def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                     random_background: bool = False, microbatches: int = 1,
                     compiler_options: dict | None = None, interlevel_weight: float = 1.0,
-                    distortion_weight: float = 0.0):
+                    distortion_weight: float = 0.0, ordered_mean: bool = True):
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
-  averaged across devices (every device holds the same number of rays, so that is the global mean), in an
-  order that does not depend on the processes (distributed.ordered_mean: any topology of the same device
-  count gives the same bits), and every device applies the same Adam update to its replica of the
-  parameters. A step whose loss, gradient or update is not finite leaves the state as it was.
+  averaged across devices (every device holds the same number of rays, so that is the global mean) and every
+  device applies the same Adam update to its replica of the parameters. With `ordered_mean` the mean is
+  summed in an order that does not depend on the processes (distributed.ordered_mean: any topology of the
+  same device count gives the same bits, at log2(N) exchanges of the gradients); without, it is one
+  all-reduce (jax.lax.pmean), whose summation order is the collective's own (gradient_mean_is_ordered). A step whose loss, gradient or update is not finite leaves the state as it was.
   With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
   colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
   colour, which gives clean depth, opacity and disparity.
@@ -90,8 +91,11 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
     params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
     (loss, (mses, extra)), grads = accumulate(params, batch, key)
-    grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), distributed.DATA_AXIS,
-                                                        num_devices)
+    if ordered_mean:
+      grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), distributed.DATA_AXIS,
+                                                          num_devices)
+    else:
+      grads, loss, mses, extra = jax.lax.pmean((grads, loss, mses, extra), distributed.DATA_AXIS)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
@@ -147,7 +151,33 @@ def train_step(comps: components.Components, microbatches: int | None = None):
     microbatches = fit_microbatches(comps)
   return make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
                          comps.scene.background, tc.random_background, microbatches, comps.compiler_options,
-                         tc.interlevel_weight, tc.distortion_weight)
+                         tc.interlevel_weight, tc.distortion_weight, gradient_mean_is_ordered(comps.config))
+
+
+def gradient_mean_is_ordered(config, backend: str | None = None) -> bool:
+  """compile.gradient_mean: 'ordered' (distributed.ordered_mean), 'pmean' (one all-reduce) or 'auto':
+  ordered on a CPU, where simulated topologies are debugged and must agree bit for bit, one all-reduce on
+  accelerators, where a pod's step must cost no more than the gradients' all-reduce (`backend`: JAX's
+  default unless given; the pod compile tool asks for 'tpu')."""
+  choice = config.compile.gradient_mean
+  if choice == "auto":
+    return (backend or jax.default_backend()) == "cpu"
+  return choice == "ordered"
+
+
+def fewest_microbatches(per_device: int, budget: int, step_bytes) -> tuple[int, int | None]:
+  """The fewest micro-batches (a divisor of the `per_device` rays) whose step fits `budget` bytes per device,
+  and that step's bytes; `step_bytes(count)` compiles the step with `count` micro-batches and returns XLA's
+  memory analysis of it (step_memory_bytes). Each try is one compilation; the next count tried is scaled by
+  how far the last one was over the budget. Where none fits, the most there can be."""
+  divisors = [m for m in range(1, per_device + 1) if per_device % m == 0]
+  count = 1
+  while True:
+    need = step_bytes(count)
+    if need is None or need <= budget or count == divisors[-1]:
+      return count, need
+    wanted = count * need / max(budget, 1)  # activations dominate, and shrink with the slice
+    count = next((m for m in divisors if m > count and m >= wanted), divisors[-1])
 
 
 def step_memory_bytes(compiled) -> int | None:
@@ -172,25 +202,17 @@ def memory_budget_bytes(config) -> int:
 
 def fit_microbatches(comps: components.Components) -> int:
   """train.microbatches=0: the fewest micro-batches (a divisor of the rays each device holds) whose compiled
-  step fits memory_budget_bytes, by XLA's memory analysis of the step compiled for this run's shapes. Each
-  try is one compilation; the next count tried is scaled by how far the last one was over the budget."""
+  step fits memory_budget_bytes, by XLA's memory analysis of the step compiled for this run's shapes
+  (fewest_microbatches)."""
   tc = comps.config.train
   per_device = tc.batch_size // jax.device_count()
-  divisors = [m for m in range(1, per_device + 1) if per_device % m == 0]
   budget = memory_budget_bytes(comps.config)
   first = next(comps.batches(0))
   batch = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
   key = components.rays_key(tc.seed)
-  count = 1
-  while True:
-    step = make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
-                           comps.scene.background, tc.random_background, count, comps.compiler_options,
-                           tc.interlevel_weight, tc.distortion_weight)
-    need = step_memory_bytes(step.lower(comps.state_shapes, batch, key).compile())
-    if need is None or need <= budget or count == divisors[-1]:
-      break
-    wanted = count * need / max(budget, 1)  # activations dominate, and shrink with the slice
-    count = next((m for m in divisors if m > count and m >= wanted), divisors[-1])
+  count, need = fewest_microbatches(
+      per_device, budget,
+      lambda m: step_memory_bytes(train_step(comps, m).lower(comps.state_shapes, batch, key).compile()))
   if jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"

@@ -162,3 +162,31 @@ def test_proposal_step_is_compiled_once_and_reports_its_losses():
   # The first call takes the freshly initialised state, placed otherwise than the step's own output, so the
   # second may compile once more; from then on every step reuses one program (no shape depends on data).
   assert programs[1] == programs[-1] <= 2, programs
+
+
+def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_backend():
+  """compile.gradient_mean: the ordered mean (CPU's 'auto') and pmean (accelerators' 'auto') give the same
+  step to round-off; pmean's step has one all-reduce and no exchanges, the ordered one exchanges."""
+  config = smoke_config(**{"train.batch_size": 128})
+  mesh = distributed.make_mesh()
+  optimizer = components.make_optimizer(config.train)
+  scene = scenes.load(config.data)
+  model = nerf_model.from_config(config)
+  dataset = data.ray_batches(scene.split("train"), 0, 128, slice(0, 128), 0.5, 1)
+  batch = {k: jax.device_put(v, distributed.batch_sharding(mesh)) for k, v in dataset[0].items() if k != "step"}
+  results, hlos = [], []
+  for ordered in (True, False):
+    state = components.initial_state(model, optimizer, config.train.seed, mesh)
+    step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, ordered_mean=ordered)
+    hlos.append(step_fn.lower(state, batch, jax.random.key(7)).compile().as_text())
+    state, metrics = step_fn(state, batch, jax.random.key(7))
+    results.append((float(metrics["loss"]), jax.device_get(state.params)))
+  assert results[0][0] == pytest.approx(results[1][0], rel=1e-6)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), results[0][1], results[1][1])
+  assert "collective-permute" in hlos[0] and "collective-permute" not in hlos[1]
+  assert "all-reduce" in hlos[1]
+  assert train.gradient_mean_is_ordered(config, "cpu") and not train.gradient_mean_is_ordered(config, "tpu")
+  config.compile.gradient_mean = "pmean"
+  assert not train.gradient_mean_is_ordered(config, "cpu")
+  config.compile.gradient_mean = "ordered"
+  assert train.gradient_mean_is_ordered(config, "tpu")

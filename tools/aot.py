@@ -202,8 +202,19 @@ def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
   report["param_bytes"] = state_bytes
   key = jax.ShapeDtypeStruct((), jax.random.key(0).dtype, sharding=distributed.replicated(mesh))
   if "step" in what:
-    step_fn = train.make_train_step(program.model, program.optimizer, mesh, program.near, program.far,
-                                    program.background, tc.random_background, tc.microbatches)
+    def step_fn_of(microbatches):
+      return train.make_train_step(program.model, program.optimizer, mesh, program.near, program.far,
+                                   program.background, tc.random_background, microbatches,
+                                   interlevel_weight=tc.interlevel_weight, distortion_weight=tc.distortion_weight,
+                                   ordered_mean=train.gradient_mean_is_ordered(config, "tpu"))
+    microbatches = tc.microbatches
+    if microbatches == 0:  # as a run on the pod picks them: the fewest that fit 85% of the chip's HBM
+      lower = lambda m: step_fn_of(m).lower(program.state_shapes, program.batch_shapes, key)  # noqa: E731
+      microbatches, _ = train.fewest_microbatches(
+          tc.batch_size // pod.num_chips, int(0.85 * pod.chip.hbm_bytes),
+          lambda m: train.step_memory_bytes(lower(m).compile()))
+    report["microbatches"] = microbatches
+    step_fn = step_fn_of(microbatches)
     step = _compile(step_fn.lower(program.state_shapes, program.batch_shapes, key), pod, pod.num_chips,
                     tc.batch_size)
     step["unexpected_collectives"] = check_collectives(step, state_bytes)
