@@ -244,7 +244,8 @@ def _size(n: float) -> str:
   return f"{int(n)} B"
 
 
-def _duration(seconds: float) -> str:
+def duration(seconds: float) -> str:
+  """A time for people: h, min, s or ms."""
   if seconds >= 3600:
     return f"{seconds / 3600:.1f} h"
   if seconds >= 60:
@@ -275,21 +276,21 @@ def format_report(report: dict) -> str:
     lines.append(
         f"  {name:<7} {_size(m['argument_bytes']):>9} {_size(m['temp_bytes']):>9} {_size(m['output_bytes']):>9} "
         f"{_size(m['peak_bytes']):>9} {('fits' if r['fits_hbm'] else 'OVER'):>8} {r['flops_per_chip'] / 1e9:>9.3f} "
-        f"{r['bytes_per_chip'] / 1e9:>8.3f} {_duration(r['seconds']):>10} "
-        f"{(_duration(xla) if xla else 'n/a'):>9} {r['rays_per_s_per_chip'] or 0:>12,.0f} "
+        f"{r['bytes_per_chip'] / 1e9:>8.3f} {duration(r['seconds']):>10} "
+        f"{(duration(xla) if xla else 'n/a'):>9} {r['rays_per_s_per_chip'] or 0:>12,.0f} "
         f"{(r['rays_per_s'] or 0):>12,.0f} {r['compile_seconds']:>7.1f}s")
   if "step" in report and report["step"]["seconds"] is not None:
     s = report["step"]
     split = s["seconds_split"]
-    lines.append(f"  step time: {_duration(split['matmul_bound'])} matmul-bound ops, "
-                 f"{_duration(split['memory_bound'])} memory-bound (of which gathers/scatters "
-                 f"{_duration(split['gather_scatter'])}), "
-                 f"{_duration(split['collectives'])} collectives; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
+    lines.append(f"  step time: {duration(split['matmul_bound'])} matmul-bound ops, "
+                 f"{duration(split['memory_bound'])} memory-bound (of which gathers/scatters "
+                 f"{duration(split['gather_scatter'])}), "
+                 f"{duration(split['collectives'])} collectives; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
     for c in s["collectives"]:
       lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips, x{c['count']:g}")
     verdict = "; ".join(s["unexpected_collectives"]) or "the gradient all-reduce and scalars only"
     lines.append(f"  step collectives: {verdict}")
-    lines.append(f"  {report['num_steps']} steps (train.num_steps): {_duration(s['run_seconds'])} estimated")
+    lines.append(f"  {report['num_steps']} steps (train.num_steps): {duration(s['run_seconds'])} estimated")
   lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip "
                f"{_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
                f"compiled program on the chip's published peaks: nerfpod.hlo_cost), not measurements")

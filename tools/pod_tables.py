@@ -56,15 +56,8 @@ def _report(config, pod, note: list):
 
 
 def _time(seconds) -> str:
-  if seconds is None:
-    return "n/a"
-  if seconds >= 3600:
-    return f"{seconds / 3600:.1f} h"
-  if seconds >= 60:
-    return f"{seconds / 60:.1f} min"
-  if seconds >= 1:
-    return f"{seconds:.2f} s"
-  return f"{seconds * 1e3:.3g} ms"
+  from tools import aot  # imported late, as above: it starts JAX
+  return "n/a" if seconds is None else aot.duration(seconds)
 
 
 def _gib(n) -> str:
