@@ -7,6 +7,7 @@ evaluation (`Split.image`).
 """
 import dataclasses
 import functools
+import json
 
 import numpy as np
 
@@ -219,3 +220,14 @@ def check_split(split: Split, where: str) -> Split:
   if split.bounds is not None and (split.bounds.shape != (n, 2) or not np.isfinite(split.bounds).all()):
     raise UserError(f"{where}: the per-frame near/far bounds are not ({n}, 2) finite numbers.")
   return split
+
+
+def read_json(path: str):
+  """A scene's JSON file (Blender's transforms_*.json, nerfstudio's transforms.json); malformed JSON is one
+  sentence naming where."""
+  try:
+    with open(path) as f:
+      return json.load(f)
+  except json.JSONDecodeError as e:
+    raise UserError(f"{path} is not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); fix or "
+                    f"regenerate the file.") from e

@@ -1,6 +1,5 @@
 """The NeRF synthetic ("Blender") format: transforms_{split}.json + RGBA PNGs composited on white."""
 import concurrent.futures
-import json
 import os
 
 import numpy as np
@@ -8,18 +7,13 @@ from PIL import Image
 
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Intrinsics
-from nerfpod.scenes.base import Scene, Split, check_split, to_uint8
+from nerfpod.scenes.base import Scene, Split, check_split, read_json, to_uint8
 
 SPLITS = ("train", "val", "test")
 
 
 def _read_json(path: str) -> dict:
-  try:
-    with open(path) as f:
-      meta = json.load(f)
-  except json.JSONDecodeError as e:
-    raise UserError(f"{path} is not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); "
-                    f"fix or regenerate the file.") from e
+  meta = read_json(path)
   if not isinstance(meta, dict) or "camera_angle_x" not in meta or not isinstance(meta.get("frames"), list):
     raise UserError(f"{path} needs the keys 'camera_angle_x' (a number) and 'frames' (a list); "
                     f"is it a NeRF synthetic transforms file?")

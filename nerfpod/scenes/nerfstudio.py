@@ -10,7 +10,6 @@ nerfstudio does. Explicit train_filenames / val_filenames / test_filenames win; 
 data.llffhold-th frame is held out as test (and val). With data.downscale = N, images come from images_N/
 (nerfstudio's layout) where it exists, else are shrunk on loading. Masks and depth files are not used.
 """
-import json
 import os
 
 import numpy as np
@@ -18,7 +17,7 @@ import numpy as np
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, DISTORTION_PARAMS
 from nerfpod.scenes import capture
-from nerfpod.scenes.base import Scene, capture_scene
+from nerfpod.scenes.base import Scene, capture_scene, read_json
 
 TRANSFORMS = "transforms.json"
 PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -57,12 +56,7 @@ def _image_path(base: str, file_path: str, downscale: int) -> tuple[str, int]:
 
 
 def _read_meta(path: str) -> dict:
-  try:
-    with open(path) as f:
-      meta = json.load(f)
-  except json.JSONDecodeError as e:
-    raise UserError(f"{path} is not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); fix or "
-                    f"regenerate the file.") from e
+  meta = read_json(path)
   if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
     raise UserError(f"{path} needs a non-empty 'frames' list; is it a nerfstudio / instant-ngp transforms file?")
   return meta
