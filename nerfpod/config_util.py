@@ -1,4 +1,5 @@
-"""Helpers for config files: derive from a sibling config file, parse `key=value,flag` arguments."""
+"""Helpers for config files: derive from a sibling config file, parse `key=value,flag` arguments, set
+fields by dotted name."""
 import importlib.util
 import os
 
@@ -33,3 +34,14 @@ def parse_arg(arg: str | None, **defaults) -> dict:
                       f"(e.g. --config=configs/blender.py:scene=lego,smoke).")
     out[key] = value if value else True
   return out
+
+
+def override(config, **dotted):
+  """Sets fields by dotted name, e.g. override(config, **{"train.num_steps": 5}); returns `config`."""
+  for name, value in dotted.items():
+    node = config
+    *parents, leaf = name.split(".")
+    for p in parents:
+      node = node[p]
+    node[leaf] = value
+  return config

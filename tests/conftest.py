@@ -24,12 +24,5 @@ def require(path: pathlib.Path):
 
 def smoke_config(**overrides):
   """configs/default.py:smoke with dotted overrides, e.g. smoke_config(**{"train.num_steps": 5})."""
-  from nerfpod.config_util import sibling_config
-  config = sibling_config(str(REPO / "configs" / "x.py"), "default", "smoke")
-  for dotted, value in overrides.items():
-    node = config
-    *parents, leaf = dotted.split(".")
-    for p in parents:
-      node = node[p]
-    node[leaf] = value
-  return config
+  from nerfpod.config_util import override, sibling_config
+  return override(sibling_config(str(REPO / "configs" / "x.py"), "default", "smoke"), **overrides)

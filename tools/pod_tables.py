@@ -17,7 +17,7 @@ import time
 
 from absl import app, flags
 
-from nerfpod import pods
+from nerfpod import config_util, pods
 from nerfpod.errors import UserError
 
 _PODS = flags.DEFINE_list("pods", ["v4-32", "v5e-64", "v5p-128"], "Pods of the first table.")
@@ -31,14 +31,7 @@ _SECTIONS = flags.DEFINE_list("sections", ["configs", "scaling", "formulations"]
 
 
 def load_config(name: str, **overrides):
-  config = importlib.import_module(f"configs.{name}").get_config(None)
-  for dotted, value in overrides.items():
-    node = config
-    *parents, leaf = dotted.split(".")
-    for p in parents:
-      node = node[p]
-    node[leaf] = value
-  return config
+  return config_util.override(importlib.import_module(f"configs.{name}").get_config(None), **overrides)
 
 
 def _report(config, pod, note: list):
