@@ -123,13 +123,24 @@ class Components:
     return render.make_renderer(self.model, mesh, self.near, self.far, self.scene.background,
                                 self.compiler_options)
 
+  def _ray_batches(self):
+    tc = self.config.train
+    return data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
+                            distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
+                            max(tc.num_steps, 1))
+
   def batches(self, start_step: int):
     """This host's slices of the global training batches from `start_step` on."""
-    tc = self.config.train
-    dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
-                               distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
-                               max(tc.num_steps, 1))
-    return data.iterator(dataset, start_step)
+    return data.iterator(self._ray_batches(), start_step)
+
+  def batch_shapes(self) -> dict:
+    """The global training batch's leaves as ShapeDtypeStructs sharded over the mesh's data axis (what the
+    train step is compiled for), from batch 0's local slice, without starting a pipeline."""
+    local = self._ray_batches()[0]
+    sharding = distributed.batch_sharding(self.mesh)
+    return {k: jax.ShapeDtypeStruct((self.config.train.batch_size,) + np.shape(v)[1:], np.asarray(v).dtype,
+                                    sharding=sharding)
+            for k, v in local.items() if k != "step"}
 
 
 def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:
@@ -147,6 +158,7 @@ def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
 
 def build(config, mesh: Mesh | None = None) -> Components:
   """The pieces every mode needs (`mesh`: default, every device of every host)."""
+  xla_options.tune_host(config)
   scene = scenes.load(config.data)
   scene.split(config.eval.split)
   if config.orbit.path == "file":  # a bad camera path file fails now, not after training

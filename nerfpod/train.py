@@ -1,7 +1,8 @@
 """Training: the sharded train step and the loop (resume, steps, checkpoints, previews, logging)."""
-import itertools
+import concurrent.futures
 import json
 import sys
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -148,10 +149,30 @@ def train_step(comps: components.Components, microbatches: int | None = None):
   tc = comps.config.train
   microbatches = tc.microbatches if microbatches is None else microbatches
   if microbatches == 0:
-    microbatches = fit_microbatches(comps)
+    microbatches, _ = fit_microbatches(comps)
   return make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far,
                          comps.scene.background, tc.random_background, microbatches, comps.compiler_options,
                          tc.interlevel_weight, tc.distortion_weight, gradient_mean_is_ordered(comps.config))
+
+
+def compiled_train_step(comps: components.Components):
+  """The run's train step compiled ahead of time for its shapes (comps.state_shapes and batch_shapes): with
+  train.microbatches=0, the fitted step is the very one compiled while fitting, not compiled a second time.
+  Called with arguments of other shapes or placements it raises instead of recompiling."""
+  if comps.config.train.microbatches == 0:
+    return fit_microbatches(comps)[1]
+  key = components.rays_key(comps.config.train.seed)
+  return train_step(comps).lower(comps.state_shapes, comps.batch_shapes(), key).compile()
+
+
+def start_compiling(comps: components.Components) -> concurrent.futures.Future:
+  """compiled_train_step in a background thread, whose future is returned: XLA compiles without holding
+  Python's lock, so the state's initialisation (itself a compilation) or restore overlaps the step's
+  compilation, seconds off every start on a CPU. Tracing and lowering take the lock for a moment."""
+  pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="nerfpod-compile")
+  future = pool.submit(compiled_train_step, comps)
+  pool.shutdown(wait=False)  # the thread ends with its one task
+  return future
 
 
 def gradient_mean_is_ordered(config, backend: str | None = None) -> bool:
@@ -200,26 +221,28 @@ def memory_budget_bytes(config) -> int:
   return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
 
 
-def fit_microbatches(comps: components.Components) -> int:
+def fit_microbatches(comps: components.Components) -> tuple[int, Any]:
   """train.microbatches=0: the fewest micro-batches (a divisor of the rays each device holds) whose compiled
   step fits memory_budget_bytes, by XLA's memory analysis of the step compiled for this run's shapes
-  (fewest_microbatches)."""
+  (fewest_microbatches); returns that count and that compiled step."""
   tc = comps.config.train
   per_device = tc.batch_size // jax.device_count()
   budget = memory_budget_bytes(comps.config)
-  first = next(comps.batches(0))
-  batch = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
-  key = components.rays_key(tc.seed)
-  count, need = fewest_microbatches(
-      per_device, budget,
-      lambda m: step_memory_bytes(train_step(comps, m).lower(comps.state_shapes, batch, key).compile()))
+  shapes, batch, key = comps.state_shapes, comps.batch_shapes(), components.rays_key(tc.seed)
+  compiled = {}
+
+  def step_bytes(count):
+    compiled[count] = train_step(comps, count).lower(shapes, batch, key).compile()
+    return step_memory_bytes(compiled[count])
+
+  count, need = fewest_microbatches(per_device, budget, step_bytes)
   if jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
     print(f"nerfpod: train.microbatches=0: {count} micro-batch(es) of {per_device // count} rays per device "
           f"({shown} per device by XLA's analysis) {fits} the budget of {budget / 2**20:,.1f} MiB per device",
           flush=True)
-  return count
+  return count, compiled[count]
 
 
 def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainState, int] | None:
@@ -233,6 +256,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   tc = config.train
   ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
   try:
+    # The step compiles while the state is restored or initialised (not when training is already done).
+    compiling = start_compiling(comps) if (ckpt.latest_step() or 0) < tc.num_steps else None
     start_step = 0
     if ckpt.latest_step() is not None:
       state, position = ckpt.restore(comps.state_shapes)
@@ -250,13 +275,10 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     schedule = components.learning_rate_schedule(tc)
     key = components.rays_key(tc.seed)
     batches = comps.batches(start_step)
-    step_fn = train_step(comps)
+    if start_step < tc.num_steps:  # (a damaged newest checkpoint may have put start_step back)
+      step_fn = (compiling or start_compiling(comps)).result()
     if start_step < tc.num_steps and jax.process_count() > 1:
-      # Compile before the first step, then wait for every process to have done so (see wait_for_all).
-      first = next(batches)
-      batches = itertools.chain([first], batches)
-      global_first = distributed.to_global(comps.mesh, {k: v for k, v in first.items() if k != "step"})
-      step_fn = step_fn.lower(state, global_first, key).compile()
+      # Every process has compiled before the first step: wait for all of them (see wait_for_all).
       distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
     preview = comps.scene.split(config.eval.split)
 

@@ -73,8 +73,9 @@ class _Trainer:
     from nerfpod import components, distributed, train
     self.config = config
     self.comps = components.build(config)
+    compiling = train.start_compiling(self.comps)  # as a run starts: the step compiles during the init
     self.state = self.comps.init_state()
-    self.step_fn = train.train_step(self.comps)
+    self.step_fn = compiling.result()
     # The same step without micro-batches, only ever lowered: XLA's cost analysis counts a loop body
     # once, so the FLOPs of a step with a micro-batch scan are read off this one.
     self.unlooped_step_fn = train.train_step(self.comps, microbatches=1)
