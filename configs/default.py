@@ -90,6 +90,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
                                   # 1.1-1.5x faster on a 2-core CPU (README, Speed). Ignored on TPU/GPU.
   c.compile.cpu_memory_gib = 3.0  # CPU: memory the train step may use (all of a process's simulated devices
                                   # together) when train.microbatches=0; accelerators use their own size
+  c.compile.cpu_reuse_host_memory = True  # CPU: glibc's malloc keeps freed memory for the next step instead
+                                  # of unmapping it (about 16% faster steps on 2 cores; 10% more peak memory)
   c.compile.gradient_mean = "auto"  # 'ordered' (the same bits on any topology: log2(N) exchanges), 'pmean'
                                   # (one all-reduce) or 'auto' (ordered on CPU, pmean on TPU/GPU; README)
   c.compile.hashgrid_lookup = "auto"  # hash-grid levels: 'gather', 'matmul' (dense levels, no gather or

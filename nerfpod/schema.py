@@ -32,6 +32,7 @@ ADDED_FIELDS = {
     "render.space": "euclidean", "render.spacing": "linear",               # the world, samples even in distance
     "data.llffhold": 8, "data.orient": "auto", "data.center": "auto",      # captures only: earlier versions
     "data.scale": 0.0, "data.space": "auto",                               # loaded none
+    "compile.cpu_reuse_host_memory": False,                                # glibc's defaults
 }
 
 
@@ -189,6 +190,7 @@ FIELDS: dict[str, Field] = {
 
     "compile.cpu_ynnpack": boolean(),
     "compile.cpu_memory_gib": number(above=0.0, example=3.0),
+    "compile.cpu_reuse_host_memory": boolean(),
     "compile.gradient_mean": choice("auto", "ordered", "pmean"),
     "compile.hashgrid_lookup": choice("auto", "gather", "matmul"),
     "compile.matmul_max_rows": integer(0, example=30000),
