@@ -19,6 +19,7 @@ def get_config(arg: str | None = None):
   c.model.use_viewdirs = True
   c.render.num_samples = 64
   c.render.num_importance = 128
+  c.render.proposal_samples = ()  # the paper's hierarchical sampling instead
   c.render.last_delta = 1e10      # the paper's infinite last interval...
   c.train.random_background = False  # ...with its fixed white background
   c.train.num_steps = 200_000

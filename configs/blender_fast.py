@@ -23,6 +23,7 @@ def get_config(arg: str | None = None):
   g.num_levels, g.log2_table_size, g.max_resolution = 16, 19, 2048
   g.hidden_width, g.geo_features = 64, 15
   c.render.num_samples = 128
+  c.render.proposal_samples = ()  # 128 stratified samples at this size (the `cpu` variant uses proposals)
   c.train.num_steps = 30_000
   c.train.batch_size = 4096
   c.train.microbatches = 0        # as few micro-batches as fit compile.cpu_memory_gib (CPU) or the device

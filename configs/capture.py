@@ -24,6 +24,7 @@ def get_config(arg: str | None = None):
   c.render.spacing = "inverse"
   c.render.num_samples = 48
   c.render.num_importance = 32
+  c.render.proposal_samples = ()  # hierarchical sampling (coarse + fine) instead
   c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
                                   # (with 0, dark pixels could be fitted as see-through onto black)
   c.model.use_viewdirs = True

@@ -53,10 +53,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model.proposal.hidden_width = 16      # units of its one hidden layer
 
   c.render = ml_collections.ConfigDict()
-  c.render.num_samples = 48       # stratified (coarse) samples per ray
+  c.render.num_samples = 16       # samples per ray of the NeRF field (stratified ones where no proposals)
   c.render.num_importance = 0     # extra importance samples per ray for a fine network; 0: no fine network
-  c.render.proposal_samples = ()  # intervals per ray of each proposal round, e.g. (64, 32): the NeRF field then
-                                  # gets render.num_samples intervals drawn from the last; (): no proposals
+  c.render.proposal_samples = (32,)  # intervals per ray of each proposal round, e.g. (64, 32): the NeRF field
+                                  # then gets render.num_samples intervals drawn from the last; (): no proposals,
+                                  # render.num_samples stratified samples (README, Proposal sampling)
   c.render.last_delta = 0.0       # length of the last sample's interval, world units (the paper: 1e10,
                                   # opaque at the far end: use it only with a fixed background colour)
   c.render.near = -1.0            # ray start, world units; negative: the scene's own bound

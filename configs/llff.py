@@ -21,6 +21,7 @@ def get_config(arg: str | None = None):
   c.data.space = "forward_facing"
   c.render.space = "ndc"          # near/far default to the NDC cube's 0 and 1
   c.render.num_samples = 48
+  c.render.proposal_samples = ()  # 48 stratified samples in NDC, as measured (README)
   c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
                                   # (with 0, dark pixels could be fitted as see-through onto black)
   c.model.use_viewdirs = True

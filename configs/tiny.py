@@ -17,6 +17,7 @@ def get_config(arg: str | None = None):
   c.data.pixel_center = 0.0       # the tutorial's rays pass through pixel corners
   c.model.field = "mlp"           # the default MLP is the tutorial's: PE L=6, 8x256, skip at layer 4
   c.render.num_samples = 256
+  c.render.proposal_samples = ()  # the tutorial's stratified sampling
   c.render.last_delta = 1e10      # the tutorial's infinite last interval
   c.train.num_steps = 1000
   c.train.batch_size = 10_000

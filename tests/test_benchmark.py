@@ -59,4 +59,4 @@ def test_quality_mode_reports_thresholds_and_the_samples_that_matter():
   weights = result["weights"]
   assert weights["samples_per_ray"] == 8 and 0.0 <= weights["share_above_negligible"] <= 1.0
   assert weights["samples_above_negligible_per_ray"] == pytest.approx(8 * weights["share_above_negligible"])
-  assert benchmark.samples_per_ray(smoke_config(**{"render.num_importance": 16})) == {"field": 48, "proposal": 0}
+  assert benchmark.samples_per_ray(smoke_config(**{"render.num_importance": 16, "render.proposal_samples": ()})) == {"field": 48, "proposal": 0}

@@ -27,7 +27,8 @@ def _mlp_field(**sizes):
 def _hierarchical(field="mlp", dtype="float32", importance=24):
   config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
                            "model.mlp.skips": (1,), "model.use_viewdirs": True, "render.num_samples": 16,
-                           "render.num_importance": importance, "model.compute_dtype": dtype})
+                           "render.num_importance": importance, "model.compute_dtype": dtype,
+                           "render.proposal_samples": ()})
   model = nerf_model.from_config(config)
   origins, directions = _rays()
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0,

@@ -25,7 +25,8 @@ class _OpaqueBeyond(nn.Module):
 def _model(monkeypatch, surface, space, spacing, samples, importance=0, ndc_camera=None):
   monkeypatch.setattr(nerf_model.fields, "make_field", lambda *a, **k: _OpaqueBeyond(surface, name=k["name"]))
   config = smoke_config(**{"render.space": space, "render.spacing": spacing, "render.num_samples": samples,
-                           "render.num_importance": importance, "model.field": "mlp"})
+                           "render.num_importance": importance, "model.field": "mlp",
+                           "render.proposal_samples": ()})
   return nerf_model.from_config(config, ndc_camera)
 
 
@@ -60,7 +61,8 @@ def test_ndc_model_takes_view_directions_from_the_world_rays(monkeypatch):
 
   monkeypatch.setattr(nerf_model.fields, "make_field", lambda *a, **k: _Recorder(name=k["name"]))
   intr, origins, directions = _camera_rays(8)
-  config = smoke_config(**{"render.space": "ndc", "render.num_samples": 4, "model.field": "mlp"})
+  config = smoke_config(**{"render.space": "ndc", "render.num_samples": 4, "model.field": "mlp",
+                           "render.proposal_samples": ()})
   camera = (intr.fx, intr.fy, intr.width, intr.height)
   nerf_model.from_config(config, camera).apply({}, origins, directions, 0.0, 1.0, jnp.ones(3))
   world = np.asarray(directions) / np.linalg.norm(np.asarray(directions), axis=-1, keepdims=True)

@@ -54,7 +54,8 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
 @pytest.mark.parametrize("overrides,message", [
     ({"data.kind": "blender", "data.path": ""}, "data.kind=blender reads its scene from data.path, which is empty"),
     ({"data.kind": "tiny", "data.path": "x.npz", "data.downscale": 2}, "data.downscale=2 is not supported"),
-    ({"render.num_importance": 8, "render.num_samples": 2}, "render.num_samples=2 is too few"),
+    ({"render.num_importance": 8, "render.num_samples": 2, "render.proposal_samples": ()},
+     "render.num_samples=2 is too few"),
     ({"render.near": 3.0, "render.far": 2.0}, "render.near=3 must be less than render.far=2"),
     ({"render.num_importance": 8, "render.proposal_samples": (32,)}, "are two ways of placing samples"),
     ({"render.num_samples": 1, "render.proposal_samples": (32,)}, "render.num_samples=1 is too few for proposal"),
@@ -114,16 +115,34 @@ def test_earlier_field_names_still_work_in_overrides_config_files_and_saved_conf
       **schema.ADDED_FIELDS, "model.mlp.width": 64, "train.seed": 1}
 
 
+# Fields whose value in configs/default.py changed after they were added, with the value the default had
+# then: proposal sampling became the default (32 proposal intervals, 16 for the field) once measured.
+CHANGED_DEFAULTS = {"render.proposal_samples": [], "render.num_samples": 48,
+                    "compile.cpu_reuse_host_memory": False}
+
+
+def _default_json(**values) -> dict:
+  """configs/default.py as JSON (a workdir's config.json), with dotted fields set to `values`."""
+  config = json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort())
+  for dotted, value in values.items():
+    *parents, leaf = dotted.split(".")
+    node = config
+    for p in parents:
+      node = node[p]
+    node[leaf] = value
+  return config
+
+
 def test_a_workdir_written_before_fields_were_added_still_matches_the_default_config():
   from nerfpod import checkpoints
-  current = json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort())
-  flat = schema.flatten(current)
-  assert {k: flat[k] for k in schema.ADDED_FIELDS} == schema.ADDED_FIELDS  # what the default does today
-  saved = json.loads(json.dumps(current))
+  earlier_default = _default_json(**CHANGED_DEFAULTS)
+  flat = schema.flatten(earlier_default)
+  assert {k: flat[k] for k in schema.ADDED_FIELDS} == schema.ADDED_FIELDS  # what the default did then
+  saved = json.loads(json.dumps(earlier_default))
   del saved["render"]["proposal_samples"], saved["model"]["proposal"], saved["train"]["interlevel_weight"]
   del saved["train"]["distortion_weight"]
-  assert checkpoints.incompatible_fields(saved, current) == []
-  with_proposals = json.loads(json.dumps(current))
+  assert checkpoints.incompatible_fields(saved, earlier_default) == []
+  with_proposals = json.loads(json.dumps(earlier_default))
   with_proposals["render"]["proposal_samples"] = [32]
   assert checkpoints.incompatible_fields(saved, with_proposals) == ["render.proposal_samples"]
 
@@ -198,12 +217,13 @@ EARLIER_RELEASE_FIELDS = (
 )
 
 
-def test_a_workdir_of_the_earlier_release_resumes_evaluates_and_renders_with_todays_default():
+def test_a_workdir_of_the_earlier_release_resumes_with_todays_default_but_its_sampling():
   """Each field added since is either in ADDED_FIELDS (read as what the earlier release did) or one that may
-  change on resume: the earlier workdir is not refused."""
+  change on resume: the earlier workdir resumes with today's default and its own sampling (the default's
+  since changed to proposal sampling, which the refusal names)."""
   from nerfpod import checkpoints
-  current = json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort())
-  flat = schema.flatten(current)
+  earlier_default = _default_json(**CHANGED_DEFAULTS)
+  flat = schema.flatten(earlier_default)
   earlier = {k: v for k, v in flat.items() if k in EARLIER_RELEASE_FIELDS}
   assert len(earlier) == len(EARLIER_RELEASE_FIELDS)
   saved = {}
@@ -213,4 +233,6 @@ def test_a_workdir_of_the_earlier_release_resumes_evaluates_and_renders_with_tod
     for p in parents:
       node = node.setdefault(p, {})
     node[leaf] = value
-  assert checkpoints.incompatible_fields(saved, current) == []
+  assert checkpoints.incompatible_fields(saved, earlier_default) == []
+  assert checkpoints.incompatible_fields(saved, _default_json()) == ["render.num_samples",
+                                                                     "render.proposal_samples"]

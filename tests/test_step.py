@@ -85,7 +85,7 @@ def _with_biases(params, density_bias, rgb_bias):
 
 
 def test_random_background_makes_transparency_the_only_fit_for_empty_space():
-  config = smoke_config(**{"train.batch_size": 64})
+  config = smoke_config(**{"train.batch_size": 64, "render.proposal_samples": ()})
   mesh = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   model = nerf_model.from_config(config)
   optimizer = optax.sgd(0.0)  # only the loss matters here
