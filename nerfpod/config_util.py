@@ -37,7 +37,8 @@ def parse_arg(arg: str | None, **defaults) -> dict:
 
 
 def override(config, **dotted):
-  """Sets fields by dotted name, e.g. override(config, **{"train.num_steps": 5}); returns `config`."""
+  """Sets fields by dotted name, e.g. override(config, **{"train.num_steps": 5}); returns `config` (a
+  ConfigDict, or a config's JSON as nested dicts)."""
   for name, value in dotted.items():
     node = config
     *parents, leaf = name.split(".")

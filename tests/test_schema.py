@@ -123,14 +123,9 @@ CHANGED_DEFAULTS = {"render.proposal_samples": [], "render.num_samples": 48,
 
 def _default_json(**values) -> dict:
   """configs/default.py as JSON (a workdir's config.json), with dotted fields set to `values`."""
-  config = json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort())
-  for dotted, value in values.items():
-    *parents, leaf = dotted.split(".")
-    node = config
-    for p in parents:
-      node = node[p]
-    node[leaf] = value
-  return config
+  from nerfpod.config_util import override
+  return override(json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort()),
+                  **values)
 
 
 def test_a_workdir_written_before_fields_were_added_still_matches_the_default_config():
