@@ -4,8 +4,8 @@
   arguments load_llff_data gives it): around the average camera, radii the 90th percentile of the camera
   offsets, two turns, looking at a focus depth drawn from the scene's depth bounds.
 - `ellipse`: mip-NeRF 360's path for 360-degree captures (multinerf camera_utils.generate_ellipse_path):
-  an ellipse in the z = 0 plane through the spread of the cameras, looking at the point nearest to every
-  camera's optical axis, at constant speed, with the world axis nearest the cameras' mean up as up.
+  an ellipse at the cameras' mean height through the spread of the cameras, looking at the point nearest
+  to every camera's optical axis, at constant speed, with the world axis nearest the cameras' mean up as up.
 
 Poses are (N, 4, 4) camera-to-world, OpenGL convention (the camera looks down -z, +y up), as every scene
 has them. Pure NumPy, float64; the LLFF pose helpers (viewmatrix, poses_avg, focus_point) are nerf/poses.py's.
@@ -43,16 +43,22 @@ def spiral(poses_Nx4x4, near: float, far: float, num_frames: int = 120, num_turn
 
 
 def ellipse(poses_Nx4x4, num_frames: int = 120, z_variation: float = 0.0, z_phase: float = 0.0) -> np.ndarray:
-  """mip-NeRF 360's ellipse path, (num_frames, 4, 4), for captures oriented with +z up and centred (nerfpod
-  normalises 360-degree captures so). Its axes are the 90th percentile of the cameras' offsets from the
-  focus point in x and y; it lies at height 0 (plus z_variation times an oscillation between the cameras'
-  10th and 90th percentile heights); its angles are resampled so that the camera moves at constant speed.
+  """mip-NeRF 360's ellipse path, (num_frames, 4, 4), for captures oriented with +z up (nerfpod normalises
+  360-degree captures so). Its axes are the 90th percentile of the cameras' offsets from the focus point in
+  x and y; it lies at the cameras' mean height (plus z_variation times an oscillation between their 10th and
+  90th percentile heights); its angles are resampled so that the camera moves at constant speed.
+
+  multinerf's path lies at height 0 of its frame, which is centred on the cameras' mean position. nerfpod
+  centres a capture on its focus point instead, so the path is raised to the cameras' mean height: at
+  height 0 here it would circle at the height of the object and look at it from the side, which a capture
+  taken from above never saw.
   """
   poses = np.asarray(poses_Nx4x4, np.float64)
   center = pose_math.focus_point(poses, min_spread=0.0)  # multinerf's focus_point_fn
   offset = np.array([center[0], center[1], 0.0])
   scale = np.percentile(np.abs(poses[:, :3, 3] - offset), 90, axis=0)
   low, high = -scale + offset, scale + offset
+  height = poses[:, 2, 3].mean()
   z_low = np.percentile(poses[:, :3, 3], 10, axis=0)
   z_high = np.percentile(poses[:, :3, 3], 90, axis=0)
 
@@ -60,7 +66,8 @@ def ellipse(poses_Nx4x4, num_frames: int = 120, z_variation: float = 0.0, z_phas
     return np.stack([
         low[0] + (high - low)[0] * (np.cos(theta) * 0.5 + 0.5),
         low[1] + (high - low)[1] * (np.sin(theta) * 0.5 + 0.5),
-        z_variation * (z_low[2] + (z_high - z_low)[2] * (np.cos(theta + 2 * np.pi * z_phase) * 0.5 + 0.5)),
+        height + z_variation * (z_low[2] - height + (z_high - z_low)[2]
+                                * (np.cos(theta + 2 * np.pi * z_phase) * 0.5 + 0.5)),
     ], -1)
 
   theta = np.linspace(0.0, 2.0 * np.pi, num_frames + 1)
