@@ -4,10 +4,10 @@ DIR holds a COLMAP model (sparse/0/ + images/), a nerfstudio / instant-ngp trans
 poses_bounds.npy (data.kind=auto tells which, and says so). The capture is oriented with +z up, centred on
 what its cameras look at and scaled so the farthest camera is at distance 1; space beyond the unit ball is
 contracted into the ball of radius 2 (mip-NeRF 360), which the hash grid covers, and the samples run from
-0.2 to 1e6 evenly in inverse distance, so the background is modelled rather than painted on a wall; a fine
-pass importance-samples where the coarse one found matter. The video follows mip-NeRF 360's ellipse through
-the capture's cameras. Arguments: `path=DIR`, `downscale=N` (images_N/ where it exists, else shrunk on
-loading; default 4), `smoke` for tests.
+0.2 to 1e6 evenly in inverse distance, so the background is modelled rather than painted on a wall; a small
+proposal field places the field's 32 samples where it found matter (mip-NeRF 360's proposal sampling). The
+video follows mip-NeRF 360's ellipse through the capture's cameras. Arguments: `path=DIR`, `downscale=N`
+(images_N/ where it exists, else shrunk on loading; default 4), `smoke` for tests.
 """
 from nerfpod import config_util
 
@@ -22,9 +22,8 @@ def get_config(arg: str | None = None):
   c.data.space = "unbounded"      # near 0.2, far 1e6 in the normalised frame
   c.render.space = "contract"
   c.render.spacing = "inverse"
-  c.render.num_samples = 48
-  c.render.num_importance = 32
-  c.render.proposal_samples = ()  # hierarchical sampling (coarse + fine) instead
+  c.render.proposal_samples = (64,)  # one proposal round of 64 intervals in inverse distance, then
+  c.render.num_samples = 32       # 32 samples for the field: 1.8x cheaper steps than 48 coarse + 32 fine
   c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
                                   # (with 0, dark pixels could be fitted as see-through onto black)
   c.model.use_viewdirs = True
