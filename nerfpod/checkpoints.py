@@ -7,126 +7,24 @@ Saves are asynchronous: the state is copied off the devices, then written in the
 goes on. Every process takes part in every save; orbax writes each step into `<step>.orbax-checkpoint-tmp`
 and renames it to `<step>` only once every process has finished (on gs://, which cannot rename, it marks a
 finished step with a `commit_success.txt` instead), so a save cut off half way is never taken as the latest.
-
-Preemption: a TPU VM gets SIGTERM before maintenance. With several processes, JAX's distributed runtime
-catches it on whichever host gets it and makes all hosts agree on one step (`reached_preemption`: the step
-after the furthest one any process had reached); with one process, a SIGTERM handler sets a flag. Either
-way `save` then writes that step, whatever the interval, and the loop stops there.
-
-A first Ctrl-C (SIGINT) in training is a preemption too (the current step is saved, the run stops and exits
-with checkpoint.preempted_exit_code); a second one stops the process at once, like a kill.
+A state holding a non-finite value is never saved.
 
 Damage: a finished step that does not read back whole (a file emptied or deleted by a disk or a person, or
 non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
 deleted), and the restore falls back to the newest step before it that reads back whole.
 
+When to stop for a preemption is nerfpod.preemption's; the workdir's other files are nerfpod.workdir's.
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
-import json
-import os
-import signal
 import sys
-import threading
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from etils import epath
 
-from nerfpod import schema
 from nerfpod.errors import UserError
-
-# Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
-RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
-                     "checkpoint.", "eval.", "orbit.", "compile.")
-
-
-def incompatible_fields(saved: dict, current: dict) -> list[str]:
-  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
-  The saved config may use earlier names of fields (schema.LEGACY_NAMES)."""
-  a, b = schema.migrate_flat(schema.flatten(saved)), schema.flatten(current)
-  differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
-  return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
-                                          for p in RESUMABLE_CHANGES)]
-
-
-def check_workdir(workdir: str, writable: bool) -> None:
-  """Refuses, in one sentence each, a --workdir that is a file, or (`writable`: training) one that cannot be
-  made or written. gs:// paths are left to their own errors."""
-  if "://" in str(workdir):
-    return
-  path = epath.Path(workdir)
-  if path.exists() and not path.is_dir():
-    raise UserError(f"--workdir={workdir} is an existing file, not a folder; pass a folder (a new one for a new "
-                    f"run).")
-  if not writable:
-    return
-  try:
-    path.mkdir(parents=True, exist_ok=True)
-    probe = path / f".nerfpod-write-test-{os.getpid()}"
-    probe.write_text("")
-    probe.unlink()
-  except OSError as e:
-    raise UserError(f"--workdir={workdir} cannot be written ({e.strerror or e}); pass a folder this user may "
-                    f"write, or fix its permissions.") from None
-
-
-def saved_config(workdir: str) -> dict | None:
-  """The workdir's config.json, None where there is none; a malformed one is a UserError."""
-  path = epath.Path(workdir) / "config.json"
-  if not path.exists():
-    return None
-  try:
-    saved = json.loads(path.read_text())
-    if not isinstance(saved, dict):
-      raise ValueError("not a JSON object")
-  except (ValueError, UnicodeDecodeError) as e:
-    raise UserError(f"{path} is not valid JSON ({e}); restore it (it records the config the checkpoints were "
-                    f"trained with) or move it away to resume with this run's config.") from None
-  return saved
-
-
-def check_compatible(workdir: str, config_json: dict) -> None:
-  """Refuses to resume a workdir whose checkpoints came from a config of another shape or data."""
-  saved = saved_config(workdir)
-  if latest_step(workdir) is None or saved is None:
-    return
-  differing = incompatible_fields(saved, config_json)
-  if differing:
-    was, now = schema.migrate_flat(schema.flatten(saved)), schema.flatten(config_json)
-    shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
-                      for k in differing[:6])
-    more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
-    raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
-                    f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
-                    f"logging cadence, train.max_nonfinite_steps, checkpoint.*, eval.*, orbit.* and compile.* may "
-                    f"change on resuming).")
-
-
-def write_json(path, value, sort_keys: bool = False) -> None:
-  """Writes `value` as indented JSON to `path` (local or gs://) whole or not at all: into PATH.tmp, then
-  renamed; creates the folder."""
-  path = epath.Path(path)
-  path.parent.mkdir(parents=True, exist_ok=True)
-  tmp = path.parent / f"{path.name}.tmp"
-  # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
-  tmp.write_text(json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False))
-  tmp.replace(path)
-
-
-def write_config(workdir: str, config_json: dict) -> None:
-  """Writes workdir/config.json (the resolved config) whole or not at all; process 0 only."""
-  if jax.process_index() == 0:
-    write_json(epath.Path(workdir) / "config.json", config_json, sort_keys=True)
-
-
-def write_scene(workdir: str, scene_json: dict) -> None:
-  """Writes workdir/scene.json (the scene's name, format, space, ray bounds and the capture -> scene
-  similarity, so that renders and exports can be mapped back to a capture's frame); process 0 only."""
-  if jax.process_index() == 0:
-    write_json(epath.Path(workdir) / "scene.json", scene_json)
-
+from nerfpod.finite import all_finite
 
 def checkpoint_dir(workdir: str) -> epath.Path:
   workdir = str(workdir)
@@ -148,15 +46,12 @@ def latest_step(workdir: str) -> int | None:
 
 
 class Checkpoints:
-  """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position).
-
-  Also the preemption watch: `reached_preemption(step)` is True at the one step all processes agree to
-  stop at after a SIGTERM or a first Ctrl-C. Use as a context manager, or call close().
-  """
+  """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position). Use as a
+  context manager, or call close()."""
 
   def __init__(self, workdir: str, every_steps: int, max_to_keep: int, read_only: bool = False):
-    """`read_only` (evaluation, rendering): never writes, deletes or cleans anything in the workdir, which
-    a training run may be writing at the same time, and leaves SIGTERM alone."""
+    """`read_only` (evaluation, rendering, the viewer): never writes, deletes or cleans anything in the
+    workdir, which a training run may be writing at the same time."""
     cm = ocp.checkpoint_managers
     self._closed = False
     options = ocp.CheckpointManagerOptions(
@@ -169,37 +64,6 @@ class Checkpoints:
     self._directory = checkpoint_dir(workdir)
     self._read_only = read_only
     self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
-    self._sigterm = threading.Event()
-    self._previous_handler = None
-    self._previous_sigint = None
-    self._interrupts = 0
-    self._agree = jax.process_count() > 1 and not read_only
-    if read_only:
-      pass
-    elif self._agree:
-      # Tell the preemption service where this run stands (it resumes after the newest checkpoint): a
-      # SIGTERM before the first step then makes the processes agree on the first step, not on step 1.
-      self.reached_preemption(self.manager.latest_step() or 0)
-    elif threading.current_thread() is threading.main_thread():
-      # One process (jax.distributed or not): nobody to agree with, so just note the signal. (JAX's service
-      # would also do, but orbax's save-finalising thread reports older steps to it, which with one
-      # process can make the agreed step one the loop has already passed.)
-      self._previous_handler = signal.signal(signal.SIGTERM, lambda *_: self._sigterm.set())
-    if not read_only and threading.current_thread() is threading.main_thread():
-      self._previous_sigint = signal.signal(signal.SIGINT, self._on_sigint)
-
-  def _on_sigint(self, *_):
-    """A first Ctrl-C: a preemption (the current step is saved, then the run stops); a second: stop now."""
-    self._interrupts += 1
-    if self._interrupts > 1:
-      print("nerfpod: interrupted again: stopping now, without saving", file=sys.stderr, flush=True)
-      os._exit(128 + signal.SIGINT)
-    print("nerfpod: interrupted: saving the current step, then stopping (Ctrl-C again to stop at once)",
-          file=sys.stderr, flush=True)
-    if self._agree:
-      os.kill(os.getpid(), signal.SIGTERM)  # JAX's preemption service makes every process agree on the step
-    else:
-      self._sigterm.set()
 
   def __enter__(self):
     return self
@@ -279,21 +143,11 @@ class Checkpoints:
       raise ValueError(f"its data position {position!r} is not {{'next_step': N}}")
     return restored["state"], position
 
-  def reached_preemption(self, step: int) -> bool:
-    """True at the step where every process stops after a SIGTERM reached any of them.
-
-    Call it at every step, with the same steps on every process (the distributed runtime picks the step
-    after the furthest one any process had reached when the signal came).
-    """
-    if self._agree:
-      return self.manager.reached_preemption(step)
-    return self._sigterm.is_set()
-
   def save(self, step: int, state, data_position: dict, force: bool = False) -> bool:
-    """Starts an asynchronous save of `state` at `step` if due, forced or preempted; returns whether it did."""
+    """Starts an asynchronous save of `state` at `step` if due or forced (a preemption's step); returns
+    whether it did."""
     if self.manager.latest_step() == step:
       return False
-    force = force or self.reached_preemption(step)
     if not (force or self.manager.should_save(step)):
       return False
     # The step never lets a non-finite value into the state (it skips such updates); this is the last line
@@ -306,29 +160,13 @@ class Checkpoints:
     return self.manager.save(step, args=ocp.args.Composite(
         state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_position)), force=force)
 
-  def wait(self) -> None:
-    self.manager.wait_until_finished()
-
   def close(self) -> None:
-    """Waits for the last save to be complete on disk; gives SIGTERM back to its previous handler. Once."""
+    """Waits for the last save to be complete on disk. Once."""
     if self._closed:
       return
     self._closed = True
     self.manager.wait_until_finished()
     self.manager.close()
-    if self._previous_handler is not None:
-      signal.signal(signal.SIGTERM, self._previous_handler)
-      self._previous_handler = None
-    if self._previous_sigint is not None:
-      signal.signal(signal.SIGINT, self._previous_sigint)
-      self._previous_sigint = None
-
-
-@jax.jit
-def all_finite(tree) -> jax.Array:
-  """Whether every floating-point leaf of `tree` is finite (a scalar bool, on the leaves' devices)."""
-  checks = [jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
-  return jnp.all(jnp.stack(checks)) if checks else jnp.asarray(True)
 
 
 def _saved_tree(path):

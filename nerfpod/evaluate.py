@@ -4,7 +4,7 @@ import jax
 import numpy as np
 from etils import epath
 
-from nerfpod import checkpoints, metrics, render, video
+from nerfpod import metrics, render, video, workdir_files
 
 
 def render_views(comps, params):
@@ -50,7 +50,7 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
             "mean": _finite_or_null({name: float(np.mean([np.nan if v[name] is None else v[name] for v in views]))
                                      for name in ("psnr", "ssim")})}
   if jax.process_index() == 0:
-    checkpoints.write_json(epath.Path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
+    workdir_files.write_json(epath.Path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
     if writer is not None:
       for name in ("psnr", "ssim"):
         if result["mean"][name] is not None:

@@ -12,7 +12,7 @@ import json
 
 import jax
 
-from nerfpod import checkpoints, components, evaluate, monitor, orbit, schema, train
+from nerfpod import checkpoints, components, evaluate, monitor, orbit, schema, train, workdir_files
 from nerfpod.errors import UserError
 
 
@@ -20,11 +20,12 @@ def _prepare(config, workdir: str, trained: bool = False) -> components.Componen
   """Checks the config (with this run's device count) and a resumed workdir's, then builds the pieces.
   `trained`: the workdir must hold a checkpoint (evaluation, rendering)."""
   schema.validate(config, jax.device_count())
-  checkpoints.check_workdir(workdir, writable=not trained)
-  if trained and checkpoints.latest_step(workdir) is None:
+  workdir_files.check_workdir(workdir, writable=not trained)
+  newest = checkpoints.latest_step(workdir)
+  if trained and newest is None:
     raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
                     f"the default) or pass the --workdir of a trained run.")
-  checkpoints.check_compatible(workdir, json.loads(config.to_json_best_effort()))
+  workdir_files.check_compatible(workdir, json.loads(config.to_json_best_effort()), has_checkpoint=newest is not None)
   return components.build(config)
 
 

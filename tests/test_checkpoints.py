@@ -12,7 +12,7 @@ import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import checkpoints, distributed
+from nerfpod import checkpoints, distributed, preemption, workdir_files
 from nerfpod.errors import UserError
 
 
@@ -36,7 +36,7 @@ def test_saves_every_n_steps_keeps_the_newest_and_restores_state_and_position(tm
   mesh = _mesh(8)
   with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
     saved = [step for step in range(1, 8) if ckpt.save(step, _state(mesh, step), {"next_step": step})]
-    ckpt.wait()
+    ckpt.manager.wait_until_finished()
   assert saved == [2, 4, 6]  # every 2 steps, and no extra save of a run's first step
   assert checkpoints.finished_steps(str(tmp_path)) == [4, 6]
   with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
@@ -99,13 +99,15 @@ def test_sigterm_in_a_single_process_saves_the_current_step_then_gives_the_signa
   mesh = _mesh(8)
   before = signal.getsignal(signal.SIGTERM)
   ckpt = checkpoints.Checkpoints(str(tmp_path), every_steps=100, max_to_keep=3)
+  watch = preemption.Watch(0)
   try:
-    assert not ckpt.reached_preemption(7)
+    assert not watch.reached(7)
     os.kill(os.getpid(), signal.SIGTERM)  # caught: the flag is set, nothing dies
-    assert ckpt.reached_preemption(7)
-    assert ckpt.save(7, _state(mesh, 7), {"next_step": 7})  # off the 100-step interval
+    assert watch.reached(7)
+    assert ckpt.save(7, _state(mesh, 7), {"next_step": 7}, force=watch.reached(7))  # off the 100-step interval
   finally:
     ckpt.close()
+    watch.close()
   assert signal.getsignal(signal.SIGTERM) == before
   assert checkpoints.latest_step(str(tmp_path)) == 7
 
@@ -123,23 +125,23 @@ def test_only_step_count_cadence_checkpoint_eval_and_orbit_may_change():
   saved = _config_json()
   allowed = _config_json(**{"train.num_steps": 999, "train.log_every": 1, "train.image_every": 0,
                             "checkpoint.every_steps": 7, "eval.max_views": 1})
-  assert checkpoints.incompatible_fields(saved, allowed) == []
+  assert workdir_files.incompatible_fields(saved, allowed) == []
   changed = _config_json(**{"model.hashgrid.num_levels": 2, "data.image_size": 16, "train.seed": 3,
                             "train.num_steps": 999})
-  assert checkpoints.incompatible_fields(saved, changed) == ["data.image_size", "model.hashgrid.num_levels",
+  assert workdir_files.incompatible_fields(saved, changed) == ["data.image_size", "model.hashgrid.num_levels",
                                                              "train.seed"]
 
 
 def test_resuming_a_workdir_of_another_shape_names_the_fields(tmp_path):
   saved = _config_json()
-  checkpoints.write_config(str(tmp_path), saved)
+  workdir_files.write_config(str(tmp_path), saved)
   changed = _config_json(**{"model.hashgrid.hidden_width": 8})
-  checkpoints.check_compatible(str(tmp_path), changed)  # no checkpoint yet: anything goes
+  workdir_files.check_compatible(str(tmp_path), changed, has_checkpoint=False)  # no checkpoint yet: anything goes
   with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
     ckpt.save(1, _state(_mesh(8), 1), {"next_step": 1})
   with pytest.raises(UserError, match=r"model\.hashgrid\.hidden_width \(16 -> 8\)"):
-    checkpoints.check_compatible(str(tmp_path), changed)
-  checkpoints.check_compatible(str(tmp_path), _config_json(**{"train.num_steps": 5}))
+    workdir_files.check_compatible(str(tmp_path), changed, has_checkpoint=True)
+  workdir_files.check_compatible(str(tmp_path), _config_json(**{"train.num_steps": 5}), has_checkpoint=True)
 
 
 def test_restoring_a_state_of_another_shape_is_one_sentence_and_keeps_the_checkpoint(tmp_path):

@@ -15,7 +15,8 @@ import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import checkpoints, distributed, evaluate, modes, train
+from nerfpod import checkpoints, distributed, evaluate, modes, preemption, train, workdir_files
+from nerfpod.step import make_train_step
 from nerfpod.components import TrainState
 from nerfpod.errors import UserError
 
@@ -127,7 +128,7 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
   mesh = _mesh(2)
   model, optimizer = nerf_model.from_config(config), optax.adam(1e-2)
   state = components.initial_state(model, optimizer, 0, mesh)
-  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3))
+  step_fn = make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3))
   rng = np.random.default_rng(0)
   batch = {"origins": np.tile([0.0, 0.0, 4.0], (64, 1)).astype(np.float32),
            "directions": rng.normal(size=(64, 3)).astype(np.float32),
@@ -160,10 +161,10 @@ def test_metrics_json_holds_null_with_a_reason_never_a_bare_nan(tmp_path):
   entry = evaluate._finite_or_null({"index": 0, "psnr": float("nan"), "ssim": 0.5})
   assert entry["psnr"] is None and entry["ssim"] == 0.5 and "psnr not finite (psnr=nan)" in entry["reason"]
   assert evaluate._finite_or_null({"psnr": 20.0, "ssim": 0.5}) == {"psnr": 20.0, "ssim": 0.5}
-  checkpoints.write_json(tmp_path / "m.json", {"mean": entry})
+  workdir_files.write_json(tmp_path / "m.json", {"mean": entry})
   assert json.loads((tmp_path / "m.json").read_text(), parse_constant=lambda c: pytest.fail(c))["mean"] == entry
   with pytest.raises(ValueError):
-    checkpoints.write_json(tmp_path / "n.json", {"psnr": float("nan")})
+    workdir_files.write_json(tmp_path / "n.json", {"psnr": float("nan")})
   assert not (tmp_path / "n.json").exists()
 
 
@@ -190,7 +191,7 @@ def test_workdir_mistakes_are_one_sentence_before_any_work(tmp_path):
 
 def test_a_refused_resume_leaves_config_json_as_it_was(tmp_path):
   saved = json.loads(smoke_config().to_json_best_effort())
-  checkpoints.write_config(str(tmp_path), saved)
+  workdir_files.write_config(str(tmp_path), saved)
   _saved_steps(tmp_path, 10)
   before = (tmp_path / "config.json").read_bytes()
   with pytest.raises(UserError, match=r"different config: model.hashgrid.hidden_width \(16 -> 8\)"):
@@ -201,13 +202,15 @@ def test_a_refused_resume_leaves_config_json_as_it_was(tmp_path):
 def test_a_first_ctrl_c_in_training_is_a_preemption_and_the_handler_is_given_back(tmp_path):
   before = signal.getsignal(signal.SIGINT)
   ckpt = checkpoints.Checkpoints(str(tmp_path), every_steps=100, max_to_keep=3)
+  watch = preemption.Watch(0)
   try:
-    assert not ckpt.reached_preemption(3)
+    assert not watch.reached(3)
     os.kill(os.getpid(), signal.SIGINT)  # no KeyboardInterrupt: the step in hand is saved, then the run stops
-    assert ckpt.reached_preemption(3)
-    assert ckpt.save(3, _state(3), {"next_step": 3})
+    assert watch.reached(3)
+    assert ckpt.save(3, _state(3), {"next_step": 3}, force=watch.reached(3))
   finally:
     ckpt.close()
+    watch.close()
   assert signal.getsignal(signal.SIGINT) is before
   assert checkpoints.latest_step(str(tmp_path)) == 3
 

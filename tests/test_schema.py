@@ -129,17 +129,17 @@ def _default_json(**values) -> dict:
 
 
 def test_a_workdir_written_before_fields_were_added_still_matches_the_default_config():
-  from nerfpod import checkpoints
+  from nerfpod import workdir_files
   earlier_default = _default_json(**CHANGED_DEFAULTS)
   flat = schema.flatten(earlier_default)
   assert {k: flat[k] for k in schema.ADDED_FIELDS} == schema.ADDED_FIELDS  # what the default did then
   saved = json.loads(json.dumps(earlier_default))
   del saved["render"]["proposal_samples"], saved["model"]["proposal"], saved["train"]["interlevel_weight"]
   del saved["train"]["distortion_weight"]
-  assert checkpoints.incompatible_fields(saved, earlier_default) == []
+  assert workdir_files.incompatible_fields(saved, earlier_default) == []
   with_proposals = json.loads(json.dumps(earlier_default))
   with_proposals["render"]["proposal_samples"] = [32]
-  assert checkpoints.incompatible_fields(saved, with_proposals) == ["render.proposal_samples"]
+  assert workdir_files.incompatible_fields(saved, with_proposals) == ["render.proposal_samples"]
 
 
 def _run_bad(name: str, value) -> tuple[str, object, object]:
@@ -216,7 +216,7 @@ def test_a_workdir_of_the_earlier_release_resumes_with_todays_default_but_its_sa
   """Each field added since is either in ADDED_FIELDS (read as what the earlier release did) or one that may
   change on resume: the earlier workdir resumes with today's default and its own sampling (the default's
   since changed to proposal sampling, which the refusal names)."""
-  from nerfpod import checkpoints
+  from nerfpod import workdir_files
   earlier_default = _default_json(**CHANGED_DEFAULTS)
   flat = schema.flatten(earlier_default)
   earlier = {k: v for k, v in flat.items() if k in EARLIER_RELEASE_FIELDS}
@@ -228,6 +228,6 @@ def test_a_workdir_of_the_earlier_release_resumes_with_todays_default_but_its_sa
     for p in parents:
       node = node.setdefault(p, {})
     node[leaf] = value
-  assert checkpoints.incompatible_fields(saved, earlier_default) == []
-  assert checkpoints.incompatible_fields(saved, _default_json()) == ["render.num_samples",
+  assert workdir_files.incompatible_fields(saved, earlier_default) == []
+  assert workdir_files.incompatible_fields(saved, _default_json()) == ["render.num_samples",
                                                                      "render.proposal_samples"]

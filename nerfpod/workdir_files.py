@@ -1,0 +1,134 @@
+"""The workdir's own files: config.json (the resolved config), scene.json, and the checks of a workdir.
+
+    check_workdir      a --workdir that is a file, or cannot be written (training), in one sentence
+    check_compatible   a workdir whose checkpoints came from a config of another shape or data is refused
+    read_config        a run's config from its config.json, checked by the schema (the viewer, exports)
+    write_json         whole or not at all (PATH.tmp, then renamed); also eval/metrics.json
+
+Paths go through etils.epath, so a workdir may be a gs:// bucket. The checkpoints themselves are
+nerfpod.checkpoints'.
+"""
+import json
+import os
+
+import ml_collections
+from etils import epath
+
+from nerfpod import schema
+from nerfpod.errors import UserError
+
+# Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
+RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
+                     "checkpoint.", "eval.", "orbit.", "compile.")
+
+
+def incompatible_fields(saved: dict, current: dict) -> list[str]:
+  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
+  The saved config may use earlier names of fields (schema.LEGACY_NAMES)."""
+  a, b = schema.migrate_flat(schema.flatten(saved)), schema.flatten(current)
+  differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
+  return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
+                                          for p in RESUMABLE_CHANGES)]
+
+
+def check_workdir(workdir: str, writable: bool) -> None:
+  """Refuses, in one sentence each, a --workdir that is a file, or (`writable`: training) one that cannot be
+  made or written. gs:// paths are left to their own errors."""
+  if "://" in str(workdir):
+    return
+  path = epath.Path(workdir)
+  if path.exists() and not path.is_dir():
+    raise UserError(f"--workdir={workdir} is an existing file, not a folder; pass a folder (a new one for a new "
+                    f"run).")
+  if not writable:
+    return
+  try:
+    path.mkdir(parents=True, exist_ok=True)
+    probe = path / f".nerfpod-write-test-{os.getpid()}"
+    probe.write_text("")
+    probe.unlink()
+  except OSError as e:
+    raise UserError(f"--workdir={workdir} cannot be written ({e.strerror or e}); pass a folder this user may "
+                    f"write, or fix its permissions.") from None
+
+
+def saved_config(workdir: str) -> dict | None:
+  """The workdir's config.json, None where there is none; a malformed one is a UserError."""
+  path = epath.Path(workdir) / "config.json"
+  if not path.exists():
+    return None
+  try:
+    saved = json.loads(path.read_text())
+    if not isinstance(saved, dict):
+      raise ValueError("not a JSON object")
+  except (ValueError, UnicodeDecodeError) as e:
+    raise UserError(f"{path} is not valid JSON ({e}); restore it (it records the config the checkpoints were "
+                    f"trained with) or move it away to resume with this run's config.") from None
+  return saved
+
+
+def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> None:
+  """Refuses to resume a workdir whose checkpoints (`has_checkpoint`) came from a config of another shape or
+  data."""
+  saved = saved_config(workdir)
+  if not has_checkpoint or saved is None:
+    return
+  differing = incompatible_fields(saved, config_json)
+  if differing:
+    was, now = schema.migrate_flat(schema.flatten(saved)), schema.flatten(config_json)
+    shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
+                      for k in differing[:6])
+    more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
+    raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
+                    f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
+                    f"logging cadence, train.max_nonfinite_steps, checkpoint.*, eval.*, orbit.* and compile.* may "
+                    f"change on resuming).")
+
+
+def write_json(path, value, sort_keys: bool = False) -> None:
+  """Writes `value` as indented JSON to `path` (local or gs://) whole or not at all: into PATH.tmp, then
+  renamed; creates the folder."""
+  path = epath.Path(path)
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.parent / f"{path.name}.tmp"
+  # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
+  tmp.write_text(json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False))
+  tmp.replace(path)
+
+
+def write_config(workdir: str, config_json: dict) -> None:
+  """Writes workdir/config.json (the resolved config) whole or not at all; call on process 0 only."""
+  write_json(epath.Path(workdir) / "config.json", config_json, sort_keys=True)
+
+
+def write_scene(workdir: str, scene_json: dict) -> None:
+  """Writes workdir/scene.json (the scene's name, format, space, ray bounds and the capture -> scene
+  similarity, so that renders and exports can be mapped back to a capture's frame); call on process 0 only."""
+  write_json(epath.Path(workdir) / "scene.json", scene_json)
+
+
+def read_config(workdir: str) -> ml_collections.ConfigDict:
+  """The run's config from workdir/config.json (earlier field names renamed), checked by the schema; a
+  missing, unreadable or unreachable one is one sentence. For the tools that take only a --workdir."""
+  path = epath.Path(workdir) / "config.json"
+  try:
+    text = path.read_text()
+  except FileNotFoundError:
+    raise UserError(f"workdir {workdir} holds no config.json; pass the --workdir of a training run "
+                    f"(it writes config.json when it starts).") from None
+  except Exception as e:  # noqa: BLE001 (gs:// without credentials or network, permissions, ...)
+    reason = " ".join(str(e).split())[:300] or type(e).__name__
+    raise UserError(f"could not read {path} ({reason}); check the --workdir path and, for gs://, your "
+                    f"network and credentials (gcloud auth application-default login).") from None
+  try:
+    config = ml_collections.ConfigDict(json.loads(text))
+  except ValueError as e:
+    raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
+  schema.migrate(config)
+  try:
+    schema.validate(config)
+  except schema.ConfigError as e:  # its fixes name command-line overrides, which these tools do not take
+    raise UserError(f"{path} holds a config this nerfpod version refuses ({e.messages[0]}"
+                    f"{f' and {len(e.messages) - 1} more' if len(e.messages) > 1 else ''}); use the "
+                    f"nerfpod version that trained it.") from None
+  return config
