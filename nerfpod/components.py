@@ -1,9 +1,11 @@
 """The shared set-up: what training, evaluation, orbit rendering and the tools build from a config.
 
 `build(config)` loads the scene (a missing held-out split fails now, not after training), makes the device
-mesh, the model, the optimiser, the ray bounds, the train state's shapes and placement (`jax.eval_shape`
-of the initialisation: nothing is computed until a run needs real parameters) and the compiled renderer.
-Every mode starts from these same pieces, so a checkpoint written by one mode restores in any other.
+mesh, the model, the optimiser, the ray bounds, the train state's and the batch's shapes and placement
+(`jax.eval_shape` of the initialisation: nothing is computed until a run needs real parameters) and the
+compiled renderer. Every mode starts from these same pieces, so a checkpoint written by one mode restores in
+any other. `build_program(config, mesh, backend)` is the same without a scene: what the pod compile tool
+compiles, on a TPU topology's devices.
 
 Randomness is a function of (seed, what): the parameters and the rays draw from their own streams, folded
 into the seed; the train step folds in the step on top.
@@ -18,7 +20,7 @@ import numpy as np
 import optax
 from jax.sharding import Mesh
 
-from nerfpod import camera_path, data, distributed, render, scenes, xla_options
+from nerfpod import camera_path, compilation, data, distributed, render, scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 
@@ -98,49 +100,45 @@ def _initializer(model, optimizer):
 
 
 @dataclasses.dataclass(frozen=True)
-class Components:
-  """A config's scene, mesh, model, optimiser, ray bounds, state shapes and compiled renderer."""
+class Program:
+  """What compiling a config's train step and renderer needs, with or without its scene: the model
+  formulated for a backend, the optimiser, the ray bounds and background, and the train state's and the
+  global batch's shapes laid over a mesh. The pod compile tool builds one without a scene; every run builds
+  its Components, which are a Program with the scene it came from."""
   config: Any
-  scene: scenes.Scene
   mesh: Mesh
   model: nerf_model.NeRF
   optimizer: optax.GradientTransformation
   near: float
   far: float
+  background: tuple
   state_shapes: TrainState  # jax.ShapeDtypeStruct leaves, replicated over `mesh`: what a restore fills
-  renderer: Any             # (params, origins, directions) -> rgb/depth/acc/disparity, compiled on `mesh`
+  batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over the data axis
+  compiler_options: dict    # XLA options of the step and the renderer (compilation.compiler_options)
 
-  @property
-  def compiler_options(self) -> dict:
-    return xla_options.compiler_options(self.config)
+  def make_renderer(self, mesh: Mesh | None = None):
+    """(params, origins, directions) -> rgb/depth/acc/disparity, compiled on `mesh` (default the program's)."""
+    return render.make_renderer(self.model, self.mesh if mesh is None else mesh, self.near, self.far,
+                                self.background, self.compiler_options)
+
+
+@dataclasses.dataclass(frozen=True)
+class Components(Program):
+  """A run's Program with its scene and its renderer compiled on the run's mesh."""
+  scene: scenes.Scene = None
+  renderer: Any = None  # make_renderer() of the run's mesh
 
   def init_state(self) -> TrainState:
     """The initial train state, created directly replicated on every device of the mesh."""
     return initial_state(self.model, self.optimizer, self.config.train.seed, self.mesh)
 
-  def make_renderer(self, mesh: Mesh):
-    """The renderer compiled for another mesh (e.g. this process's own devices, for orbit frames)."""
-    return render.make_renderer(self.model, mesh, self.near, self.far, self.scene.background,
-                                self.compiler_options)
-
-  def _ray_batches(self):
-    tc = self.config.train
-    return data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
-                            distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
-                            max(tc.num_steps, 1))
-
   def batches(self, start_step: int):
     """This host's slices of the global training batches from `start_step` on."""
-    return data.iterator(self._ray_batches(), start_step)
-
-  def batch_shapes(self) -> dict:
-    """The global training batch's leaves as ShapeDtypeStructs sharded over the mesh's data axis (what the
-    train step is compiled for), from batch 0's local slice, without starting a pipeline."""
-    local = self._ray_batches()[0]
-    sharding = distributed.batch_sharding(self.mesh)
-    return {k: jax.ShapeDtypeStruct((self.config.train.batch_size,) + np.shape(v)[1:], np.asarray(v).dtype,
-                                    sharding=sharding)
-            for k, v in local.items() if k != "step"}
+    tc = self.config.train
+    dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
+                               distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
+                               max(tc.num_steps, 1))
+    return data.iterator(dataset, start_step)
 
 
 def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:
@@ -154,43 +152,6 @@ def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
   shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
   sharding = distributed.replicated(mesh)
   return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
-
-
-def build(config, mesh: Mesh | None = None) -> Components:
-  """The pieces every mode needs (`mesh`: default, every device of every host)."""
-  xla_options.tune_host(config)
-  scene = scenes.load(config.data)
-  scene.split(config.eval.split)
-  if config.orbit.path == "file":  # a bad camera path file fails now, not after training
-    camera_path.read(config.orbit.path_file)
-  mesh = distributed.make_mesh() if mesh is None else mesh
-  model = nerf_model.from_config(config, ndc_camera(config, scene))
-  near, far = ray_bounds(config, scene)
-  optimizer = make_optimizer(config.train)
-  renderer = render.make_renderer(model, mesh, near, far, scene.background,
-                                  xla_options.compiler_options(config))
-  return Components(config, scene, mesh, model, optimizer, near, far, state_shapes(model, optimizer, mesh),
-                    renderer)
-
-
-@dataclasses.dataclass(frozen=True)
-class Program:
-  """What compiling a config's step and renderer needs without its scene (the pod compile tool): the
-  model formulated for a backend, the optimiser, the state's and the batch's shapes on a mesh."""
-  config: Any
-  mesh: Mesh
-  model: nerf_model.NeRF
-  optimizer: optax.GradientTransformation
-  near: float
-  far: float
-  background: tuple
-  state_shapes: TrainState
-  batch_shapes: dict  # the global training batch as jax.ShapeDtypeStructs, sharded over the data axis
-
-  def renderer(self, mesh: Mesh | None = None):
-    """The renderer evaluation (on `mesh`, default the program's) and orbit frames (on one host's own
-    devices) compile."""
-    return render.make_renderer(self.model, mesh or self.mesh, self.near, self.far, self.background)
 
 
 def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool) -> dict:
@@ -211,15 +172,34 @@ _PLACEHOLDER_BOUNDS = (2.0, 6.0)
 _PLACEHOLDER_NDC_CAMERA = (421.0, 421.0, 504.0, 378.0)
 
 
-def build_program(config, mesh: Mesh, backend: str) -> Program:
-  """The step's and renderers' pieces for `config` on `mesh` (any devices: a TPU topology's too), the
-  model formulated for `backend`, without loading the scene: the batch carries alpha where the scene
-  format has it (scenes.HAS_ALPHA)."""
-  model = nerf_model.from_config(config, _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None,
-                                 backend)
+def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Program:
+  """The step's and renderer's pieces for `config` on `mesh` (any devices: a TPU topology's too), the model
+  formulated and compiled for `backend` (default JAX's). With `scene`, its ray bounds, NDC camera,
+  background and alpha; without (the pod compile tool), placeholders of the same shapes and cost, the batch
+  carrying alpha where the scene format has it (scenes.HAS_ALPHA)."""
+  if scene is not None:
+    ndc = ndc_camera(config, scene)
+    near, far = ray_bounds(config, scene)
+    background, with_alpha = tuple(scene.background), scene.split("train").alphas is not None
+  else:
+    ndc = _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None
+    near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
+    far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
+    background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
+  model = nerf_model.from_config(config, ndc, backend)
   optimizer = make_optimizer(config.train)
-  near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
-  far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
-  with_alpha = scenes.HAS_ALPHA.get(config.data.kind, True)
-  return Program(config, mesh, model, optimizer, float(near), float(far), (1.0, 1.0, 1.0),
-                 state_shapes(model, optimizer, mesh), batch_shapes(config.train.batch_size, mesh, with_alpha))
+  return Program(config, mesh, model, optimizer, float(near), float(far), background,
+                 state_shapes(model, optimizer, mesh), batch_shapes(config.train.batch_size, mesh, with_alpha),
+                 compilation.compiler_options(config, backend))
+
+
+def build(config, mesh: Mesh | None = None) -> Components:
+  """The pieces every mode needs (`mesh`: default, every device of every host): the scene (a missing
+  held-out split or a bad camera path file fails now, not after training), its Program and renderer."""
+  scene = scenes.load(config.data)
+  scene.split(config.eval.split)
+  if config.orbit.path == "file":
+    camera_path.read(config.orbit.path_file)
+  program = build_program(config, distributed.make_mesh() if mesh is None else mesh, scene=scene)
+  fields = {f.name: getattr(program, f.name) for f in dataclasses.fields(Program)}
+  return Components(**fields, scene=scene, renderer=program.make_renderer())

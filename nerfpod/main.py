@@ -7,8 +7,8 @@ mistake is printed as one sentence per problem with exit code 2. Exit codes: 0 f
 training diverged); checkpoint.preempted_exit_code (75) stopped early at a saved step (SIGTERM, preemption, a
 first Ctrl-C): run the same command again; 130 interrupted outside training's steps.
 
-`nerfpod view --workdir=DIR` (or `python -m nerfpod.main view ...`) is the live web viewer, nerfpod.view,
-with its own flags: it needs no --config.
+`nerfpod train|eval|render ...` (nerfpod.cli) is this entry point with --mode set; the other subcommands
+(`nerfpod view`, `prepare`, `export`, `aot`, `bench`) are modules of their own.
 """
 import signal
 import sys
@@ -66,7 +66,8 @@ def main(argv):
     distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
                            heartbeat_timeout_seconds=_HEARTBEAT.value,
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
-    from nerfpod import modes
+    from nerfpod import compilation, modes
+    compilation.tune_host(config)  # process-wide (glibc's malloc on a CPU): here, where the process starts
     result = {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
               "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)
   except UserError as e:
@@ -99,7 +100,8 @@ def _parse_flags(argv):
 
 
 def run():
-  """Console-script entry point; `nerfpod view ...` is the viewer's (nerfpod.view), with its own flags."""
+  """`python -m nerfpod.main ...` and `nerfpod train|eval|render ...` (nerfpod.cli); `python -m nerfpod.main
+  view ...` is the viewer's (nerfpod.view), with its own flags."""
   if len(sys.argv) > 1 and sys.argv[1] == "view":
     from nerfpod import view
     view.run(sys.argv[2:])

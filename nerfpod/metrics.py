@@ -1,9 +1,12 @@
 """Image-quality metrics on [0, 1] images (NumPy): PSNR and SSIM as NeRF papers compute them."""
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 
 def mse_to_psnr(mse):
-  return -10.0 * np.log10(mse)
+  """PSNR in dB of a mean squared error of [0, 1] images: NumPy in, NumPy out; JAX (also traced) in, JAX out."""
+  return -10.0 * (jnp if isinstance(mse, jax.Array) else np).log10(mse)
 
 
 def psnr(image, reference) -> float:

@@ -17,7 +17,7 @@ OUTPUTS = ("rgb", "depth", "acc", "disparity")
 
 def make_renderer(model, mesh, near: float, far: float, background, compiler_options: dict | None = None):
   """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh,
-  compiled with XLA's `compiler_options` (xla_options.compiler_options)."""
+  compiled with XLA's `compiler_options` (compilation.compiler_options)."""
   def local(params, origins, directions):
     out = model.apply(params, origins, directions, near, far, jnp.asarray(background))[-1]
     return {k: out[k] for k in OUTPUTS}

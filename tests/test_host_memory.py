@@ -15,8 +15,8 @@ pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc
 _PROBE = """
 import ctypes, sys
 sys.path.insert(0, {repo!r})
-from nerfpod import xla_options
-applied = xla_options.reuse_host_memory() if {apply} else False
+from nerfpod import compilation
+applied = compilation.reuse_host_memory() if {apply} else False
 libc = ctypes.CDLL(None)
 class Info(ctypes.Structure):
   _fields_ = [(n, ctypes.c_size_t) for n in

@@ -7,7 +7,7 @@ import pytest
 from jax.sharding import Mesh
 
 from conftest import smoke_config
-from nerfpod import components, data, distributed, scenes, train, xla_options
+from nerfpod import compilation, components, data, distributed, scenes, step
 from nerfpod.nerf import model as nerf_model
 
 
@@ -15,17 +15,17 @@ def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_opti
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
   state = components.initial_state(model, optimizer, config.train.seed, mesh)
-  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
                                   microbatches=microbatches, compiler_options=compiler_options)
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
                              slice(0, config.train.batch_size), 0.5, num_steps)
   key = jax.random.key(7)
   losses = []
-  for step in range(num_steps):
-    batch = dict(dataset[step])
+  for i in range(num_steps):
+    batch = dict(dataset[i])
     batch.pop("step")
     batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
-    if hlo is not None and step == 0:
+    if hlo is not None and i == 0:
       hlo.append(step_fn.lower(state, batch, key).compile().as_text())
     state, metrics = step_fn(state, batch, key)
     losses.append(float(metrics["loss"]))
@@ -96,10 +96,10 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
           "ray_ids": np.arange(64, dtype=np.int32)}
 
   def loss(params, random_background):
-    step = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, (1.0, 1.0, 1.0), random_background)
+    step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, (1.0, 1.0, 1.0), random_background)
     state = components.TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
     state = jax.device_put(jax.device_get(state), distributed.replicated(mesh))  # fresh: the step donates it
-    _, metrics = step(state, jax.device_put(rays, distributed.batch_sharding(mesh)), jax.random.key(0))
+    _, metrics = step_fn(state, jax.device_put(rays, distributed.batch_sharding(mesh)), jax.random.key(0))
     return float(metrics["loss"])
 
   transparent = _with_biases(params, -30.0, 0.0)
@@ -114,10 +114,10 @@ def test_cpu_compiler_options_change_kernels_not_results(field):
   """nerfpod's CPU default (YNNPACK off) reaches the compiled step and leaves its results unchanged."""
   config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
                            "model.mlp.skips": (1,), "train.batch_size": 128})
-  options = xla_options.compiler_options(config)
-  assert options == dict(xla_options.CPU_WITHOUT_YNNPACK)
+  options = compilation.compiler_options(config)
+  assert options == dict(compilation.CPU_WITHOUT_YNNPACK)
   config.compile.cpu_ynnpack = True
-  assert xla_options.compiler_options(config) == {}
+  assert compilation.compiler_options(config) == {}
   mesh = Mesh(np.array(jax.devices()[:2]), (distributed.DATA_AXIS,))
   sgd = optax.sgd(0.5)
   hlo_default, hlo_ours = [], []
@@ -132,9 +132,9 @@ def test_cpu_compiler_options_change_kernels_not_results(field):
 
 def test_unknown_compiler_options_fall_back_to_xla_defaults(monkeypatch):
   unknown = (("xla_cpu_no_such_option_in_any_jaxlib", "1"),)
-  assert not xla_options._accepted(unknown)
-  monkeypatch.setattr(xla_options, "CPU_WITHOUT_YNNPACK", unknown)
-  assert xla_options.compiler_options(smoke_config()) == {}
+  assert not compilation._accepted(unknown)
+  monkeypatch.setattr(compilation, "CPU_WITHOUT_YNNPACK", unknown)
+  assert compilation.compiler_options(smoke_config()) == {}
 
 
 def test_proposal_step_is_compiled_once_and_reports_its_losses():
@@ -146,12 +146,12 @@ def test_proposal_step_is_compiled_once_and_reports_its_losses():
   model = nerf_model.from_config(config)
   optimizer = components.make_optimizer(config.train)
   state = components.initial_state(model, optimizer, 0, mesh)
-  step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, random_background=True,
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, random_background=True,
                                   distortion_weight=0.01)
   dataset = data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 4)
   programs = []
-  for step in range(4):
-    batch = dict(dataset[step])
+  for i in range(4):
+    batch = dict(dataset[i])
     batch.pop("step")
     state, metrics = step_fn(state, distributed.to_global(mesh, batch), jax.random.key(0))
     assert np.isfinite(float(metrics["loss"])) and float(metrics["interlevel"]) >= 0.0
@@ -177,7 +177,7 @@ def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_b
   results, hlos = [], []
   for ordered in (True, False):
     state = components.initial_state(model, optimizer, config.train.seed, mesh)
-    step_fn = train.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, ordered_mean=ordered)
+    step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, ordered_mean=ordered)
     hlos.append(step_fn.lower(state, batch, jax.random.key(7)).compile().as_text())
     state, metrics = step_fn(state, batch, jax.random.key(7))
     results.append((float(metrics["loss"]), jax.device_get(state.params)))
@@ -185,8 +185,8 @@ def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_b
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), results[0][1], results[1][1])
   assert "collective-permute" in hlos[0] and "collective-permute" not in hlos[1]
   assert "all-reduce" in hlos[1]
-  assert train.gradient_mean_is_ordered(config, "cpu") and not train.gradient_mean_is_ordered(config, "tpu")
+  assert compilation.gradient_mean_is_ordered(config, "cpu") and not compilation.gradient_mean_is_ordered(config, "tpu")
   config.compile.gradient_mean = "pmean"
-  assert not train.gradient_mean_is_ordered(config, "cpu")
+  assert not compilation.gradient_mean_is_ordered(config, "cpu")
   config.compile.gradient_mean = "ordered"
-  assert train.gradient_mean_is_ordered(config, "tpu")
+  assert compilation.gradient_mean_is_ordered(config, "tpu")

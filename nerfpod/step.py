@@ -1,0 +1,177 @@
+"""The train step: step(state, batch, key) -> (state, metrics), sharded over the device mesh.
+
+    make_train_step    the jitted step from its pieces (model, optimiser, mesh, ray bounds, loss weights)
+    for_program        the one mapping of a config's Program onto make_train_step (runs and the pod tool)
+    compile_fitted     compiled for a Program's shapes, with train.microbatches=0 fitted to a memory budget
+    start_compiling    a run's step compiled in a background thread while its state initialises
+"""
+import concurrent.futures
+
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import PartitionSpec as P
+
+from nerfpod import compilation, components, distributed
+from nerfpod.components import Program, TrainState
+from nerfpod.finite import all_finite
+from nerfpod.metrics import mse_to_psnr
+from nerfpod.nerf import stepfun
+
+
+def per_ray_uniforms(key, ray_ids, count: int):
+  """(R, count) uniform numbers, ray i's drawn from fold_in(key, ray_ids[i]): the same for a ray whatever
+  device or host renders it, so results do not depend on how the batch is split."""
+  return jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(key, i), (count,)))(ray_ids)
+
+
+def make_train_step(model, optimizer, mesh, near: float, far: float, background,
+                    random_background: bool = False, microbatches: int = 1,
+                    compiler_options: dict | None = None, interlevel_weight: float = 1.0,
+                    distortion_weight: float = 0.0, ordered_mean: bool = True):
+  """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
+
+  Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
+  averaged across devices (every device holds the same number of rays, so that is the global mean) and every
+  device applies the same Adam update to its replica of the parameters. With `ordered_mean` the mean is
+  summed in an order that does not depend on the processes (distributed.ordered_mean: any topology of the
+  same device count gives the same bits, at log2(N) exchanges of the gradients); without, it is one
+  all-reduce (jax.lax.pmean), whose summation order is the collective's own
+  (compilation.gradient_mean_is_ordered). A step whose loss, gradient or update is not finite leaves the
+  state as it was.
+  With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
+  colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
+  colour, which gives clean depth, opacity and disparity.
+  With `microbatches` > 1, each device's rays are processed in that many sequential slices whose gradients
+  are averaged (gradient accumulation): the same result in a fraction of the activation memory.
+  `compiler_options`: XLA options to compile the step with (compilation.compiler_options).
+  With proposal sampling (model.proposal_samples), the loss adds `interlevel_weight` times mip-NeRF 360's
+  interlevel loss of every proposal round and `distortion_weight` times the distortion loss of the NeRF's
+  weights; both are also returned as metrics.
+  """
+  background = jnp.asarray(background, jnp.float32)
+  num_devices = mesh.shape[distributed.DATA_AXIS]
+
+  def loss_fn(params, batch, key):
+    # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
+    uniforms = [per_ray_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count)
+                for i, count in enumerate(model.sample_counts())]
+    target, ray_background = batch["rgb"], background
+    if random_background and "alpha" in batch:
+      ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
+      target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
+    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms)
+    mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
+    loss = jnp.sum(mses)
+    extra = {}
+    final = levels[-1]
+    if "proposals" in final:
+      # The proposals learn to bound the NeRF's weights (a fixed target for them: no gradient into the NeRF
+      # from this loss); the photometric loss reaches only the NeRF (sample positions carry no gradient).
+      target_weights = jax.lax.stop_gradient(final["weights"])
+      extra["interlevel"] = sum(jnp.mean(stepfun.interlevel_loss(final["s_edges"], target_weights,
+                                                                 p["s_edges"], p["weights"]))
+                                for p in final["proposals"])
+      extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
+      loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
+    return loss, (mses, extra)
+
+  value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
+
+  def accumulate(params, batch, key):
+    """(loss, mses), grads of the mean over this device's rays, one micro-batch at a time."""
+    if microbatches == 1:
+      return value_and_grad(params, batch, key)
+    slices = jax.tree.map(lambda x: x.reshape((microbatches, -1) + x.shape[1:]), batch)
+    def body(total, micro):
+      value, grads = value_and_grad(params, micro, key)
+      return jax.tree.map(lambda a, b: a + b / microbatches, total, (value, grads)), None
+    zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(value_and_grad, params,
+                                                        jax.tree.map(lambda x: x[0], slices), key))
+    return jax.lax.scan(body, zeros, slices)[0]
+
+  def local_step(state, batch, key):
+    key = jax.random.fold_in(key, state.step)
+    # Differentiate w.r.t. a device-varying view of the replicated parameters: each device then gets the
+    # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
+    # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
+    params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
+    (loss, (mses, extra)), grads = accumulate(params, batch, key)
+    if ordered_mean:
+      grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), distributed.DATA_AXIS,
+                                                          num_devices)
+    else:
+      grads, loss, mses, extra = jax.lax.pmean((grads, loss, mses, extra), distributed.DATA_AXIS)
+    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
+    params = optax.apply_updates(state.params, updates)
+    # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
+    # Adam's moments and count stay as they were; the data moves on) and counted in metrics["skipped"].
+    finite = all_finite((loss, grads, params, opt_state))
+    params, opt_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), (params, opt_state),
+                                     (state.params, state.opt_state))
+    metrics = {"loss": loss, "mse": mses[-1], "psnr": mse_to_psnr(mses[-1]),
+               "psnr_coarse": mse_to_psnr(mses[0]), "grad_norm": optax.tree.norm(grads),
+               "skipped": 1 - finite.astype(jnp.int32), **extra}
+    return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
+
+  step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
+                       out_specs=(P(), P()))
+  return jax.jit(step, donate_argnums=0, compiler_options=compiler_options)
+
+
+def for_program(program: Program, microbatches: int, backend: str | None = None):
+  """The jitted train step of `program` with `microbatches` micro-batches: the one place a config's
+  training settings become make_train_step's arguments (`backend`: what the gradient mean is chosen for,
+  default JAX's; the pod compile tool asks for 'tpu')."""
+  tc = program.config.train
+  return make_train_step(program.model, program.optimizer, program.mesh, program.near, program.far,
+                         program.background, tc.random_background, microbatches, program.compiler_options,
+                         tc.interlevel_weight, tc.distortion_weight,
+                         compilation.gradient_mean_is_ordered(program.config, backend))
+
+
+def compile_fitted(program: Program, key, budget_bytes: int, backend: str | None = None):
+  """(micro-batches, compiled step, its bytes per device by XLA's analysis) for `program`'s state and batch
+  shapes and `key` (a key, or its ShapeDtypeStruct). With train.microbatches=0: the fewest micro-batches
+  whose step fits `budget_bytes` per device (compilation.fewest_microbatches), the compiled step being the
+  very one compiled while fitting. Called with arguments of other shapes or placements, the compiled step
+  raises instead of recompiling."""
+  compiled = {}
+
+  def compile_with(count):
+    lowered = for_program(program, count, backend).lower(program.state_shapes, program.batch_shapes, key)
+    compiled[count] = lowered.compile()
+    return compilation.step_memory_bytes(compiled[count])
+
+  tc = program.config.train
+  if tc.microbatches:
+    need = compile_with(tc.microbatches)
+    return tc.microbatches, compiled[tc.microbatches], need
+  per_device = tc.batch_size // program.mesh.size
+  count, need = compilation.fewest_microbatches(per_device, budget_bytes, compile_with)
+  return count, compiled[count], need
+
+
+def compile_for_run(comps: components.Components):
+  """A run's train step compiled ahead of time for its shapes, micro-batches fitted to this process's memory
+  budget (compilation.memory_budget_bytes) where train.microbatches=0, which process 0 reports."""
+  budget = compilation.memory_budget_bytes(comps.config)
+  count, compiled, need = compile_fitted(comps, components.rays_key(comps.config.train.seed), budget)
+  if comps.config.train.microbatches == 0 and jax.process_index() == 0:
+    fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
+    shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
+    per_device = comps.config.train.batch_size // comps.mesh.size
+    print(f"nerfpod: train.microbatches=0: {count} micro-batch(es) of {per_device // count} rays per device "
+          f"({shown} per device by XLA's analysis) {fits} the budget of {budget / 2**20:,.1f} MiB per device",
+          flush=True)
+  return compiled
+
+
+def start_compiling(comps: components.Components) -> concurrent.futures.Future:
+  """compile_for_run in a background thread, whose future is returned: XLA compiles without holding
+  Python's lock, so the state's initialisation (itself a compilation) or restore overlaps the step's
+  compilation, seconds off every start on a CPU. Tracing and lowering take the lock for a moment."""
+  pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="nerfpod-compile")
+  future = pool.submit(compile_for_run, comps)
+  pool.shutdown(wait=False)  # the thread ends with its one task
+  return future
