@@ -1,7 +1,7 @@
-"""Benchmark a config: throughput, achieved FLOP/s against the measured matmul peak, time to quality.
+"""`nerfpod bench`: a config's throughput, achieved FLOP/s against the measured matmul peak, time to quality.
 
-  python -m tools.benchmark --config=configs/tiny_fast.py:path=tiny_nerf_data.npz --steps=30
-  python -m tools.benchmark --config=configs/tiny_fast.py:path=... --quality --max_seconds=600
+  nerfpod bench --config=configs/tiny_fast.py:path=tiny_nerf_data.npz --steps=30
+  nerfpod bench --config=configs/tiny_fast.py:path=... --quality --max_seconds=600
 
 Throughput mode times `--steps` train steps after compilation: rays/s and samples/s, the step's FLOPs as
 XLA counts them (cost analysis of the lowered step, 2 per multiply-add; over all devices) divided by its
@@ -21,6 +21,7 @@ given).
 import json
 import platform
 import resource
+import sys
 import time
 
 _START = time.perf_counter()
@@ -70,15 +71,15 @@ class _Trainer:
   """A config's components (nerfpod.components), its train step and a batch stream from step 0."""
 
   def __init__(self, config):
-    from nerfpod import components, distributed, train
+    from nerfpod import components, distributed, step
     self.config = config
     self.comps = components.build(config)
-    compiling = train.start_compiling(self.comps)  # as a run starts: the step compiles during the init
+    compiling = step.start_compiling(self.comps)  # as a run starts: the step compiles during the init
     self.state = self.comps.init_state()
     self.step_fn = compiling.result()
     # The same step without micro-batches, only ever lowered: XLA's cost analysis counts a loop body
     # once, so the FLOPs of a step with a micro-batch scan are read off this one.
-    self.unlooped_step_fn = train.train_step(self.comps, microbatches=1)
+    self.unlooped_step_fn = step.for_program(self.comps, microbatches=1)
     self.batches = self.comps.batches(0)
     self.key = components.rays_key(config.train.seed)
     self._to_global = lambda local: distributed.to_global(self.comps.mesh, local)
@@ -109,7 +110,7 @@ class _Trainer:
 
 def throughput(config, steps: int) -> dict:
   import jax
-  from nerfpod import xla_options
+  from nerfpod import compilation
   trainer = _Trainer(config)
   flops_per_step = trainer.flops_per_step(trainer.next_batch())
   for _ in range(3):  # warm-up
@@ -123,7 +124,7 @@ def throughput(config, steps: int) -> dict:
     jax.block_until_ready(trainer.step(batch))
     t2 = time.perf_counter()
     data_s, step_s = data_s + t1 - t0, step_s + t2 - t1
-  options = xla_options.compiler_options(config)
+  options = compilation.compiler_options(config)
   peak = matmul_peak_flops(options)
   rays = steps * config.train.batch_size
   samples = samples_per_ray(config)
@@ -216,11 +217,23 @@ def time_to_quality(config, max_seconds: float, eval_every: int) -> dict:
 
 
 def main(argv):
-  del argv
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+  from nerfpod import schema
+  from nerfpod.errors import UserError
+  try:
+    config = _CONFIG.value
+    config.keys()
+    schema.migrate(config)
+    schema.validate(config)
+  except UserError as e:
+    for message in getattr(e, "messages", None) or [str(e)]:
+      print(f"nerfpod bench: error: {message}", file=sys.stderr, flush=True)
+    sys.exit(2)
   import jax
-  from nerfpod import distributed, xla_options
+  from nerfpod import compilation, distributed
   distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU
-  config = _CONFIG.value
+  compilation.tune_host(config)  # process-wide, as a training process sets it
   result = {"config": {"field": config.model.field, "samples": config.render.num_samples,
                        "importance": config.render.num_importance,
                        "proposal_samples": list(config.render.proposal_samples),
@@ -229,7 +242,7 @@ def main(argv):
             "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
                         "backend": jax.default_backend(), "devices": jax.device_count(),
                         "device_kind": jax.devices()[0].device_kind},
-            "compiler_options": xla_options.compiler_options(config)}
+            "compiler_options": compilation.compiler_options(config)}
   if _QUALITY.value:
     result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value)
   else:
@@ -241,5 +254,11 @@ def main(argv):
       f.write(line + "\n")
 
 
+def run(argv=None):
+  """`nerfpod bench ...` (argv[0] is the program's name) and `python -m nerfpod.bench ...`."""
+  flags.mark_flags_as_required(["config"])
+  app.run(main, argv=argv)
+
+
 if __name__ == "__main__":
-  app.run(main)
+  run()

@@ -1,8 +1,10 @@
-"""Exports an orbit archive to videos and a contact sheet.
+"""`nerfpod export KIND`: what a trained run gives to other tools.
 
-    python -m tools.export WORKDIR_OR_ARCHIVE [--out DIR] [--fps 30] [--formats mp4,gif,png]
+    nerfpod export video --workdir=DIR [--out=DIR] [--fps=30] [--formats=mp4,gif,png]
 
-WORKDIR_OR_ARCHIVE is a training workdir (its renders/orbit.zarr is used) or an archive folder. Writes
+video: the orbit archive to videos and a contact sheet. --workdir is a training workdir (its
+renders/orbit.zarr is used) or an archive folder itself (`nerfpod-export WORKDIR_OR_ARCHIVE ...`, the
+earlier spelling, still works). Writes
 PREFIX_{rgb,depth,acc,disparity}.{mp4,gif} and PREFIX_sheet.png, PREFIX being the archive's name without
 .zarr ("orbit"), into --out (default: the folder holding the archive). Depth and disparity are colour-mapped
 (turbo, near warm); acc is grey. An archive that misses frames is refused with the list of them.
@@ -40,27 +42,48 @@ def write_files(path: str, out_dir: str | None = None, fps: float | None = None,
   return files
 
 
-def parse_args(argv):
-  parser = argparse.ArgumentParser(prog="nerfpod-export", description=__doc__.split("\n\n")[0])
-  parser.add_argument("path", metavar="WORKDIR_OR_ARCHIVE",
-                      help="a training workdir (uses renders/orbit.zarr) or an orbit archive folder")
+KINDS = {"video": "the orbit archive (renders/orbit.zarr) to videos and a contact sheet"}
+
+
+def _video_arguments(parser: argparse.ArgumentParser) -> None:
   parser.add_argument("--out", default=None, help="output folder (default: the folder holding the archive)")
   parser.add_argument("--fps", type=float, default=None,
                       help="frames per second (default: the archive's, from orbit.fps)")
   parser.add_argument("--formats", default="mp4,gif,png", help="comma-separated: mp4, gif, png")
+
+
+def parse_args(argv):
+  parser = argparse.ArgumentParser(prog="nerfpod export", description=__doc__.split("\n\n")[0])
+  kinds = parser.add_subparsers(dest="kind", required=True, metavar="KIND")
+  video_parser = kinds.add_parser("video", help=KINDS["video"], description=KINDS["video"])
+  video_parser.add_argument("--workdir", required=True, metavar="WORKDIR_OR_ARCHIVE",
+                            help="a training workdir (uses renders/orbit.zarr) or an orbit archive folder")
+  _video_arguments(video_parser)
   return parser.parse_args(argv)
 
 
-def run(argv=None) -> None:
-  """Console-script entry point (`nerfpod-export`)."""
-  args = parse_args(sys.argv[1:] if argv is None else argv)
+def _export(args, prog: str) -> None:
   try:
-    files = write_files(args.path, args.out, args.fps, args.formats.split(","))
+    files = write_files(args.workdir, args.out, args.fps, args.formats.split(","))
   except UserError as e:
-    print(f"nerfpod-export: error: {e}", file=sys.stderr, flush=True)
+    print(f"{prog}: error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)
   for path in files:
     print(path)
+
+
+def run(argv=None) -> None:
+  """`nerfpod export KIND ...` (argv: the arguments after `export`)."""
+  _export(parse_args(sys.argv[1:] if argv is None else argv), "nerfpod export")
+
+
+def run_video_alias(argv=None) -> None:
+  """The console script `nerfpod-export WORKDIR_OR_ARCHIVE [...]`: `nerfpod export video`'s earlier name."""
+  parser = argparse.ArgumentParser(prog="nerfpod-export", description=KINDS["video"])
+  parser.add_argument("workdir", metavar="WORKDIR_OR_ARCHIVE",
+                      help="a training workdir (uses renders/orbit.zarr) or an orbit archive folder")
+  _video_arguments(parser)
+  _export(parser.parse_args(sys.argv[1:] if argv is None else argv), "nerfpod-export")
 
 
 if __name__ == "__main__":

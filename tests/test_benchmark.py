@@ -2,7 +2,7 @@
 import pytest
 
 from conftest import smoke_config
-from tools import benchmark
+from nerfpod import bench as benchmark
 
 pytestmark = pytest.mark.slow
 

@@ -1,1 +1,2 @@
-"""User tools that are not the trainer (`python -m tools.export ...`)."""
+"""Repository-only scripts (not installed with nerfpod): `python -m tools.pod_tables`, tools.topology,
+tools.scene_report, tools.view_benchmark; and `python -m tools.aot`, the earlier spelling of `nerfpod aot`."""
