@@ -16,6 +16,7 @@ def get_config(arg: str | None = None):
   args = config_util.parse_arg(arg, path="data/capture", downscale="4", smoke=False)
   default = config_util.sibling_module(__file__, "default")
   c = default.get_config()
+  default.for_real_capture(c)     # opaque, view directions, the hash grid in the ball of radius 2, ...
   c.data.kind = "auto"
   c.data.path = args["path"]      # a capture folder (or a transforms.json)
   c.data.downscale = int(args["downscale"])
@@ -23,22 +24,9 @@ def get_config(arg: str | None = None):
   c.render.space = "contract"
   c.render.spacing = "inverse"
   c.render.proposal_samples = (64,)  # one proposal round of 64 intervals in inverse distance, then
-  c.render.num_samples = 32       # 32 samples for the field: 1.8x cheaper steps than 48 coarse + 32 fine
-  c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
-                                  # (with 0, dark pixels could be fitted as see-through onto black)
-  c.model.use_viewdirs = True
-  g = c.model.hashgrid
-  g.bound, g.log2_table_size, g.max_resolution = 2.0, 19, 1024  # the contracted ball of radius 2
+  c.render.num_samples = 32       # 32 samples for the field: cheaper steps than 48 coarse + 32 fine
   c.train.num_steps = 4000
-  c.train.batch_size = 1024
-  c.train.lr_init, c.train.lr_final = 1e-2, 3e-4
-  c.train.log_every = 200
-  c.train.image_every = 2000
-  c.checkpoint.every_steps = 2000
-  c.eval.chunk = 8192
   c.orbit.path = "ellipse"        # mip-NeRF 360's, through the capture's cameras
-  c.orbit.chunk = 8192
   if args["smoke"]:
     default.shrink_for_smoke(c)
-    c.model.hashgrid.bound = 2.0
   return c

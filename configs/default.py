@@ -1,6 +1,7 @@
 """The default job: the built-in procedural scene, sized to train, evaluate and render in minutes on a CPU.
 
-Every other config starts from this one. Argument: `smoke` shrinks everything to seconds (tests, CI).
+Every other config starts from this one; the real captures' configs (capture.py, llff.py) then apply
+`for_real_capture`. Argument: `smoke` shrinks everything to seconds (tests, CI), as `shrink_for_smoke` does.
 """
 import ml_collections
 
@@ -87,12 +88,12 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
                                     # gradient; each such step is skipped, its update never reaches the state
 
   c.compile = ml_collections.ConfigDict()
-  c.compile.cpu_ynnpack = False   # CPU: let XLA hand dots to YNNPACK (its default); off, the steps measured
-                                  # 1.1-1.5x faster on a 2-core CPU (README, Speed). Ignored on TPU/GPU.
+  c.compile.cpu_ynnpack = False   # CPU: let XLA hand dots to YNNPACK (its default); off, the steps ran
+                                  # faster on a 2-core CPU (docs/results.md). Ignored on TPU/GPU.
   c.compile.cpu_memory_gib = 3.0  # CPU: memory the train step may use (all of a process's simulated devices
                                   # together) when train.microbatches=0; accelerators use their own size
   c.compile.cpu_reuse_host_memory = True  # CPU: glibc's malloc keeps freed memory for the next step instead
-                                  # of unmapping it (about 16% faster steps on 2 cores; 10% more peak memory)
+                                  # of unmapping it (faster steps on 2 cores for more peak memory; results.md)
   c.compile.gradient_mean = "auto"  # 'ordered' (the same bits on any topology: log2(N) exchanges), 'pmean'
                                   # (one all-reduce) or 'auto' (ordered on CPU, pmean on TPU/GPU; README)
   c.compile.hashgrid_lookup = "auto"  # hash-grid levels: 'gather', 'matmul' (dense levels, no gather or
@@ -159,3 +160,23 @@ def shrink_for_smoke(c: ml_collections.ConfigDict) -> None:
   c.orbit.width = 16
   c.orbit.height = 16
   c.orbit.chunk = 1024
+
+
+def for_real_capture(c: ml_collections.ConfigDict) -> None:
+  """What the configs of real captures share (configs/capture.py, configs/llff.py): an opaque far end, view
+  directions, a finer hash grid in a box of 2, a lower final learning rate, and for their longer runs
+  sparser logs, images and checkpoints and bigger render chunks. Each then says what its kind needs."""
+  c.render.last_delta = 1e10      # the original's: the last sample absorbs what is left, so a capture is opaque
+                                  # (with 0, dark pixels could be fitted as see-through onto black)
+  c.model.use_viewdirs = True     # real scenes shine
+  g = c.model.hashgrid
+  # A box of 2 covers capture.py's contracted ball of radius 2 and, in llff.py's NDC cube, the |x|, |y| up to
+  # ~1.7 that offset cameras see near the near plane (horns); 1024 cells over its 4 units match ~500-pixel
+  # images over the NDC cube's 2.
+  g.bound, g.log2_table_size, g.max_resolution = 2.0, 19, 1024
+  c.train.lr_final = 3e-4
+  c.train.log_every = 200
+  c.train.image_every = 2000
+  c.checkpoint.every_steps = 2000
+  c.eval.chunk = 8192
+  c.orbit.chunk = 8192

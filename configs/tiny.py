@@ -21,8 +21,8 @@ def get_config(arg: str | None = None):
   c.render.last_delta = 1e10      # the tutorial's infinite last interval
   c.train.num_steps = 1000
   c.train.batch_size = 10_000
-  c.train.microbatches = 50       # 200 rays x 256 samples at a time: 1.3 GiB in all, and faster on a CPU
-                                  # than bigger slices (their activations fit the caches better)
+  c.train.microbatches = 50       # 200 rays x 256 samples at a time: faster on a CPU than bigger slices
+                                  # (their activations fit the caches better)
   c.train.lr_init = 5e-4
   c.train.lr_final = 5e-4         # the tutorial's constant learning rate
   c.train.lr_warmup_steps = 0

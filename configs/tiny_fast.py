@@ -1,8 +1,8 @@
 """A fast field on the Tiny NeRF data: multiresolution hash grid + small MLPs, for CPUs and small budgets.
 
 Proposal sampling: one round of 32 intervals weighed by a small proposal field, then 16 for the NeRF field
-(48 stratified samples before: about 14% cheaper steps on a CPU that place the field's samples on the
-surface). Targets (tools/benchmark.py, README's Speed section): 28 dB mean held-out PSNR on frames 100-105
+(in place of 48 stratified samples: cheaper steps on a CPU that place the field's samples on the surface).
+Targets (`nerfpod bench`; docs/results.md has what it reaches): 28 dB mean held-out PSNR on frames 100-105
 within 60 s of training, 30 dB at the end of a job of at most 5 minutes on a 2-core CPU.
 Arguments: `path=FILE` (the npz), `smoke` for tests.
 """

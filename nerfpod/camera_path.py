@@ -43,11 +43,6 @@ def focal_from_fov(fov_y_deg: float, height: int) -> float:
   return 0.5 * height / math.tan(0.5 * math.radians(float(fov_y_deg)))
 
 
-def fov_from_focal(focal: float, height: int) -> float:
-  """The vertical field of view in degrees of a focal length in pixels (the inverse of focal_from_fov)."""
-  return math.degrees(2.0 * math.atan(0.5 * height / float(focal)))
-
-
 def _fail(path, what: str) -> UserError:
   return UserError(f"camera path {path}: {what}; write it in nerfstudio's camera_path.json format "
                    f"(render_width, render_height, camera_path: [{{camera_to_world, fov}}, ...]).")

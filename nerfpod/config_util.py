@@ -3,8 +3,6 @@ fields by dotted name."""
 import importlib.util
 import os
 
-import ml_collections
-
 from nerfpod.errors import UserError
 
 
@@ -15,11 +13,6 @@ def sibling_module(this_file: str, name: str):
   module = importlib.util.module_from_spec(spec)
   spec.loader.exec_module(module)
   return module
-
-
-def sibling_config(this_file: str, name: str, arg: str | None = None) -> ml_collections.ConfigDict:
-  """get_config(arg) of configs/<name>.py, found next to `this_file`."""
-  return sibling_module(this_file, name).get_config(arg)
 
 
 def parse_arg(arg: str | None, **defaults) -> dict:

@@ -24,5 +24,11 @@ def require(path: pathlib.Path):
 
 def smoke_config(**overrides):
   """configs/default.py:smoke with dotted overrides, e.g. smoke_config(**{"train.num_steps": 5})."""
-  from nerfpod.config_util import override, sibling_config
-  return override(sibling_config(str(REPO / "configs" / "x.py"), "default", "smoke"), **overrides)
+  from nerfpod.config_util import override
+  return override(load_config("default", "smoke"), **overrides)
+
+
+def load_config(name: str, arg: str | None = None):
+  """The config that --config=configs/<name>.py:<arg> gives, e.g. load_config("llff", "scene=horns")."""
+  from nerfpod.config_util import sibling_module
+  return sibling_module(str(REPO / "configs" / f"{name}.py"), name).get_config(arg)

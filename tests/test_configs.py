@@ -3,8 +3,7 @@ import re
 
 import pytest
 
-from conftest import REPO
-from nerfpod.config_util import sibling_config
+from conftest import REPO, load_config
 from nerfpod.errors import UserError
 
 CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast", "llff", "capture"]
@@ -21,7 +20,7 @@ def _get(config, dotted):
 @pytest.mark.parametrize("name", CONFIGS)
 @pytest.mark.parametrize("arg", [None, "smoke"])
 def test_config_loads_with_the_contract_names(name, arg):
-  config = sibling_config(str(REPO / "configs" / "x.py"), name, arg)
+  config = load_config(name, arg)
   for dotted in CONTRACT:
     _get(config, dotted)
   if arg == "smoke":
@@ -29,9 +28,9 @@ def test_config_loads_with_the_contract_names(name, arg):
 
 
 def test_config_arguments_are_parsed_and_unknown_ones_refused():
-  assert sibling_config(str(REPO / "configs" / "x.py"), "blender", "scene=chair").data.path.endswith("chair")
+  assert load_config("blender", "scene=chair").data.path.endswith("chair")
   with pytest.raises(UserError, match="unknown config argument 'scen'"):
-    sibling_config(str(REPO / "configs" / "x.py"), "blender", "scen=chair")
+    load_config("blender", "scen=chair")
 
 
 def test_every_field_of_the_default_config_has_a_comment():
@@ -44,24 +43,24 @@ def test_every_field_of_the_default_config_has_a_comment():
 
 
 def test_tiny_config_is_the_tutorials_model_and_blender_the_papers():
-  tiny = sibling_config(str(REPO / "configs" / "x.py"), "tiny")
+  tiny = load_config("tiny")
   assert (tiny.model.field, tiny.model.use_viewdirs) == ("mlp", False)
   assert (tiny.model.mlp.num_frequencies, tiny.model.mlp.depth, tiny.model.mlp.width,
           tuple(tiny.model.mlp.skips)) == (6, 8, 256, (4,))
   assert (tiny.render.num_samples, tiny.render.num_importance, tiny.train.lr_init) == (256, 0, 5e-4)
-  blender = sibling_config(str(REPO / "configs" / "x.py"), "blender")
+  blender = load_config("blender")
   assert (blender.model.mlp.num_frequencies, blender.model.mlp.viewdir_frequencies, blender.model.mlp.depth,
           blender.model.mlp.width, blender.model.use_viewdirs) == (10, 4, 8, 256, True)
   assert (blender.render.num_samples, blender.render.num_importance) == (64, 128)
 
 
 def test_real_capture_configs_pick_their_space_sampling_and_path():
-  llff = sibling_config(str(REPO / "configs" / "x.py"), "llff", "scene=horns")
+  llff = load_config("llff", "scene=horns")
   assert llff.data.path.endswith("horns") and (llff.data.kind, llff.data.downscale) == ("llff", 8)
   assert (llff.render.space, llff.render.spacing, llff.orbit.path) == ("ndc", "linear", "spiral")
-  capture = sibling_config(str(REPO / "configs" / "x.py"), "capture", "path=/x/cup,downscale=2")
+  capture = load_config("capture", "path=/x/cup,downscale=2")
   assert (capture.data.path, capture.data.kind, capture.data.downscale) == ("/x/cup", "auto", 2)
   assert (capture.render.space, capture.render.spacing, capture.orbit.path) == ("contract", "inverse", "ellipse")
   assert capture.model.hashgrid.bound == 2.0
-  for smoke in (sibling_config(str(REPO / "configs" / "x.py"), name, "smoke") for name in ("llff", "capture")):
+  for smoke in (load_config(name, "smoke") for name in ("llff", "capture")):
     assert smoke.render.space in ("ndc", "contract") and smoke.train.num_steps <= 20

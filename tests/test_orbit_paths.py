@@ -3,7 +3,7 @@ file's cameras are its matrices and fovs; another path replaces the archive inst
 import numpy as np
 import pytest
 
-from conftest import DATA, REPO, require, smoke_config
+from conftest import DATA, load_config, require, smoke_config
 from nerfpod import archive as archives
 from nerfpod import camera_path, components, orbit, render
 from nerfpod.errors import UserError
@@ -84,10 +84,9 @@ def test_the_llff_configs_spiral_on_horns_is_the_originals():
   """The whole way: configs/llff.py's loader (recentring, bounds rescale) and orbit.path=spiral give the
   original load_llff_data's render_poses for the real horns capture, each frame counted once."""
   from nerfpod import scenes
-  from nerfpod.config_util import sibling_config
   from test_paths import load_llff_spiral
   folder = require(DATA / "llff_horns")
-  config = sibling_config(str(REPO / "configs" / "x.py"), "llff", "scene=horns")
+  config = load_config("llff", "scene=horns")
   config.data.path = str(folder)
   cams = orbit.path_cameras(config, scenes.load(config.data))
   raw = np.load(folder / "poses_bounds.npy")

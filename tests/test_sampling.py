@@ -17,35 +17,6 @@ def test_stratified_samples_one_per_bin_sorted_and_within_bounds():
                              centres[1:-1], rtol=1e-6)
 
 
-def test_inverse_cdf_samples_reproduce_the_weight_distribution():
-  bins = jnp.linspace(0.0, 1.0, 11)[None]
-  weights = jnp.array([[0.0, 1, 4, 0, 0, 2, 8, 1, 0, 4]])
-  u = jax.random.uniform(jax.random.key(1), (1, 200_000))
-  samples = np.asarray(sampling.sample_pdf(bins, weights, 200_000, u))[0]
-  hist, _ = np.histogram(samples, bins=np.asarray(bins[0]))
-  expected = np.asarray(weights[0]) / np.sum(weights)
-  np.testing.assert_allclose(hist / len(samples), expected, atol=3e-3)
-  # Within one interval the density is uniform: samples in [0.6, 0.7) spread evenly.
-  inner = samples[(samples >= 0.6) & (samples < 0.7)]
-  np.testing.assert_allclose(np.histogram(inner, bins=5, range=(0.6, 0.7))[0] / len(inner), 0.2, atol=0.01)
-
-
-def test_deterministic_inverse_cdf_is_sorted_and_follows_quantiles():
-  bins = jnp.linspace(0.0, 4.0, 5)[None]
-  weights = jnp.array([[1.0, 1.0, 1.0, 1.0]])
-  samples = np.asarray(sampling.sample_pdf(bins, weights, 9))[0]
-  np.testing.assert_allclose(samples, np.linspace(0, 4, 9), atol=1e-3)
-
-
-def test_no_gradient_flows_through_importance_sample_positions():
-  bins = jnp.linspace(0.0, 1.0, 9)[None]
-  u = jax.random.uniform(jax.random.key(2), (1, 32))
-  f = lambda w, b: jnp.sum(sampling.sample_pdf(b, w, 32, u))
-  grad_w, grad_b = jax.grad(f, argnums=(0, 1))(jnp.linspace(0.1, 1.0, 8)[None], bins)
-  np.testing.assert_array_equal(grad_w, 0.0)
-  np.testing.assert_array_equal(grad_b, 0.0)
-
-
 def test_clip_to_box_matches_brute_force_inside_test():
   rng = np.random.default_rng(3)
   origins = rng.normal(size=(500, 3)) * 3.0

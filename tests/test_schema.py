@@ -6,9 +6,8 @@ import ml_collections
 import pytest
 
 import procs
-from conftest import REPO, smoke_config
+from conftest import load_config, smoke_config
 from nerfpod import scenes, schema
-from nerfpod.config_util import sibling_config
 from nerfpod.errors import UserError
 
 CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast", "llff", "capture"]
@@ -17,7 +16,7 @@ CONFIGS = ["default", "tiny", "blender", "tiny_fast", "blender_fast", "llff", "c
 @pytest.mark.parametrize("name", CONFIGS)
 @pytest.mark.parametrize("arg", [None, "smoke"])
 def test_every_shipped_config_is_valid_and_every_field_is_in_the_schema(name, arg):
-  config = sibling_config(str(REPO / "configs" / "x.py"), name, arg)
+  config = load_config(name, arg)
   assert set(schema.flatten(config)) == set(schema.FIELDS)
   assert schema.problems(config, device_count=8) == []
 
@@ -124,7 +123,7 @@ CHANGED_DEFAULTS = {"render.proposal_samples": [], "render.num_samples": 48,
 def _default_json(**values) -> dict:
   """configs/default.py as JSON (a workdir's config.json), with dotted fields set to `values`."""
   from nerfpod.config_util import override
-  return override(json.loads(sibling_config(str(REPO / "configs" / "x.py"), "default").to_json_best_effort()),
+  return override(json.loads(load_config("default").to_json_best_effort()),
                   **values)
 
 

@@ -1,4 +1,4 @@
-"""Step functions of proposal sampling (nerf/stepfun.py) against brute-force references."""
+"""Step functions of importance and proposal sampling (nerf/stepfun.py) against brute-force references."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -96,6 +96,37 @@ def test_distortion_loss_equals_its_brute_force_double_integral():
   # is l^3 / 3, and the density there is 1 / l).
   one = stepfun.distortion_loss(jnp.array([[0.0, 0.2, 0.6, 1.0]]), jnp.array([[0.0, 1.0, 0.0]]))
   np.testing.assert_allclose(one, [0.4 / 3], rtol=1e-6)
+
+
+def test_inverse_cdf_of_uniform_numbers_reproduces_the_weight_distribution():
+  bins = jnp.linspace(0.0, 1.0, 11)[None]
+  weights = jnp.array([[0.0, 1, 4, 0, 0, 2, 8, 1, 0, 4]])
+  u = jax.random.uniform(jax.random.key(1), (1, 200_000))
+  samples = np.asarray(stepfun.inverse_cdf(bins, weights, u))[0]
+  hist, _ = np.histogram(samples, bins=np.asarray(bins[0]))
+  expected = np.asarray(weights[0]) / np.sum(weights)
+  np.testing.assert_allclose(hist / len(samples), expected, atol=3e-3)
+  # Within one interval the density is uniform: samples in [0.6, 0.7) spread evenly.
+  inner = samples[(samples >= 0.6) & (samples < 0.7)]
+  np.testing.assert_allclose(np.histogram(inner, bins=5, range=(0.6, 0.7))[0] / len(inner), 0.2, atol=0.01)
+
+
+def test_inverse_cdf_at_quantiles_from_0_to_1_spans_the_edges():
+  # The hierarchical sampler's evaluation: quantiles 0 and 1 inclusive, weights padded by 1e-5 (nerf/model.py).
+  bins = jnp.linspace(0.0, 4.0, 5)[None]
+  weights = jnp.array([[1.0, 1.0, 1.0, 1.0]]) + 1e-5
+  samples = np.asarray(stepfun.inverse_cdf(bins, weights, jnp.linspace(0.0, 1.0, 9)[None]))[0]
+  np.testing.assert_allclose(samples, np.linspace(0, 4, 9), atol=1e-3)
+  assert samples[0] == 0.0 and samples[-1] == 4.0 and np.all(np.diff(samples) > 0)
+
+
+def test_no_gradient_flows_through_inverse_cdf_positions():
+  bins = jnp.linspace(0.0, 1.0, 9)[None]
+  u = jax.random.uniform(jax.random.key(2), (1, 32))
+  f = lambda w, b: jnp.sum(stepfun.inverse_cdf(b, w, u))
+  grad_w, grad_b = jax.grad(f, argnums=(0, 1))(jnp.linspace(0.1, 1.0, 8)[None], bins)
+  np.testing.assert_array_equal(grad_w, 0.0)
+  np.testing.assert_array_equal(grad_b, 0.0)
 
 
 def test_resampling_reproduces_a_known_histogram():

@@ -18,8 +18,6 @@ All functions are pure jnp and differentiable, and work on any leading shape.
 """
 import jax.numpy as jnp
 
-SPACINGS = ("linear", "inverse")
-
 
 def ndc_rays(origins_Rx3, directions_Rx3, focal_x: float, focal_y: float, width: float, height: float,
              near: float = 1.0):
@@ -56,13 +54,6 @@ def contract(points_Nx3):
   norm = jnp.sqrt(norm_sq)
   # Written with the safe norm in both branches so the gradient is finite everywhere.
   return jnp.where(norm <= 1.0, points_Nx3, (2.0 - 1.0 / norm) * points_Nx3 / norm)
-
-
-def inv_contract(contracted_Nx3):
-  """The inverse of `contract` on the open ball of radius 2: y where |y| <= 1, else y / (|y| (2 - |y|))."""
-  norm_sq = jnp.maximum(jnp.sum(contracted_Nx3 ** 2, axis=-1, keepdims=True), 1e-20)
-  norm = jnp.sqrt(norm_sq)
-  return jnp.where(norm <= 1.0, contracted_Nx3, contracted_Nx3 / (norm * jnp.maximum(2.0 - norm, 1e-20)))
 
 
 def t_to_s(t, near, far, spacing: str):

@@ -104,7 +104,11 @@ class NeRF(nn.Module):
     # Importance samples are drawn in s, where the coarse samples are evenly spread ('linear': s is t).
     s = t if self.spacing == "linear" else coord.t_to_s(t, near, far, self.spacing)
     mids = 0.5 * (s[..., 1:] + s[..., :-1])
-    s_fine = sampling.sample_pdf(mids, coarse["weights"][..., 1:-1], self.num_importance, uniforms[1])
+    u = uniforms[1]
+    if u is None:  # evaluation: evenly spaced from 0 to 1 inclusive, the original's deterministic samples
+      u = jnp.broadcast_to(jnp.linspace(0.0, 1.0, self.num_importance), s.shape[:-1] + (self.num_importance,))
+    # The original pads the coarse weights by 1e-5: a little of every interval stays reachable.
+    s_fine = stepfun.inverse_cdf(mids, coarse["weights"][..., 1:-1] + 1e-5, u)
     t_fine = s_fine if self.spacing == "linear" else coord.s_to_t(s_fine, near, far, self.spacing)
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
@@ -157,10 +161,10 @@ def grid_matmul_max_rows(config, backend: str) -> int:
   pod section has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row cheaply). The
   parameters are the same either way, so a checkpoint moves freely between backends.
   """
-  lookup = config.compile.get("hashgrid_lookup", "gather")
+  lookup = config.compile.hashgrid_lookup
   if lookup == "auto":
     lookup = "matmul" if backend == "tpu" else "gather"
-  return int(config.compile.get("matmul_max_rows", 0)) if lookup == "matmul" else 0
+  return config.compile.matmul_max_rows if lookup == "matmul" else 0
 
 
 def from_config(config, ndc_camera=None, backend: str | None = None) -> NeRF:

@@ -1,5 +1,7 @@
-"""Where along each ray the field is queried: stratified samples and inverse-CDF importance samples."""
-import jax
+"""Where along each ray the field is queried: stratified samples, rays clipped to a box, the distance warp.
+
+(Inverse-CDF sampling from a histogram along the ray, hierarchical and proposal alike, is nerf/stepfun.py.)
+"""
 import jax.numpy as jnp
 
 
@@ -18,36 +20,6 @@ def stratified(near, far, num_samples: int, uniform_RxS=None):
   upper = jnp.concatenate([mids, t[..., -1:]], axis=-1)
   lower = jnp.concatenate([t[..., :1], mids], axis=-1)
   return lower + (upper - lower) * uniform_RxS
-
-
-def sample_pdf(bins_RxB1, weights_RxB, num_samples: int, uniform_RxN=None, eps: float = 1e-5):
-  """Inverse-CDF samples from the piecewise-constant density with `weights` on the intervals `bins`.
-
-  bins: (R, B+1) increasing edges; weights: (R, B) non-negative. Returns (R, N) sorted samples. With
-  `uniform_RxN` the samples are random; without it they are at evenly spaced quantiles. No gradient flows
-  through the returned positions (the paper's fine samples are treated as constants).
-  """
-  weights = weights_RxB + eps  # keep the pdf proper where every weight is zero
-  pdf = weights / jnp.sum(weights, axis=-1, keepdims=True)
-  cdf = jnp.concatenate([jnp.zeros_like(pdf[..., :1]), jnp.minimum(1.0, jnp.cumsum(pdf, axis=-1))],
-                        axis=-1)
-  if uniform_RxN is None:
-    u = jnp.broadcast_to(jnp.linspace(0.0, 1.0, num_samples), cdf.shape[:-1] + (num_samples,))
-  else:
-    u = uniform_RxN
-  # For each u, the interval i with cdf[i] <= u < cdf[i+1].
-  idx = jax.vmap(lambda c, v: jnp.searchsorted(c, v, side="right"))(
-      cdf.reshape(-1, cdf.shape[-1]), u.reshape(-1, num_samples)).reshape(u.shape)
-  below = jnp.clip(idx - 1, 0, cdf.shape[-1] - 1)
-  above = jnp.clip(idx, 0, cdf.shape[-1] - 1)
-  cdf_lo = jnp.take_along_axis(cdf, below, axis=-1)
-  cdf_hi = jnp.take_along_axis(cdf, above, axis=-1)
-  bin_lo = jnp.take_along_axis(bins_RxB1, below, axis=-1)
-  bin_hi = jnp.take_along_axis(bins_RxB1, above, axis=-1)
-  denom = cdf_hi - cdf_lo
-  frac = jnp.where(denom > 0, (u - cdf_lo) / jnp.where(denom > 0, denom, 1.0), 0.0)
-  samples = bin_lo + frac * (bin_hi - bin_lo)
-  return jax.lax.stop_gradient(samples)
 
 
 def clip_to_box(origins_Rx3, directions_Rx3, near, far, bound: float):

@@ -1,10 +1,12 @@
-"""Step functions along rays, as (edges, weights) pairs: the arithmetic of proposal sampling (mip-NeRF 360).
+"""Step functions along rays, as (edges, weights) pairs: the arithmetic of importance and proposal sampling.
 
 A ray's histogram is `edges_RxB1` (R, B+1), increasing, and `weights_RxB` (R, B) >= 0: weight i lies on
-[edges[i], edges[i+1]] with uniform density. Proposal sampling draws the NeRF's intervals from a cheap
-field's histogram by inverse CDF (`sample_intervals`); the cheap field learns to *bound* the NeRF's
-histogram (`interlevel_loss`, mip-NeRF 360 eq. 12-13), so that its samples cover every place the NeRF puts
-weight; `distortion_loss` (eq. 15) pulls each ray's weight together into one compact interval.
+[edges[i], edges[i+1]] with uniform density. `inverse_cdf` is the one inverse-CDF sampler: the paper's
+hierarchical sampling draws its fine samples with it from the coarse weights (nerf/model.py), and proposal
+sampling (mip-NeRF 360) draws the NeRF's intervals from a cheap field's histogram (`sample_intervals`); the
+cheap field learns to *bound* the NeRF's histogram (`interlevel_loss`, mip-NeRF 360 eq. 12-13), so that its
+samples cover every place the NeRF puts weight; `distortion_loss` (eq. 15) pulls each ray's weight together
+into one compact interval.
 
 Everything here works in any 1-D domain; the model uses the normalised ray distance s in [0, 1] (so that the
 losses do not depend on the scene's scale). Shapes are static: B and the number of samples are Python ints,
