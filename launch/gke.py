@@ -84,7 +84,7 @@ def container_script(workdir: str, forwarded: list[str], device_check: str) -> s
 
 
 def manifest(name: str, pod, image: str, script: str, max_restarts: int) -> dict:
-  """The JobSet of `pod` (a nerfpod.pods.Pod) running `script` on each of its hosts."""
+  """The JobSet of `pod` (a nerfpod.pod.chips.Pod) running `script` on each of its hosts."""
   hosts = pod.num_hosts
   return {
       "apiVersion": "jobset.x-k8s.io/v1alpha2",

@@ -1,8 +1,9 @@
 """Preflight: compile the job for the pod it is launched on, here, before any pod is created or used.
 
-Runs `python -m tools.aot` (the pod compile tool: the real train step, compiled for the pod's TPU topology on
-this machine) with the job's --config and overrides, prints the predicted per-chip memory and time, and
-refuses a job whose step does not fit in a chip's HBM, with the figures and the ways to make it fit.
+Runs `python -m nerfpod.pod.aot` (the pod compile tool, `nerfpod aot`: the real train step, compiled for the
+pod's TPU topology on this machine) with the job's --config and overrides, prints the predicted per-chip
+memory and time, and refuses a job whose step does not fit in a chip's HBM, with the figures and the ways
+to make it fit.
 Standard library only (the tool runs in its own process, with this interpreter).
 """
 import json
@@ -21,7 +22,7 @@ def config_args(forwarded: list[str]) -> list[str]:
 
 
 def command(forwarded: list[str], accelerator_type: str, json_path: str) -> list[str]:
-  return [sys.executable, "-m", "tools.aot", *config_args(forwarded), f"--topology={accelerator_type}",
+  return [sys.executable, "-m", "nerfpod.pod.aot", *config_args(forwarded), f"--topology={accelerator_type}",
           "--what=step", f"--json={json_path}"]
 
 
@@ -60,7 +61,7 @@ def refusal(report: dict) -> str | None:
   return (f"the train step needs {_gib(memory['peak_bytes'])} per chip on {report['pod']} (temporaries "
           f"{_gib(memory['temp_bytes'])}, arguments {_gib(memory['argument_bytes'])}) but a chip has "
           f"{_gib(report['chip']['hbm_bytes'])} of HBM; split each chip's {report['rays_per_chip']} rays into "
-          f"more micro-batches (--config.train.microbatches={2 * report['microbatches']} or more), use a smaller "
+          f"more micro-batches (--config.train.microbatches={2 * max(1, report['microbatches'])} or more), use a smaller "
           f"--config.train.batch_size, or a pod with more chips.")
 
 

@@ -39,7 +39,7 @@ from _cli import split_forwarded  # launch/ is on sys.path: these run as scripts
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
-from nerfpod import pods  # noqa: E402  (standard library only: the pods' names and sizes)
+from nerfpod.pod import chips  # noqa: E402  (standard library only: the pods' names and sizes)
 
 REMOTE_DIR = "nerfpod"  # under each worker's home
 VENV = "~/nerfpod-venv"  # each worker's virtual environment, of Python --python
@@ -83,10 +83,10 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   if any(a.startswith(("--workdir", "--coordinator_address", "--num_processes", "--process_id"))
          for a in forwarded):
     p.error("pass --workdir to this script, not after `--`; on TPU the processes find each other by themselves")
-  pod = pods.lookup(args.accelerator_type)
+  pod = chips.lookup(args.accelerator_type)
   if pod is None:
     p.error(f"--accelerator-type={args.accelerator_type} is not a pod this script knows; known: "
-            f"{', '.join(pods.known_names())}")
+            f"{', '.join(chips.known_names())}")
   if not args.version:
     args.version = RUNTIME_IMAGES[pod.generation]
   return args, forwarded
@@ -135,7 +135,7 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
     ]
   steps += [
       ("check that every worker sees its TPU chips", _on_workers(
-          args, f"cd ~/{REMOTE_DIR} && " + device_check(pods.lookup(args.accelerator_type), "python").replace(
+          args, f"cd ~/{REMOTE_DIR} && " + device_check(chips.lookup(args.accelerator_type), "python").replace(
               "python", f"{VENV}/bin/python", 1)), False),
   ]
   steps += [
@@ -171,7 +171,7 @@ def main(argv: list[str]) -> int:
       return code
   tarball = os.path.join(tempfile.gettempdir(), "nerfpod-src.tar.gz")
   if args.gke:
-    pod = pods.lookup(args.accelerator_type)
+    pod = chips.lookup(args.accelerator_type)
     return gke.launch(args, forwarded, tarball, pod, REPO, device_check(pod, "python"))
   steps = plan(args, forwarded, tarball)
   print(f"launch/tpu_pod.py: follow the log again: "

@@ -134,13 +134,20 @@ def compile_fitted(program: Program, key, budget_bytes: int, backend: str | None
   """(micro-batches, compiled step, its bytes per device by XLA's analysis) for `program`'s state and batch
   shapes and `key` (a key, or its ShapeDtypeStruct). With train.microbatches=0: the fewest micro-batches
   whose step fits `budget_bytes` per device (compilation.fewest_microbatches), the compiled step being the
-  very one compiled while fitting. Called with arguments of other shapes or placements, the compiled step
-  raises instead of recompiling."""
-  compiled = {}
+  very one compiled while fitting; a count XLA refuses to compile for lack of device memory counts as over
+  the budget. Called with arguments of other shapes or placements, the compiled step raises instead of
+  recompiling."""
+  compiled, refused = {}, {}
 
   def compile_with(count):
     lowered = for_program(program, count, backend).lower(program.state_shapes, program.batch_shapes, key)
-    compiled[count] = lowered.compile()
+    try:
+      compiled[count] = lowered.compile()
+    except jax.errors.JaxRuntimeError as e:
+      if tc.microbatches or "RESOURCE_EXHAUSTED" not in str(e):
+        raise
+      refused[count] = e  # too large for the device even to compile: over budget, try more micro-batches
+      return 2 * budget_bytes + 1
     return compilation.step_memory_bytes(compiled[count])
 
   tc = program.config.train
@@ -149,6 +156,8 @@ def compile_fitted(program: Program, key, budget_bytes: int, backend: str | None
     return tc.microbatches, compiled[tc.microbatches], need
   per_device = tc.batch_size // program.mesh.size
   count, need = compilation.fewest_microbatches(per_device, budget_bytes, compile_with)
+  if count in refused:  # even the most micro-batches there can be do not compile
+    raise refused[count]
   return count, compiled[count], need
 
 

@@ -1,13 +1,14 @@
-"""nerfpod.hlo_cost: the per-op roofline of an optimised HLO module, on hand-written HLO with known answers."""
+"""nerfpod.pod.hlo_cost: the per-op roofline of an optimised HLO module, on hand-written HLO with known answers."""
 import pytest
 
-from nerfpod import hlo_cost
+from nerfpod.pod import chips, hlo_cost
 
-CHIP = hlo_cost.Chip(bf16_flops=100e12, hbm_bytes_per_s=1e12, allreduce_bytes_per_s=100e9)
+CHIP = chips.Chip("test chip", bf16_flops=100e12, hbm_bytes=16 * chips.GiB, hbm_bytes_per_s=1e12,
+                  allreduce_bytes_per_s=100e9, source="round figures")
 
 
 def _cost(text: str, devices: int = 4) -> hlo_cost.Cost:
-  return hlo_cost.Program(text, CHIP, devices).cost()
+  return hlo_cost.HloProgram(text, CHIP, devices).cost()
 
 
 def test_layout_padding_and_tile_rows():

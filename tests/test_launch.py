@@ -246,5 +246,9 @@ def test_preflight_prints_the_figures_and_refuses_only_what_does_not_fit():
       "the train step needs 20.00 GiB per chip on v5litepod-16 (temporaries 19.00 GiB, arguments 1.00 GiB) but "
       "a chip has 16.00 GiB of HBM; split each chip's 256 rays into more micro-batches "
       "(--config.train.microbatches=2 or more)")
+  report["microbatches"] = 0  # fitted, and XLA refused the step while fitting: more is still the fix
+  assert "(--config.train.microbatches=2 or more)" in preflight.refusal(report)
   assert preflight.config_args(["--config=c.py", "--config.train.num_steps=5", "--mode=eval"]) == [
       "--config=c.py", "--config.train.num_steps=5"]
+  assert preflight.command(["--config=c.py", "--mode=eval"], "v4-32", "r.json")[1:] == [
+      "-m", "nerfpod.pod.aot", "--config=c.py", "--topology=v4-32", "--what=step", "--json=r.json"]

@@ -2,7 +2,7 @@
 
     python -m tools.pod_tables [--pods=v4-32,v5e-64,v5p-128] [--out=FILE.md]
 
-Three tables, each from tools.aot.compile_pod (the real step, XLA's TPU compiler, nerfpod.hlo_cost's
+Three tables, each from nerfpod.pod.aot.compile_pod (the real step, XLA's TPU compiler, hlo_cost's
 roofline on the chips' published peaks; estimates, not measurements):
 1. per config and pod: per-chip memory, step time, rays/s, share of the bf16 peak, time of the whole run;
 2. weak scaling: the default config's step with 256 rays per chip on v5e pods of 16 to 256 chips: step
@@ -17,7 +17,8 @@ import time
 
 from absl import app, flags
 
-from nerfpod import config_util, pods
+from nerfpod import config_util
+from nerfpod.pod import chips
 from nerfpod.errors import UserError
 
 _PODS = flags.DEFINE_list("pods", ["v4-32", "v5e-64", "v5p-128"], "Pods of the first table.")
@@ -36,7 +37,7 @@ def load_config(name: str, **overrides):
 
 def _report(config, pod, note: list):
   """compile_pod's report of the step; None (with the reason in `note`) where the batch does not split."""
-  from tools import aot
+  from nerfpod.pod import aot
   try:
     return aot.compile_pod(config, pod, ("step",))
   except UserError as e:
@@ -49,7 +50,7 @@ def _report(config, pod, note: list):
 
 
 def _time(seconds) -> str:
-  from tools import aot  # imported late, as above: it starts JAX
+  from nerfpod.pod import aot
   return "n/a" if seconds is None else aot.duration(seconds)
 
 
@@ -81,14 +82,14 @@ def main(argv):
   for name in _CONFIGS.value if "configs" in _SECTIONS.value else ():
     for pod_name in _PODS.value:
       config, note = load_config(name), []
-      report = _report(config, pods.lookup(pod_name), note)
+      report = _report(config, chips.lookup(pod_name), note)
       out.append(_row(name, report, note) if report else _row(name, None, [f"{pod_name}: "] + note))
       print(out[-1], flush=True)
   if "scaling" in _SECTIONS.value:
     out += ["", "| pod | chips | hosts | batch | step | all-reduce | its share | rays/s pod |",
             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
   for pod_name in _SCALING.value if "scaling" in _SECTIONS.value else ():
-    pod = pods.lookup(pod_name)
+    pod = chips.lookup(pod_name)
     config = load_config("default", **{"train.batch_size": 256 * pod.num_chips})
     step = _report(config, pod, [])["step"]
     collective = step["seconds_split"]["collectives"]
@@ -99,7 +100,7 @@ def main(argv):
   if "formulations" in _SECTIONS.value:
     out += ["", "| config | formulation | step | memory-bound | gathers/scatters | matmul FLOPs/chip | "
             "memory/chip |", "| --- | --- | --- | --- | --- | --- | --- |"]
-  pod = pods.lookup("v5e-64")
+  pod = chips.lookup("v5e-64")
   for name, label, overrides in () if "formulations" not in _SECTIONS.value else (
       ("default", "hash grid: gather + scatter-add", {"compile.hashgrid_lookup": "gather"}),
       ("default", "hash grid: matmul for dense levels (auto on TPU)", {}),
@@ -122,6 +123,6 @@ def main(argv):
 
 
 if __name__ == "__main__":
-  from tools import aot
+  from nerfpod.pod import aot
   aot._quiet_libtpu()
   app.run(main)

@@ -1,17 +1,21 @@
 """The pod, proven before it is paid for: compile a config's train step and renderers for a TPU pod, here.
 
-    python -m tools.aot --config=configs/blender_fast.py --topology=v5e-64 [--json=FILE]
+    nerfpod aot --config=configs/blender_fast.py --topology=v5e-64 [--json=FILE]
+
+(also `python -m nerfpod.pod.aot ...`, and `python -m tools.aot ...` in a checkout).
 
 XLA compiles for a TPU topology ahead of time on a machine without TPUs (it needs libtpu: `pip install -e
 '.[tpu]'`). This builds the pod's device mesh as a run on it would (distributed.make_mesh over the
 topology's chips, hosts in order), lays the global batch over it as each host feeds it (ShapeDtypeStructs
-with the batch's sharding: no data is loaded), and compiles the very functions a run compiles:
-train.make_train_step, the evaluation renderer over the whole pod (eval.chunk rays) and the orbit renderer
-over one host's chips (orbit.chunk rays). It reports per-chip memory against the chip's HBM, FLOPs and
-bytes per step, the estimated step time (nerfpod.hlo_cost's roofline; XLA's own figures beside it where
-they are sane), rays/s per chip and for the pod, every collective in the step with its size, and the
-estimated time of the config's train.num_steps. Estimates from XLA's program and the chips' published
-peaks, not measurements.
+with the batch's sharding: no data is loaded), and compiles the very functions a run compiles, from the one
+builder a run uses (components.build_program): the train step (step.compile_fitted, micro-batches fitted to
+85% of a chip's HBM where train.microbatches=0, as a run on the pod fits them), the evaluation renderer over
+the whole pod (eval.chunk rays) and the orbit renderer over one host's chips (orbit.chunk rays). It reports
+per-chip memory against the chip's HBM, FLOPs and bytes per step, the estimated step time (hlo_cost's
+roofline; XLA's own figures beside it where they are sane), rays/s per chip and for the pod, every
+collective in the step with its size, and the estimated time of the config's train.num_steps. Estimates
+from XLA's program and the chips' published peaks, not measurements. A program too large for a chip is a
+report too (fits_hbm false, with XLA's figures), not a crash.
 
 A topology it does not know, or a config whose batch does not split over the pod, is refused in one
 sentence (exit 2).
@@ -24,8 +28,9 @@ import time
 from absl import app, flags
 from ml_collections import config_flags
 
-from nerfpod import pods, schema
+from nerfpod import schema
 from nerfpod.errors import UserError
+from nerfpod.pod import chips
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
                                           lock_config=True)
@@ -46,20 +51,24 @@ def _quiet_libtpu() -> None:
   # compiling drives none, so several of these tools (and a test suite) may run side by side.
   os.environ.setdefault("ALLOW_MULTIPLE_LIBTPU_LOAD", "1")
   os.environ.setdefault("JAX_PLATFORMS", "cpu")  # the process itself runs nothing on a device
+  if "jax" in sys.modules:  # a caller imported JAX first, and JAX read JAX_PLATFORMS then
+    import jax
+    if not jax.config.jax_platforms:
+      jax.config.update("jax_platforms", "cpu")
 
 
-def resolve_pods(names: str) -> list[pods.Pod]:
+def resolve_pods(names: str) -> list[chips.Pod]:
   out = []
   for name in [n.strip() for n in names.split(",") if n.strip()]:
-    pod = pods.lookup(name)
+    pod = chips.lookup(name)
     if pod is None:
-      raise UserError(f"unknown --topology={name}; known pods: {', '.join(pods.known_names())} (v5e-N is "
+      raise UserError(f"unknown --topology={name}; known pods: {', '.join(chips.known_names())} (v5e-N is "
                       f"v5litepod-N).")
     out.append(pod)
   return out
 
 
-def topology_devices(pod: pods.Pod):
+def topology_devices(pod: chips.Pod):
   """The pod's TPU devices (every host's), from libtpu's description of the topology."""
   try:
     from jax.experimental import topologies
@@ -90,13 +99,12 @@ def _xla_cost(compiled) -> dict:
           "optimal_seconds": optimal if optimal > 0 else None}
 
 
-def _roofline(compiled, pod: pods.Pod, num_devices: int):
-  from nerfpod import hlo_cost
-  chip = hlo_cost.Chip(pod.chip.bf16_flops, pod.chip.hbm_bytes_per_s, pod.chip.allreduce_bytes_per_s)
-  return hlo_cost.Program(compiled.as_text(), chip, num_devices).cost()
+def _roofline(compiled, pod: chips.Pod, num_devices: int):
+  from nerfpod.pod import hlo_cost
+  return hlo_cost.HloProgram(compiled.as_text(), pod.chip, num_devices).cost()
 
 
-def _program_report(compiled, pod: pods.Pod, num_devices: int, rays: int, seconds_to_compile: float) -> dict:
+def _program_report(compiled, pod: chips.Pod, num_devices: int, rays: int, seconds_to_compile: float) -> dict:
   cost = _roofline(compiled, pod, num_devices)
   memory = _memory(compiled)
   seconds = cost.seconds
@@ -119,7 +127,7 @@ def _program_report(compiled, pod: pods.Pod, num_devices: int, rays: int, second
 _SIZE_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
 
-def _out_of_memory_report(error: Exception, pod: pods.Pod, rays: int, seconds_to_compile: float) -> dict | None:
+def _out_of_memory_report(error: Exception, pod: chips.Pod, rays: int, seconds_to_compile: float) -> dict | None:
   """The report of a program XLA refused to compile because it does not fit the chip's HBM (None: the
   error is another). XLA's message names what it needed and what the chip has, e.g. 'the total memory
   required for HLO temporaries (108.00G) exceeds available HBM (15.75G)'."""
@@ -139,12 +147,13 @@ def _out_of_memory_report(error: Exception, pod: pods.Pod, rays: int, seconds_to
   }
 
 
-def _compile(lowered, pod: pods.Pod, num_devices: int, rays: int) -> dict:
-  """Compiles and reports; a program too large for the chip is a report too (fits_hbm false), not a crash."""
+def _compile(compile_fn, pod: chips.Pod, num_devices: int, rays: int) -> dict:
+  """compile_fn() and its report; a program too large for the chip is a report too (fits_hbm false), not a
+  crash."""
   import jax
   start = time.perf_counter()
   try:
-    compiled = lowered.compile()
+    compiled = compile_fn()
   except jax.errors.JaxRuntimeError as e:
     report = _out_of_memory_report(e, pod, rays, time.perf_counter() - start)
     if report is None:
@@ -172,12 +181,12 @@ def check_collectives(step: dict, state_bytes: int) -> list[str]:
   return problems
 
 
-def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
+def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit")) -> dict:
   """Compiles `config`'s programs for `pod` and reports on them (see the module's docstring)."""
   import jax
   import numpy as np
   from jax.sharding import Mesh
-  from nerfpod import components, distributed, train
+  from nerfpod import compilation, components, distributed, step
 
   schema.validate(config, pod.num_chips)  # e.g. a batch that does not split over the pod's chips
   devices = topology_devices(pod)
@@ -202,29 +211,26 @@ def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
   report["param_bytes"] = state_bytes
   key = jax.ShapeDtypeStruct((), jax.random.key(0).dtype, sharding=distributed.replicated(mesh))
   if "step" in what:
-    def step_fn_of(microbatches):
-      return train.make_train_step(program.model, program.optimizer, mesh, program.near, program.far,
-                                   program.background, tc.random_background, microbatches,
-                                   interlevel_weight=tc.interlevel_weight, distortion_weight=tc.distortion_weight,
-                                   ordered_mean=train.gradient_mean_is_ordered(config, "tpu"))
-    microbatches = tc.microbatches
-    if microbatches == 0:  # as a run on the pod picks them: the fewest that fit 85% of the chip's HBM
-      lower = lambda m: step_fn_of(m).lower(program.state_shapes, program.batch_shapes, key)  # noqa: E731
-      microbatches, _ = train.fewest_microbatches(
-          tc.batch_size // pod.num_chips, int(0.85 * pod.chip.hbm_bytes),
-          lambda m: train.step_memory_bytes(lower(m).compile()))
-    report["microbatches"] = microbatches
-    step_fn = step_fn_of(microbatches)
-    step = _compile(step_fn.lower(program.state_shapes, program.batch_shapes, key), pod, pod.num_chips,
-                    tc.batch_size)
-    step["unexpected_collectives"] = check_collectives(step, state_bytes)
-    step["run_seconds"] = step["seconds"] * tc.num_steps if step["seconds"] is not None else None
-    report["step"] = step
+    # As a run on the pod fits them where train.microbatches=0: the fewest that fit its share of the HBM.
+    budget = int(compilation.ACCELERATOR_MEMORY_SHARE * pod.chip.hbm_bytes)
+    fitted = {}
+
+    def compile_step():
+      fitted["microbatches"], compiled, _ = step.compile_fitted(program, key, budget, backend="tpu")
+      return compiled
+    report["step"] = _compile(compile_step, pod, pod.num_chips, tc.batch_size)
+    # Where XLA refused the step as too large: train.microbatches as configured (0: refused while fitting).
+    report["microbatches"] = fitted.get("microbatches", tc.microbatches)
+    step_report = report["step"]
+    step_report["unexpected_collectives"] = check_collectives(step_report, state_bytes)
+    step_report["run_seconds"] = (step_report["seconds"] * tc.num_steps if step_report["seconds"] is not None
+                                  else None)
   params = program.state_shapes.params
   if "eval" in what:
     chunk = max(pod.num_chips, config.eval.chunk - config.eval.chunk % pod.num_chips)
     rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
-    report["eval"] = _compile(program.renderer().lower(params, rays, rays), pod, pod.num_chips, chunk)
+    report["eval"] = _compile(program.make_renderer().lower(params, rays, rays).compile, pod, pod.num_chips,
+                              chunk)
   if "orbit" in what:
     host_mesh = Mesh(np.array([d for d in mesh.devices.flat if d.process_index == hosts[0]]),
                      (distributed.DATA_AXIS,))
@@ -233,7 +239,8 @@ def compile_pod(config, pod: pods.Pod, what=("step", "eval", "orbit")) -> dict:
     rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(host_mesh))
     host_params = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype,
                                                               sharding=distributed.replicated(host_mesh)), params)
-    report["orbit"] = _compile(program.renderer(host_mesh).lower(host_params, rays, rays), pod, local, chunk)
+    report["orbit"] = _compile(program.make_renderer(host_mesh).lower(host_params, rays, rays).compile, pod,
+                               local, chunk)
   return report
 
 
@@ -293,7 +300,7 @@ def format_report(report: dict) -> str:
     lines.append(f"  {report['num_steps']} steps (train.num_steps): {duration(s['run_seconds'])} estimated")
   lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip "
                f"{_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
-               f"compiled program on the chip's published peaks: nerfpod.hlo_cost), not measurements")
+               f"compiled program on the chip's published peaks: nerfpod.pod.hlo_cost), not measurements")
   return "\n".join(lines)
 
 
@@ -316,7 +323,7 @@ def main(argv):
       reports.append(report)
   except UserError as e:
     for message in getattr(e, "messages", None) or [str(e)]:
-      print(f"tools.aot: error: {message}", file=sys.stderr, flush=True)
+      print(f"nerfpod aot: error: {message}", file=sys.stderr, flush=True)
     sys.exit(2)
   if _JSON.value:
     text = json.dumps(reports if len(reports) > 1 else reports[0], indent=2)
@@ -327,7 +334,13 @@ def main(argv):
         f.write(text)
 
 
-if __name__ == "__main__":
-  flags.mark_flags_as_required(["config", "topology"])  # here: tools.pod_tables imports this module
+def run(argv: list[str] | None = None) -> None:
+  """`nerfpod aot ...`: `argv` as sys.argv has it (argv[0] the program's name; default sys.argv). The flags
+  are required here, not where they are defined: tools.pod_tables imports this module for compile_pod."""
+  flags.mark_flags_as_required(["config", "topology"])
   _quiet_libtpu()
-  app.run(main)
+  app.run(main, argv=argv)
+
+
+if __name__ == "__main__":
+  run()

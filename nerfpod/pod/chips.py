@@ -1,4 +1,4 @@
-"""The TPU pods nerfpod knows by name: their chips' published figures and their topologies.
+"""The TPU chips' published figures, and the pods nerfpod knows by name: their topologies, chips and hosts.
 
 Chip figures are Google Cloud's own, per chip, from the Cloud TPU system-architecture pages:
 https://cloud.google.com/tpu/docs/v4, https://cloud.google.com/tpu/docs/v5e,
@@ -13,6 +13,8 @@ bandwidths are 10^9 bytes/s.
 Names are the Cloud TPU accelerator types (`gcloud ... --accelerator-type`): v4 and v5p count
 TensorCores (two per chip, one JAX device per chip in megacore mode), v5e (`v5litepod-N`, also `v5e-N`)
 and v6e count chips. Multi-host pods have 4 chips per host, as their TPU VMs do.
+
+Standard library only: the launchers import it for a pod's size.
 """
 import dataclasses
 
@@ -21,6 +23,7 @@ GB, GiB = 1e9, 2**30
 
 @dataclasses.dataclass(frozen=True)
 class Chip:
+  """One chip's published figures: what hlo_cost's roofline runs on and what aot's memory is held against."""
   name: str                  # JAX's device_kind family, for reports
   bf16_flops: float          # peak matmul FLOP/s, bf16
   hbm_bytes: float

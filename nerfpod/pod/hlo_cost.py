@@ -21,12 +21,14 @@ instruction itself:
 
 What it leaves out: overlap of independent ops (an upper bound for compute-bound and a fair figure for
 bandwidth-bound programs), vector-unit limits, collective latency (the all-reduce term is bandwidth only),
-and the host (input pipeline). The estimate is XLA's program on the chip's published peaks, not a
-measurement.
+and the host (input pipeline). The estimate is XLA's program on the chip's published peaks (chips.Chip),
+not a measurement.
 """
 import dataclasses
 import math
 import re
+
+from nerfpod.pod.chips import Chip
 
 _DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16": 2, "s32": 4, "u32": 4,
                 "f32": 4, "s64": 8, "u64": 8, "f64": 8, "c64": 8, "c128": 16, "f8e4m3fn": 1, "f8e5m2": 1,
@@ -149,14 +151,6 @@ def parse_module(text: str) -> tuple[dict[str, list[Instruction]], str]:
 
 
 @dataclasses.dataclass
-class Chip:
-  """What the roofline needs of a chip: peaks and bandwidths (nerfpod.pods names their sources)."""
-  bf16_flops: float       # matmul peak, FLOP/s
-  hbm_bytes_per_s: float
-  allreduce_bytes_per_s: float  # per chip
-
-
-@dataclasses.dataclass
 class Cost:
   flops: float = 0.0
   bytes: float = 0.0
@@ -175,8 +169,10 @@ class Cost:
       self.collectives.append(dict(c, count=c["count"] * times))
 
 
-class Program:
-  """An HLO module's roofline on a chip."""
+class HloProgram:
+  """A compiled program's optimised HLO module, costed on a chip: `HloProgram(compiled.as_text(), chip,
+  num_devices).cost()`. The chip's peaks are its published figures (chips.Chip: bf16_flops,
+  hbm_bytes_per_s, allreduce_bytes_per_s); `num_devices` is the collectives' group where the HLO names none."""
 
   def __init__(self, hlo_text: str, chip: Chip, num_devices: int):
     self.computations, self.entry = parse_module(hlo_text)
