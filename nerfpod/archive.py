@@ -21,7 +21,7 @@ from etils import epath
 
 from nerfpod import video
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras
+from nerfpod.nerf import cameras, compositing
 
 ORBIT = "renders/orbit.zarr"  # the orbit's archive, in the workdir
 FORMAT = "nerfpod-orbit/1"  # written into the group attributes; what readers check they are given
@@ -104,7 +104,7 @@ class Archive:
     kvstore = _group_store(path)
     kvstore.delete_range(ts.KvStore.KeyRange("zarr.json", "zarr.json\0")).result()
     arrays = {}
-    for name in video.CHANNELS + ("written_by",):
+    for name in compositing.OUTPUTS + ("written_by",):
       metadata = cls._array_metadata(name, attributes["num_frames"], intr["height"], intr["width"])
       arrays[name] = ts.open(dict(cls._spec(path, name), metadata=metadata), create=True,
                              delete_existing=True).result()
@@ -126,7 +126,7 @@ class Archive:
     if attributes.get("format") != FORMAT:
       raise UserError(f"{path} is not a nerfpod orbit archive (its zarr.json has no format {FORMAT!r}).")
     arrays = {}
-    for name in video.CHANNELS + ("written_by",):
+    for name in compositing.OUTPUTS + ("written_by",):
       try:
         arrays[name] = ts.open(cls._spec(path, name), open=True).result()
       except ValueError as e:
@@ -142,13 +142,13 @@ class Archive:
 
   def write_frame(self, index: int, frame: dict, process_index: int) -> None:
     """Commits the frame's channels, then (only then) marks it written."""
-    futures = [self.arrays[name][index].write(np.asarray(frame[name])) for name in video.CHANNELS]
+    futures = [self.arrays[name][index].write(np.asarray(frame[name])) for name in compositing.OUTPUTS]
     for future in futures:
       future.result()
     self.arrays["written_by"][index].write(np.int16(process_index)).result()
 
   def read_frame(self, index: int) -> dict:
-    futures = {name: self.arrays[name][index].read() for name in video.CHANNELS}
+    futures = {name: self.arrays[name][index].read() for name in compositing.OUTPUTS}
     return {name: np.asarray(future.result()) for name, future in futures.items()}
 
   def check_complete(self) -> None:

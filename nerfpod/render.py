@@ -10,41 +10,51 @@ import numpy as np
 from jax.sharding import PartitionSpec as P
 
 from nerfpod import distributed
-from nerfpod.nerf import cameras
-
-OUTPUTS = ("rgb", "depth", "acc", "disparity")
-
+from nerfpod.nerf import cameras, compositing
 
 def make_renderer(model, mesh, near: float, far: float, background, compiler_options: dict | None = None):
   """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh,
   compiled with XLA's `compiler_options` (compilation.compiler_options)."""
   def local(params, origins, directions):
     out = model.apply(params, origins, directions, near, far, jnp.asarray(background))[-1]
-    return {k: out[k] for k in OUTPUTS}
+    return {k: out[k] for k in compositing.OUTPUTS}
   axis = distributed.DATA_AXIS
   return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(P(), P(axis), P(axis)), out_specs=P(axis)),
                  compiler_options=compiler_options)
 
 
-def render_rays(renderer, params, mesh, origins_Nx3, directions_Nx3, chunk: int) -> dict:
+def render_rays(renderer, params, mesh, origins_Nx3, directions_Nx3, chunk: int, cancelled=None,
+                fixed_chunk: bool = False) -> dict | None:
   """Renders N rays in chunks of `chunk` rays (a multiple of the mesh's device count) sharded over `mesh`.
 
   On a mesh over every host, every process passes the same rays, feeds only its own share of each chunk
-  and gets all results back; on a mesh of this process's own devices (orbit frames), no other host takes
-  part. Every chunk is dispatched before any is fetched; the last is padded; a small input is one call.
+  and gets all results back; on a mesh of this process's own devices, no other host takes part. The last
+  chunk is padded; a small input is one call of fewer rays, unless `fixed_chunk` (every call then has
+  `chunk` rays: one compilation for inputs of any size, as the viewer wants).
+
+  Without `cancelled`, every chunk is dispatched before any is fetched. With it (a function of no
+  arguments), one chunk is in flight at a time and `cancelled()` is asked before each next one: True
+  abandons the rendering and returns None (the viewer, whose camera moved).
   """
   n, devices = len(origins_Nx3), mesh.size
   chunk = max(devices, chunk - chunk % devices)
-  chunk = min(chunk, -(-n // devices) * devices)
+  if not fixed_chunk:
+    chunk = min(chunk, -(-n // devices) * devices)
   padded = -(-n // chunk) * chunk
   pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - n, axis=0)]) if padded > n else x
   origins, directions = pad(origins_Nx3), pad(directions_Nx3)
   rows = distributed.local_slice(chunk, mesh)
-  pieces = [renderer(params, *distributed.to_global(
-      mesh, (origins[start:start + chunk][rows], directions[start:start + chunk][rows])))
-            for start in range(0, padded, chunk)]
+  pieces = []
+  for start in range(0, padded, chunk):
+    if cancelled is not None:
+      if pieces:
+        jax.block_until_ready(pieces[-1])
+      if cancelled():
+        return None
+    pieces.append(renderer(params, *distributed.to_global(
+        mesh, (origins[start:start + chunk][rows], directions[start:start + chunk][rows]))))
   pieces = distributed.to_host(pieces)
-  return {k: np.concatenate([p[k] for p in pieces])[:n] for k in OUTPUTS}
+  return {k: np.concatenate([p[k] for p in pieces])[:n] for k in compositing.OUTPUTS}
 
 
 def render_image(renderer, params, mesh, c2w_4x4, intr: cameras.Intrinsics, pixel_center: float,

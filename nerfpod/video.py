@@ -11,7 +11,8 @@ import warnings
 import imageio.v2 as imageio
 import numpy as np
 
-CHANNELS = ("rgb", "depth", "acc", "disparity")
+from nerfpod.nerf import compositing
+
 FORMATS = ("mp4", "gif", "png")
 
 # Polynomial fit of Google's turbo colour map (Anton Mikhailov, 2019), per channel: coefficients of
@@ -89,7 +90,7 @@ class ChannelStyle:
       lo, hi = self.disparity_range
       # acc / depth is 1 / (mean t) even on nearly empty rays, where it means nothing: fade those to black.
       return to_uint8(turbo((np.asarray(frame["disparity"], np.float64) - lo) / (hi - lo)) * acc[..., None])
-    raise ValueError(f"unknown channel {channel!r}; known: {CHANNELS}")
+    raise ValueError(f"unknown channel {channel!r}; known: {compositing.OUTPUTS}")
 
 
 def _even(image: np.ndarray) -> np.ndarray:
@@ -169,7 +170,7 @@ def output_paths(out_dir: str, prefix: str, formats) -> dict:
     if fmt == "png":
       paths[("sheet", "png")] = os.path.join(out_dir, f"{prefix}_sheet.png")
     else:
-      for channel in CHANNELS:
+      for channel in compositing.OUTPUTS:
         paths[(channel, fmt)] = os.path.join(out_dir, f"{prefix}_{channel}.{fmt}")
   return paths
 
@@ -198,7 +199,8 @@ def write_media(read_frame, num_frames: int, near: float, far: float, out_dir: s
   finally:
     for writer in writers.values():
       writer.close()
-  sheet = contact_sheet([[style.image(channel, samples[i]) for i in picked] for channel in CHANNELS])
+  sheet = contact_sheet([[style.image(channel, samples[i]) for i in picked]
+                        for channel in compositing.OUTPUTS])
   if ("sheet", "png") in paths:
     write_png(temporary[("sheet", "png")], sheet)
   for key, path in paths.items():

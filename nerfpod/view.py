@@ -22,11 +22,10 @@ Camera paths: "Add keyframe" records the browser's camera; "Save path" writes th
 folder (default ./camera_paths; never the workdir, which belongs to the training job).
 
 Viewer cameras are viser's (OpenCV: looking down +z, +y down); nerfpod's poses are OpenGL (looking down -z,
-+y up): the two differ by OPENCV_TO_OPENGL on the camera side.
++y up): nerf/cameras.py converts them (pose_from_opencv, pose_to_opencv).
 """
 import argparse
 import dataclasses
-import json
 import os
 import socket
 import sys
@@ -34,49 +33,18 @@ import threading
 import time
 
 import jax
-import ml_collections
 import numpy as np
 from absl import logging
-from etils import epath
 from jax.sharding import Mesh
 
 from nerfpod import camera_path as camera_paths
-from nerfpod import checkpoints, components, distributed, render, schema, video
+from nerfpod import checkpoints, compilation, components, distributed, render, video, workdir_files
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras, keyframes
+from nerfpod.nerf import cameras, compositing, keyframes
 
-CHANNELS = video.CHANNELS
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])  # camera axes: x right, y down, z forward <-> y up, z back
 STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
 THUMBNAIL_PIXELS = 64     # longest side of the images shown in the frustums
 INITIAL_PULL_BACK = 1.3   # a new page's camera: this many times farther back than the first held-out camera
-
-
-def read_config(workdir: str) -> ml_collections.ConfigDict:
-  """The run's config from workdir/config.json (earlier field names renamed), checked by the schema; a
-  missing, unreadable or unreachable one is one sentence."""
-  path = epath.Path(workdir) / "config.json"
-  try:
-    text = path.read_text()
-  except FileNotFoundError:
-    raise UserError(f"workdir {workdir} holds no config.json; pass the --workdir of a training run "
-                    f"(it writes config.json when it starts).") from None
-  except Exception as e:  # noqa: BLE001 (gs:// without credentials or network, permissions, ...)
-    reason = " ".join(str(e).split())[:300] or type(e).__name__
-    raise UserError(f"could not read {path} ({reason}); check the --workdir path and, for gs://, your "
-                    f"network and credentials (gcloud auth application-default login).") from None
-  try:
-    config = ml_collections.ConfigDict(json.loads(text))
-  except ValueError as e:
-    raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
-  schema.migrate(config)
-  try:
-    schema.validate(config)
-  except schema.ConfigError as e:  # its fixes name command-line overrides, which the viewer does not take
-    raise UserError(f"{path} holds a config this nerfpod version refuses ({e.messages[0]}"
-                    f"{f' and {len(e.messages) - 1} more' if len(e.messages) > 1 else ''}); view it with the "
-                    f"nerfpod version that trained it.") from None
-  return config
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -92,30 +60,10 @@ def check_port_free(host: str, port: int) -> None:
                       f"another with --port (or stop that program).") from None
 
 
-def viewer_camera_to_pose(wxyz, position) -> np.ndarray:
-  """A viser camera (orientation quaternion of its OpenCV camera-to-world, position) -> nerfpod's 4x4
-  OpenGL camera-to-world pose."""
-  pose = np.eye(4)
-  pose[:3, :3] = keyframes.quaternion_to_rotation(wxyz) @ OPENCV_TO_OPENGL
-  pose[:3, 3] = position
-  return pose
-
-
-def pose_to_viewer_camera(pose_4x4) -> tuple[np.ndarray, np.ndarray]:
-  """nerfpod's OpenGL camera-to-world pose -> viser's (wxyz of the OpenCV camera-to-world, position)."""
-  pose = np.asarray(pose_4x4, np.float64)
-  return keyframes.rotation_to_quaternion(pose[:3, :3] @ OPENCV_TO_OPENGL), pose[:3, 3].copy()
-
-
 def fit_resolution(width: int, height: int, longest: int) -> tuple[int, int]:
   """(width, height) scaled down (never up) so that the longer side is at most `longest`, aspect kept."""
   scale = min(1.0, longest / max(width, height, 1))
   return max(1, round(width * scale)), max(1, round(height * scale))
-
-
-def camera_intrinsics(fov_y_rad: float, width: int, height: int) -> cameras.Intrinsics:
-  """A pinhole camera of `width` x `height` pixels with a vertical field of view of `fov_y_rad`."""
-  return cameras.Intrinsics.from_focal(width, height, 0.5 * height / np.tan(0.5 * fov_y_rad))
 
 
 @dataclasses.dataclass
@@ -161,7 +109,7 @@ class Viewer:
     except ImportError:
       raise UserError("the viewer needs viser: pip install 'nerfpod[viewer]' (or pip install viser).") from None
     self.workdir, self.paths_dir, self.poll_seconds = str(workdir), paths_dir, poll_seconds
-    self.config = read_config(self.workdir)
+    self.config = workdir_files.read_config(self.workdir)
     try:
       step = checkpoints.latest_step(self.workdir)
     except Exception as e:  # noqa: BLE001 (an unreachable bucket)
@@ -173,6 +121,7 @@ class Viewer:
                       f"the --workdir of a trained run.")
     check_port_free(host, port)
     mesh = Mesh(np.array(jax.local_devices()), (distributed.DATA_AXIS,))  # this machine's devices only
+    compilation.tune_host(self.config)  # process-wide: the viewer is a process of its own
     self.comps = components.build(self.config, mesh)
     self.step, self.params = step, self._restore(step)
     self.chunk = max(mesh.size, self.config.orbit.chunk - self.config.orbit.chunk % mesh.size)
@@ -231,19 +180,11 @@ class Viewer:
     params = self.params if params is None else params
     origins, directions = cameras.image_rays(np.asarray(pose_4x4, np.float64), intr,
                                              self.config.data.pixel_center)
-    origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-    n, pieces = len(origins), []
-    for start in range(0, n, self.chunk):
-      if cancelled():
-        return None
-      o, d = origins[start:start + self.chunk], directions[start:start + self.chunk]
-      if len(o) < self.chunk:
-        o, d = (np.concatenate([x, np.repeat(x[-1:], self.chunk - len(x), axis=0)]) for x in (o, d))
-      pieces.append(render.render_rays(self.comps.renderer, params, self.comps.mesh, o, d, self.chunk))
-    frame = {}
-    for k in render.OUTPUTS:
-      values = np.concatenate([p[k] for p in pieces])[:n]
-      frame[k] = values.reshape((intr.height, intr.width) + values.shape[1:])
+    rays = render.render_rays(self.comps.renderer, params, self.comps.mesh, origins.reshape(-1, 3),
+                              directions.reshape(-1, 3), self.chunk, cancelled=cancelled, fixed_chunk=True)
+    if rays is None:
+      return None
+    frame = {k: v.reshape((intr.height, intr.width) + v.shape[1:]) for k, v in rays.items()}
     style = video.ChannelStyle.fit([frame], self.comps.near, self.comps.far)
     return style.image(channel, frame)
 
@@ -256,8 +197,8 @@ class Viewer:
       return True
     width, height = fit_resolution(width, height, int(self._max_resolution.value) if full
                                    else self.coarse_resolution)
-    pose = viewer_camera_to_pose(camera.wxyz, camera.position)
-    intr = camera_intrinsics(camera.fov, width, height)
+    pose = cameras.pose_from_opencv(camera.wxyz, camera.position)
+    intr = cameras.intrinsics_from_fov(camera.fov, width, height)
     channel = self._channel.value
     started = time.perf_counter()
     image = self.render(pose, intr, channel, params,
@@ -302,7 +243,7 @@ class Viewer:
     gui, scene = self.server.gui, self.server.scene
     gui.configure_theme(control_width="medium")
     self._step_text = gui.add_markdown(self._step_markdown())
-    self._channel = gui.add_dropdown("Output", CHANNELS, initial_value="rgb")
+    self._channel = gui.add_dropdown("Output", compositing.OUTPUTS, initial_value="rgb")
     self._max_resolution = gui.add_slider("Max resolution", 64, 2048, 32, self.max_resolution)
     self._show_cameras = gui.add_checkbox("Show cameras", True)
     self._frame_text = gui.add_markdown("")
@@ -327,10 +268,10 @@ class Viewer:
     scale = 0.03 * self._scene_extent()
     colours = {"train": (40, 90, 220)}
     for name, split in self.comps.scene.splits.items():
-      fov = 2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy)
+      fov = cameras.fov_y(split.intrinsics)
       aspect = split.intrinsics.width / split.intrinsics.height
       for i, (pose, image) in enumerate(zip(split.poses, split.images)):
-        wxyz, position = pose_to_viewer_camera(pose)
+        wxyz, position = cameras.pose_to_opencv(pose)
         self._frustums.append(scene.add_camera_frustum(
             f"/cameras/{name}/{i}", fov=float(fov), aspect=aspect, scale=scale, wxyz=wxyz, position=position,
             color=colours.get(name, (230, 120, 30)), image=_thumbnail(image), format="jpeg"))
@@ -353,7 +294,7 @@ class Viewer:
     distance = max(float(np.linalg.norm(pose[:3, 3])), 1e-3)  # to the point in front nearest the origin
     target = pose[:3, 3] + forward * distance
     camera.up_direction = up / (np.linalg.norm(up) or 1.0)
-    camera.fov = float(2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy))
+    camera.fov = cameras.fov_y(split.intrinsics)
     camera.position = target - forward * distance * INITIAL_PULL_BACK
     camera.look_at = target
 
@@ -388,10 +329,10 @@ class Viewer:
 
   def add_keyframe(self, camera):
     """Records a browser camera as the next keyframe and draws it."""
-    pose = viewer_camera_to_pose(camera.wxyz, camera.position)
+    pose = cameras.pose_from_opencv(camera.wxyz, camera.position)
     fov_deg = float(np.degrees(camera.fov))
     self.keyframes.append((pose, fov_deg))
-    wxyz, position = pose_to_viewer_camera(pose)
+    wxyz, position = cameras.pose_to_opencv(pose)
     self.server.scene.add_camera_frustum(
         f"/keyframes/{len(self.keyframes) - 1}", fov=float(camera.fov), aspect=camera.aspect or 1.0,
         scale=0.08 * self._scene_extent(), wxyz=wxyz, position=position, color=(230, 40, 40))

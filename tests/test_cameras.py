@@ -136,3 +136,31 @@ def test_cameras_hold_one_camera_per_frame():
   assert len(cams) == 3 and cams[0] == a and cams[1] == b and cams.is_distorted
   np.testing.assert_array_equal(cams.num_pixels, [1200, 200, 1200])
   assert cams.select([1])[0] == b and not cams.select([0, 2]).is_distorted
+
+
+def test_viewer_cameras_and_nerfpod_poses_convert_both_ways():
+  pose = cameras.look_at(np.array([1.0, -3.0, 2.0]))  # OpenGL: looks down -z at the origin, +y up
+  wxyz, position = cameras.pose_to_opencv(pose)
+  np.testing.assert_allclose(cameras.pose_from_opencv(wxyz, position), pose, atol=1e-12)
+  # viser's camera (OpenCV) looks down its +z and has +y down: the same direction and the opposite up.
+  tf = pytest.importorskip("viser.transforms", reason="viser (the viewer extra) is absent")
+  rotation = tf.SO3(wxyz).as_matrix()
+  np.testing.assert_allclose(rotation[:, 2], -pose[:3, 2], atol=1e-12)
+  np.testing.assert_allclose(rotation[:, 1], -pose[:3, 1], atol=1e-12)
+  np.testing.assert_allclose(rotation[:, 2], -position / np.linalg.norm(position), atol=1e-12)
+
+
+def test_a_camera_from_its_vertical_field_of_view_and_back():
+  intr = cameras.intrinsics_from_fov(np.radians(90.0), 40, 20)  # tan(45 deg) = 1: focal = half the height
+  assert (intr.fx, intr.fy, intr.cx, intr.cy) == pytest.approx((10.0, 10.0, 20.0, 10.0))
+  assert cameras.fov_y(intr) == pytest.approx(np.radians(90.0))
+
+
+def test_quaternions_and_rotations_convert_both_ways():
+  rng = np.random.default_rng(0)
+  for _ in range(20):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    rotation = cameras.quaternion_to_rotation(q)
+    np.testing.assert_allclose(rotation @ rotation.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(cameras.rotation_to_quaternion(rotation), q if q[0] >= 0 else -q, atol=1e-12)

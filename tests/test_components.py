@@ -10,7 +10,7 @@ from jax.sharding import Mesh
 
 from conftest import smoke_config
 from nerfpod import components, distributed, render
-from nerfpod.nerf import cameras
+from nerfpod.nerf import cameras, compositing
 
 
 def test_learning_rate_warms_up_linearly_then_decays_log_linearly_to_its_final_value():
@@ -68,7 +68,7 @@ def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_ra
   padded = -(-num_rays // 4) * 4  # one call: every ray at once (padded to split over the 4 devices)
   pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - num_rays, 0)])
   whole = jax.device_get(comps.renderer(params, *distributed.to_global(mesh, (pad(origins), pad(directions)))))
-  for name in render.OUTPUTS:
+  for name in compositing.OUTPUTS:
     assert chunked[name].shape[0] == num_rays
     np.testing.assert_allclose(chunked[name], whole[name][:num_rays], rtol=1e-5, atol=1e-6, err_msg=name)
 

@@ -6,7 +6,7 @@ import pytest
 from nerfpod import archive as archives
 from nerfpod import orbit, video
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras
+from nerfpod.nerf import cameras, compositing
 from nerfpod import export as export_tool
 
 NEAR, FAR = 2.0, 6.0
@@ -69,9 +69,9 @@ def test_exported_videos_have_every_frame_at_the_archive_size(tmp_path, height, 
   files = export_tool.write_files(str(tmp_path / "orbit.zarr"), str(tmp_path / "out"), fps=12,
                                  formats=["mp4", "gif", "png"])
   assert sorted(p.rsplit("/", 1)[1] for p in files) == sorted(
-      [f"orbit_{c}.{f}" for c in video.CHANNELS for f in ("mp4", "gif")] + ["orbit_sheet.png"])
+      [f"orbit_{c}.{f}" for c in compositing.OUTPUTS for f in ("mp4", "gif")] + ["orbit_sheet.png"])
   even = (height + height % 2, width + width % 2)  # H.264 (yuv420p) needs even sizes: odd ones are padded
-  for channel in video.CHANNELS:
+  for channel in compositing.OUTPUTS:
     reader = imageio.get_reader(str(tmp_path / "out" / f"orbit_{channel}.mp4"), format="FFMPEG")
     assert reader.get_meta_data()["fps"] == pytest.approx(12)
     mp4 = np.stack([image for image in reader.iter_data()])

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from nerfpod.nerf import keyframes
+from nerfpod.nerf import cameras, keyframes
 
 
 def _rot_z(deg):
@@ -26,21 +26,21 @@ def test_quaternion_round_trip_and_known_values():
   rng = np.random.default_rng(0)
   for _ in range(50):
     rotation = _random_rotation(rng)
-    np.testing.assert_allclose(keyframes.quaternion_to_rotation(keyframes.rotation_to_quaternion(rotation)),
+    np.testing.assert_allclose(cameras.quaternion_to_rotation(cameras.rotation_to_quaternion(rotation)),
                                rotation, atol=1e-12)
   # 90 degrees about z: (cos 45, 0, 0, sin 45); 180 degrees about x (w = 0, the branch without the trace)
-  np.testing.assert_allclose(keyframes.rotation_to_quaternion(_rot_z(90)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)],
+  np.testing.assert_allclose(cameras.rotation_to_quaternion(_rot_z(90)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)],
                              atol=1e-12)
-  np.testing.assert_allclose(keyframes.rotation_to_quaternion(np.diag([1.0, -1, -1])), [0, 1, 0, 0], atol=1e-12)
+  np.testing.assert_allclose(cameras.rotation_to_quaternion(np.diag([1.0, -1, -1])), [0, 1, 0, 0], atol=1e-12)
 
 
 @pytest.mark.parametrize("t", [0.0, 0.25, 0.5, 0.9, 1.0])
 def test_slerp_turns_at_constant_speed_about_the_axis(t):
-  q0, q1 = keyframes.rotation_to_quaternion(_rot_z(10)), keyframes.rotation_to_quaternion(_rot_z(130))
-  np.testing.assert_allclose(keyframes.quaternion_to_rotation(keyframes.slerp(q0, q1, t)), _rot_z(10 + 120 * t),
+  q0, q1 = cameras.rotation_to_quaternion(_rot_z(10)), cameras.rotation_to_quaternion(_rot_z(130))
+  np.testing.assert_allclose(cameras.quaternion_to_rotation(keyframes.slerp(q0, q1, t)), _rot_z(10 + 120 * t),
                              atol=1e-12)
   # -q1 is the same rotation: still the short way round
-  np.testing.assert_allclose(keyframes.quaternion_to_rotation(keyframes.slerp(q0, -q1, t)),
+  np.testing.assert_allclose(cameras.quaternion_to_rotation(keyframes.slerp(q0, -q1, t)),
                              _rot_z(10 + 120 * t), atol=1e-12)
 
 

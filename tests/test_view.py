@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import LEGO, REPO, TINY_NPZ, require, smoke_config
+from nerfpod import workdir_files
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -81,27 +82,11 @@ def _assert_shows(picture, frame, reference):
   assert psnr > 40, f"the page shows another picture than nerfpod's rendering (PSNR {psnr:.1f} dB)"
 
 
-def test_viewer_cameras_and_nerfpod_poses_convert_both_ways():
-  from nerfpod import view
-  from nerfpod.nerf import cameras
-  pose = cameras.look_at(np.array([1.0, -3.0, 2.0]))  # OpenGL: looks down -z at the origin, +y up
-  wxyz, position = view.pose_to_viewer_camera(pose)
-  np.testing.assert_allclose(view.viewer_camera_to_pose(wxyz, position), pose, atol=1e-12)
-  # viser's camera (OpenCV) looks down its +z and has +y down: the same direction and the opposite up.
-  import viser.transforms as tf
-  rotation = tf.SO3(wxyz).as_matrix()
-  np.testing.assert_allclose(rotation[:, 2], -pose[:3, 2], atol=1e-12)
-  np.testing.assert_allclose(rotation[:, 1], -pose[:3, 1], atol=1e-12)
-  np.testing.assert_allclose(rotation[:, 2], -position / np.linalg.norm(position), atol=1e-12)
-
-
 def test_frame_sizes_and_cameras_of_the_page():
   from nerfpod import view
   assert view.fit_resolution(1000, 500, 256) == (256, 128)
   assert view.fit_resolution(200, 100, 256) == (200, 100)  # never enlarged
   assert view.fit_resolution(300, 1, 64) == (64, 1)
-  intr = view.camera_intrinsics(np.radians(90.0), 40, 20)  # tan(45 deg) = 1: focal = half the height
-  assert (intr.fx, intr.fy, intr.cx, intr.cy) == pytest.approx((10.0, 10.0, 20.0, 10.0))
 
 
 def test_a_busy_port_and_a_workdir_without_config_are_user_errors(tmp_path):
@@ -114,18 +99,18 @@ def test_a_busy_port_and_a_workdir_without_config_are_user_errors(tmp_path):
       view.check_port_free("127.0.0.1", busy.getsockname()[1])
   view.check_port_free("127.0.0.1", 0)
   with pytest.raises(UserError, match="holds no config.json"):
-    view.read_config(str(tmp_path))
+    workdir_files.read_config(str(tmp_path))
   (tmp_path / "config.json").write_text("{not json")
   with pytest.raises(UserError, match="is not valid JSON"):
-    view.read_config(str(tmp_path))
+    workdir_files.read_config(str(tmp_path))
   config = json.loads(smoke_config().to_json_best_effort())
   config["train"]["log_every"] = 0
   (tmp_path / "config.json").write_text(json.dumps(config))
   with pytest.raises(UserError, match="refuses .*train.log_every=0"):
-    view.read_config(str(tmp_path))
+    workdir_files.read_config(str(tmp_path))
   config["train"]["log_every"] = 5
   (tmp_path / "config.json").write_text(json.dumps(config))
-  assert view.read_config(str(tmp_path)).train.log_every == 5
+  assert workdir_files.read_config(str(tmp_path)).train.log_every == 5
 
 
 @pytest.fixture(scope="module")
@@ -351,7 +336,7 @@ def _workdir_of(config, workdir):
   from nerfpod import checkpoints, components
   comps = components.build(config)
   state = comps.init_state()
-  checkpoints.write_config(str(workdir), json.loads(config.to_json_best_effort()))
+  workdir_files.write_config(str(workdir), json.loads(config.to_json_best_effort()))
   with checkpoints.Checkpoints(str(workdir), 10, 2) as ckpt:
     ckpt.save(0, state, {"next_step": 0}, force=True)
   return comps, state.params
@@ -361,13 +346,14 @@ def _workdir_of(config, workdir):
 @pytest.mark.parametrize("kind", ["procedural", "tiny", "blender"])
 def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_path):
   from nerfpod import render, video, view
-  from nerfpod.config_util import sibling_config
+  from nerfpod.nerf import cameras
+  from conftest import load_config
   if kind == "procedural":
     config = smoke_config()
   elif kind == "tiny":
-    config = sibling_config(str(REPO / "configs" / "x.py"), "tiny_fast", f"path={require(TINY_NPZ)},smoke")
+    config = load_config("tiny_fast", f"path={require(TINY_NPZ)},smoke")
   else:
-    config = sibling_config(str(REPO / "configs" / "x.py"), "blender", "smoke")
+    config = load_config("blender", "smoke")
     config.data.path = str(require(LEGO))
     config.eval.split = "val"  # the shared lego_400 has no test split
   comps, params = _workdir_of(config, tmp_path / "run")
@@ -375,7 +361,7 @@ def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_pat
   try:
     assert viewer.step == 0 and viewer.comps.scene.name == comps.scene.name
     split = comps.scene.split(config.eval.split)
-    intr = view.camera_intrinsics(2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy), 24, 20)
+    intr = cameras.intrinsics_from_fov(cameras.fov_y(split.intrinsics), 24, 20)
     got = viewer.render(split.poses[0], intr, "rgb")
     want = render.render_image(comps.renderer, params, comps.mesh, split.poses[0], intr, config.data.pixel_center,
                                256)

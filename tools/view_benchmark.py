@@ -71,16 +71,17 @@ def main():
   import jax
   import numpy as np
   from nerfpod import view
+  from nerfpod.nerf import cameras
   viewer = view.Viewer(args.workdir, port=0, max_resolution=max(args.size, 64))
   serving = time.perf_counter() - _STARTED
   try:
     split = viewer.comps.scene.split(viewer.config.eval.split)
-    fov = 2 * np.arctan(0.5 * split.intrinsics.height / split.intrinsics.fy)
+    fov = cameras.fov_y(split.intrinsics)
     pose = split.poses[0]
 
     def timed(size):
       start = time.perf_counter()
-      image = viewer.render(pose, view.camera_intrinsics(fov, size, size), "rgb")
+      image = viewer.render(pose, cameras.intrinsics_from_fov(fov, size, size), "rgb")
       return time.perf_counter() - start, image
     first, image = timed(args.size)
     first_frame = time.perf_counter() - _STARTED

@@ -21,6 +21,10 @@ import dataclasses
 
 import numpy as np
 
+# Camera axes: OpenCV's (COLMAP's, viser's: x right, y down, looking down +z) -> OpenGL's (nerfpod's: y up,
+# looking down -z): c2w_opengl[:3, :3] = c2w_opencv[:3, :3] @ OPENCV_TO_OPENGL (it is its own inverse).
+OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])
+
 # The distortion parameters every camera carries, in this order; all zero is a pinhole camera.
 DISTORTION_PARAMS = ("k1", "k2", "k3", "k4", "p1", "p2")
 NO_DISTORTION = (0.0,) * len(DISTORTION_PARAMS)
@@ -229,3 +233,57 @@ def spherical_pose(azimuth_deg: float, elevation_deg: float, radius: float) -> n
                         [0, 0, 0, 1]])
   swap = np.array([[-1, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], np.float64)
   return swap @ rot_theta @ rot_phi @ trans_t
+
+
+def rotation_to_quaternion(rotation_3x3) -> np.ndarray:
+  """The unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (Shepperd's method: the largest of
+  the four squared components is taken first, so no division by a small number)."""
+  m = np.asarray(rotation_3x3, np.float64)
+  trace = np.trace(m)
+  squares = np.array([1 + trace, 1 + 2 * m[0, 0] - trace, 1 + 2 * m[1, 1] - trace, 1 + 2 * m[2, 2] - trace])
+  k = int(np.argmax(squares))
+  big = 0.5 * np.sqrt(squares[k])
+  s = 0.25 / big
+  if k == 0:
+    q = [big, (m[2, 1] - m[1, 2]) * s, (m[0, 2] - m[2, 0]) * s, (m[1, 0] - m[0, 1]) * s]
+  elif k == 1:
+    q = [(m[2, 1] - m[1, 2]) * s, big, (m[0, 1] + m[1, 0]) * s, (m[0, 2] + m[2, 0]) * s]
+  elif k == 2:
+    q = [(m[0, 2] - m[2, 0]) * s, (m[0, 1] + m[1, 0]) * s, big, (m[1, 2] + m[2, 1]) * s]
+  else:
+    q = [(m[1, 0] - m[0, 1]) * s, (m[0, 2] + m[2, 0]) * s, (m[1, 2] + m[2, 1]) * s, big]
+  q = np.array(q) / np.linalg.norm(q)
+  return q if q[0] >= 0 else -q
+
+
+def quaternion_to_rotation(wxyz) -> np.ndarray:
+  """The 3x3 rotation matrix of a quaternion (w, x, y, z) (normalised first)."""
+  w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
+  return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def pose_from_opencv(wxyz, position) -> np.ndarray:
+  """A camera given as (w, x, y, z) orientation of its OpenCV camera-to-world and position (a web viewer's,
+  viser's) -> nerfpod's 4x4 OpenGL camera-to-world pose."""
+  pose = np.eye(4)
+  pose[:3, :3] = quaternion_to_rotation(wxyz) @ OPENCV_TO_OPENGL
+  pose[:3, 3] = position
+  return pose
+
+
+def pose_to_opencv(pose_4x4) -> tuple[np.ndarray, np.ndarray]:
+  """nerfpod's OpenGL camera-to-world pose -> (w, x, y, z) of the OpenCV camera-to-world, position."""
+  pose = np.asarray(pose_4x4, np.float64)
+  return rotation_to_quaternion(pose[:3, :3] @ OPENCV_TO_OPENGL), pose[:3, 3].copy()
+
+
+def intrinsics_from_fov(fov_y_rad: float, width: int, height: int) -> Intrinsics:
+  """A pinhole camera of `width` x `height` pixels with a vertical field of view of `fov_y_rad`."""
+  return Intrinsics.from_focal(width, height, 0.5 * height / np.tan(0.5 * fov_y_rad))
+
+
+def fov_y(intr: Intrinsics) -> float:
+  """The vertical field of view of a pinhole camera, radians."""
+  return float(2 * np.arctan(0.5 * intr.height / intr.fy))

@@ -1,6 +1,10 @@
 """Alpha compositing of colours and densities sampled along rays: NeRF's volume-rendering quadrature (eq. 3)."""
 import jax.numpy as jnp
 
+# What a rendered ray carries (compositing's per-ray outputs bar the weights): every renderer, archive,
+# video and viewer channel, by these names and in this order.
+OUTPUTS = ("rgb", "depth", "acc", "disparity")
+
 
 def composite(rgb_RxSx3, sigma_RxS, t_RxS, directions_Rx3, *, last_delta: float, background=None):
   """Composites samples at ray parameters t into pixel values.

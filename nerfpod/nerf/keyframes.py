@@ -9,38 +9,11 @@ Keyframes are evenly spaced in time. Between them:
 - the vertical field of view is interpolated linearly.
 With `loop`, the path comes back to the first keyframe and the spline wraps around.
 
-Quaternions are (w, x, y, z), as viser and nerfstudio write them.
+Quaternions are (w, x, y, z), as viser and nerfstudio write them (nerf/cameras.py converts them).
 """
 import numpy as np
 
-
-def rotation_to_quaternion(rotation_3x3) -> np.ndarray:
-  """The unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (Shepperd's method: the largest of
-  the four squared components is taken first, so no division by a small number)."""
-  m = np.asarray(rotation_3x3, np.float64)
-  trace = np.trace(m)
-  squares = np.array([1 + trace, 1 + 2 * m[0, 0] - trace, 1 + 2 * m[1, 1] - trace, 1 + 2 * m[2, 2] - trace])
-  k = int(np.argmax(squares))
-  big = 0.5 * np.sqrt(squares[k])
-  s = 0.25 / big
-  if k == 0:
-    q = [big, (m[2, 1] - m[1, 2]) * s, (m[0, 2] - m[2, 0]) * s, (m[1, 0] - m[0, 1]) * s]
-  elif k == 1:
-    q = [(m[2, 1] - m[1, 2]) * s, big, (m[0, 1] + m[1, 0]) * s, (m[0, 2] + m[2, 0]) * s]
-  elif k == 2:
-    q = [(m[0, 2] - m[2, 0]) * s, (m[0, 1] + m[1, 0]) * s, big, (m[1, 2] + m[2, 1]) * s]
-  else:
-    q = [(m[1, 0] - m[0, 1]) * s, (m[0, 2] + m[2, 0]) * s, (m[1, 2] + m[2, 1]) * s, big]
-  q = np.array(q) / np.linalg.norm(q)
-  return q if q[0] >= 0 else -q
-
-
-def quaternion_to_rotation(wxyz) -> np.ndarray:
-  """The 3x3 rotation matrix of a quaternion (w, x, y, z) (normalised first)."""
-  w, x, y, z = np.asarray(wxyz, np.float64) / np.linalg.norm(wxyz)
-  return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+from nerfpod.nerf.cameras import quaternion_to_rotation, rotation_to_quaternion
 
 
 def slerp(q0, q1, t: float) -> np.ndarray:

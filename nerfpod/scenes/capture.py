@@ -14,13 +14,14 @@ from PIL import Image
 
 from nerfpod.errors import UserError
 from nerfpod.nerf import poses as pose_math
+from nerfpod.nerf import cameras
 from nerfpod.nerf.cameras import Cameras
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 UNBOUNDED_NEAR, UNBOUNDED_FAR = 0.2, 1e6  # mip-NeRF 360's ray bounds, in the normalised frame
-# OpenCV/COLMAP cameras (x right, y down, looking down +z) -> OpenGL (x right, y up, looking down -z):
-# c2w_opengl = c2w_opencv @ OPENCV_TO_OPENGL.
-OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+# OpenCV/COLMAP cameras (x right, y down, looking down +z) -> OpenGL (x right, y up, looking down -z), as a
+# 4x4: c2w_opengl = c2w_opencv @ OPENCV_TO_OPENGL (nerf/cameras.py's axes, the translation kept).
+OPENCV_TO_OPENGL = np.diag([*np.diag(cameras.OPENCV_TO_OPENGL), 1.0])
 
 
 def list_images(folder: str) -> list[str]:
