@@ -7,7 +7,7 @@ harmonics, 4096 rays a step. Arguments: `scene=NAME` (folder under data/nerf_syn
 `cpu`: 100x100 images (`data.downscale=4` of 400x400 renders; `--config.data.downscale=2` for 200x200), a
 CPU-sized grid, proposal sampling, 1,024 rays a step, evaluated on the `val` split (the shared 400x400
 lego has no test split): e.g. `--config=configs/blender_fast.py:scene=lego,cpu
---config.data.path=../shared/data/lego_400`. README (Speed) has what it reaches and in how long.
+--config.data.path=../shared/data/lego_400`. docs/results.md has what it reaches and in how long.
 """
 from nerfpod import config_util
 

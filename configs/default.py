@@ -58,7 +58,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.render.num_importance = 0     # extra importance samples per ray for a fine network; 0: no fine network
   c.render.proposal_samples = (32,)  # intervals per ray of each proposal round, e.g. (64, 32): the NeRF field
                                   # then gets render.num_samples intervals drawn from the last; (): no proposals,
-                                  # render.num_samples stratified samples (README, Proposal sampling)
+                                  # render.num_samples stratified samples (docs/training.md, Speed settings)
   c.render.last_delta = 0.0       # length of the last sample's interval, world units (the paper: 1e10,
                                   # opaque at the far end: use it only with a fixed background colour)
   c.render.near = -1.0            # ray start, world units; negative: the scene's own bound
@@ -95,9 +95,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.compile.cpu_reuse_host_memory = True  # CPU: glibc's malloc keeps freed memory for the next step instead
                                   # of unmapping it (faster steps on 2 cores for more peak memory; results.md)
   c.compile.gradient_mean = "auto"  # 'ordered' (the same bits on any topology: log2(N) exchanges), 'pmean'
-                                  # (one all-reduce) or 'auto' (ordered on CPU, pmean on TPU/GPU; README)
+                                  # (one all-reduce) or 'auto' (ordered on CPU, pmean on TPU/GPU; docs/scale.md)
   c.compile.hashgrid_lookup = "auto"  # hash-grid levels: 'gather', 'matmul' (dense levels, no gather or
-                                  # scatter) or 'auto' (matmul on TPU, gather elsewhere; README, pods)
+                                  # scatter) or 'auto' (matmul on TPU, gather elsewhere; docs/pod-compile.md)
   c.compile.matmul_max_rows = 30000  # 'matmul' applies to dense levels of at most this many rows
 
   c.checkpoint = ml_collections.ConfigDict()

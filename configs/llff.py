@@ -5,7 +5,7 @@ The original NeRF's set-up for real forward-facing scenes (nerf_llff_data): pose
 test, rays mapped to NDC (near plane at 1, t' in [0, 1] runs to infinity), and the spiral camera path
 through the capture's cameras for the video. The field is the hash grid, sized to the NDC cube at the
 images' resolution, with view directions (real scenes shine). Sized so that the whole job, training to the
-spiral's videos, runs within 30 minutes on a 2-core CPU (README, Real captures). Arguments: `scene=NAME`
+spiral's videos, runs within 30 minutes on a 2-core CPU (docs/results.md). Arguments: `scene=NAME`
 (folder under data/nerf_llff_data, or set --config.data.path), `smoke` for tests.
 """
 from nerfpod import config_util
@@ -22,7 +22,7 @@ def get_config(arg: str | None = None):
   c.data.space = "forward_facing"
   c.render.space = "ndc"          # near/far default to the NDC cube's 0 and 1
   c.render.num_samples = 48
-  c.render.proposal_samples = ()  # 48 stratified samples in NDC, as measured (README)
+  c.render.proposal_samples = ()  # 48 stratified samples in NDC, as measured (docs/results.md)
   # The default's eight levels and 32-unit MLPs keep a step near the default job's cost, so 8,000 steps fit
   # the 30-minute budget.
   c.train.num_steps = 8000

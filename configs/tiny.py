@@ -13,7 +13,7 @@ def get_config(arg: str | None = None):
   default = config_util.sibling_module(__file__, "default")
   c = default.get_config()
   c.data.kind = "tiny"
-  c.data.path = "data/tiny_nerf_data.npz"  # the tutorial's npz (download: see README)
+  c.data.path = "data/tiny_nerf_data.npz"  # the tutorial's npz (download: see docs/data.md)
   c.data.pixel_center = 0.0       # the tutorial's rays pass through pixel corners
   c.model.field = "mlp"           # the default MLP is the tutorial's: PE L=6, 8x256, skip at layer 4
   c.render.num_samples = 256

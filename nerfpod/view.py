@@ -436,8 +436,8 @@ def run(argv=None):
       time.sleep(3600)
   except KeyboardInterrupt:
     # Stop serving (for at most 10 s), then leave at once: the viewer writes nothing, so skipping the
-    # interpreter's clean-up of JAX's and the server's threads loses nothing; that clean-up once took over
-    # 30 s under load, and Ctrl-C must stop the viewer.
+    # interpreter's clean-up of JAX's and the server's threads loses nothing; that clean-up can take long
+    # under load (docs/results.md), and Ctrl-C must stop the viewer.
     closing = threading.Thread(target=viewer.close, name="nerfpod-view-close", daemon=True)
     closing.start()
     closing.join(10)

@@ -157,8 +157,8 @@ class NeRF(nn.Module):
 def grid_matmul_max_rows(config, backend: str) -> int:
   """How many rows a hash-grid level may have to be looked up by matmuls on `backend` (0: all gather).
 
-  compile.hashgrid_lookup 'auto' takes matmuls on TPUs, where gathers and scatter-adds are slow (the README's
-  pod section has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row cheaply). The
+  compile.hashgrid_lookup 'auto' takes matmuls on TPUs, where gathers and scatter-adds are slow
+  (docs/pod-compile.md has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row cheaply). The
   parameters are the same either way, so a checkpoint moves freely between backends.
   """
   lookup = config.compile.hashgrid_lookup
