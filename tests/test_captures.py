@@ -203,12 +203,21 @@ def test_normalised_poses_map_back_to_the_capture_by_the_recorded_transform(lego
     assert scene.space == "unbounded"
 
 
-def test_auto_detects_each_format_and_says_which(lego, capsys):
+def test_auto_detects_each_format_and_says_which(lego, capsys, tmp_path):
   root = lego["root"]
   for folder, kind in (("llff", "llff"), ("colmap_bin", "colmap"), ("nerfstudio", "nerfstudio"),
                        ("blender", "blender")):
     assert scenes.detect(str(root / folder)) == kind
   assert scenes.detect(str(root / "nerfstudio" / "transforms.json")) == "nerfstudio"
+  # A COLMAP model wins over a transforms.json and a poses_bounds.npy beside it (nerfpod prepare writes all
+  # three); without the model, transforms.json wins over poses_bounds.npy.
+  both = tmp_path / "prepared"
+  shutil.copytree(root / "colmap_txt", both)
+  shutil.copy(root / "nerfstudio" / "transforms.json", both)
+  shutil.copy(root / "llff" / "poses_bounds.npy", both)
+  assert scenes.detect(str(both)) == "colmap"
+  shutil.rmtree(both / "sparse")
+  assert scenes.detect(str(both)) == "nerfstudio"
   scene = scenes.load(as_is("auto", root / "llff"))
   assert scene.kind == "llff" and "holds a scene of kind 'llff'" in capsys.readouterr().out
   with pytest.raises(UserError, match="cannot tell the format"):

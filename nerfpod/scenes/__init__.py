@@ -11,10 +11,11 @@ KINDS = ("procedural", "tiny", "blender") + CAPTURE_KINDS + ("auto",)
 
 
 def detect(path: str) -> str:
-  """The format of the file or folder at `path`, from what it holds: transforms.json -> nerfstudio, a COLMAP
-  sparse model -> colmap (before an LLFF poses_bounds.npy beside it, as multinerf prefers COLMAP's poses),
-  poses_bounds.npy -> llff, transforms_train.json -> blender, an .npz file -> tiny; a .json file is taken
-  as a nerfstudio transforms file."""
+  """The format of the file or folder at `path`, from what it holds: a COLMAP sparse model (sparse/0/, sparse/
+  or the folder itself) -> colmap, also where a transforms.json (as nerfpod prepare writes beside the model) or
+  an LLFF poses_bounds.npy (multinerf too prefers COLMAP's poses) is beside it; transforms.json -> nerfstudio,
+  poses_bounds.npy -> llff, transforms_train.json -> blender, an .npz file -> tiny; a .json file is taken as a
+  nerfstudio transforms file."""
   if os.path.isfile(path):
     if path.endswith(".npz"):
       return "tiny"
@@ -22,10 +23,10 @@ def detect(path: str) -> str:
       return "nerfstudio"
   elif os.path.isdir(path):
     from nerfpod.scenes import colmap
-    if os.path.isfile(os.path.join(path, "transforms.json")):
-      return "nerfstudio"
     if colmap.model_folder(path) is not None:
       return "colmap"
+    if os.path.isfile(os.path.join(path, "transforms.json")):
+      return "nerfstudio"
     if os.path.isfile(os.path.join(path, "poses_bounds.npy")):
       return "llff"
     if os.path.isfile(os.path.join(path, "transforms_train.json")):

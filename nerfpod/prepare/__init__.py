@@ -1,0 +1,345 @@
+"""`nerfpod prepare --input=PHOTOS_OR_VIDEO --out=DIR`: photos or a video -> a capture folder with camera poses.
+
+Structure from motion with COLMAP's CPU pipeline as the `pycolmap` package ships it (the `colmap` extra):
+SIFT features, matching with geometric verification, then COLMAP's incremental mapper or the global one
+(GLOMAP's). The stages, in a work folder `DIR.partial/` beside DIR:
+
+    images    a video's frames (the sharpest of each of --num_frames even windows in time), or the photos
+              (hard links, copies, or upright copies where EXIF says the photo is rotated)
+    features  SIFT per image into database.db (one shared camera for one camera, else one per image)
+    matching  exhaustive, or sequential (neighbours in time + loop pairs among evenly spaced frames)
+    mapping   the incremental mapper; where it leaves over 5% of the images out, also the global one on the
+              same matches, keeping the model with more images (on a tie, the lower reprojection error) unless
+              the global model disagrees with the incremental one on the images both placed
+    writing   DIR/images/ (the registered images), sparse/0/, images_2/4/8 for large images,
+              poses_bounds.npy (LLFF), transforms.json (nerfstudio), prepare.json
+
+When everything is written the work folder's capture is renamed to DIR, so DIR is never half-written. An
+interrupted run leaves DIR.partial/: the same command again reuses its finished stages (the frames, the
+features and matches in the COLMAP database); --overwrite starts again. A user's mistake is one sentence on
+stderr and exit code 2. Measurements and every message: docs/prepare.md.
+
+Here: the command (its flags, the stages in order, resuming them, the report). The stages' work is in
+frames (the input: photos, a video's frames), sfm (pycolmap: features, matching, mapping, the model kept)
+and capture (the capture folder's files); progress prints the progress lines.
+"""
+import argparse
+import json
+import math
+import os
+import shutil
+import signal
+import sys
+import time
+
+from nerfpod.errors import UserError
+from nerfpod.prepare import capture, frames, sfm
+from nerfpod.prepare.progress import duration
+
+STATE = "state.json"
+
+
+def report(summary: dict) -> list[str]:
+  """The final report's lines, from prepare.json's content."""
+  c, out = summary["counts"], summary["out"]
+  mapping = summary["mapping"]
+  lines = [f"registered {c['registered']} of {c['images']} images"
+           f" ({mapping['kept']} mapper{mapping['note']}); {c['points']:,} points, mean reprojection error "
+           f"{c['reprojection_error_px']:.2f} px, mean track length {c['track_length']:.1f}"]
+  times = ", ".join(f"{k} {duration(v)}" for k, v in summary["timings_s"].items())
+  lines.append(f"time: {times}")
+  written = ["images/", "sparse/0/"] + [f"images_{n}/" for n in summary["downscales"]] + [
+      "poses_bounds.npy", "transforms.json", capture.PREPARE_JSON]
+  lines.append(f"wrote {out}: {', '.join(written)}")
+  quoted = out if " " not in out else f"'{out}'"
+  name = os.path.basename(os.path.normpath(out)) or "capture"
+  if summary["forward_facing"]:
+    lines.append("the cameras all look one way (a forward-facing capture): train with")
+    lines.append(f"  nerfpod train --config=configs/llff.py --config.data.path={quoted} --workdir=runs/{name}")
+  else:
+    lines.append("next: train on it with")
+    lines.append(f"  nerfpod train --config=configs/capture.py:path={quoted} --workdir=runs/{name}")
+  return lines
+
+
+def _threads() -> int:
+  try:
+    return len(os.sched_getaffinity(0))
+  except AttributeError:
+    return os.cpu_count() or 1
+
+
+def _positive(kind):
+  def parse(text):
+    try:
+      value = kind(text)
+    except ValueError:
+      raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if value <= 0:
+      raise argparse.ArgumentTypeError(f"{text!r} must be positive")
+    return value
+  return parse
+
+
+def _fraction(text):
+  try:
+    value = float(text)
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+  if not 0 <= value <= 1:
+    raise argparse.ArgumentTypeError(f"{text!r} must be between 0 and 1")
+  return value
+
+
+def parser() -> argparse.ArgumentParser:
+  p = argparse.ArgumentParser(
+      prog="nerfpod prepare",
+      description="Photos or a video -> a capture folder with camera poses (COLMAP structure from motion with "
+                  "pycolmap), ready for `nerfpod train --config=configs/capture.py:path=OUT`.")
+  p.add_argument("--input", required=True, metavar="PATH",
+                 help="a folder of photos (.jpg, .jpeg, .png) or a video file (.mp4, .mov, ... anything ffmpeg "
+                      "reads)")
+  p.add_argument("--out", required=True, metavar="DIR", help="the capture folder to write (it must not exist, be "
+                 "empty, or hold an earlier prepare's capture, replaced with --overwrite)")
+  p.add_argument("--num_frames", type=_positive(int), default=frames.DEFAULT_NUM_FRAMES,
+                 help="video: how many frames to take, the sharpest of each even window in time (default "
+                      "%(default)s)")
+  p.add_argument("--matching", choices=("auto", "exhaustive", "sequential"), default="auto",
+                 help="which image pairs to match: auto = sequential for a video or over "
+                      f"{sfm.EXHAUSTIVE_MAX_IMAGES} photos, else exhaustive (default %(default)s)")
+  p.add_argument("--mapper", choices=("auto", "incremental", "global"), default="auto",
+                 help="auto = the incremental mapper, and the global one too where it leaves over 5%% of the "
+                      "images out, keeping the model with more images unless the two disagree (default "
+                      "%(default)s)")
+  p.add_argument("--cameras", choices=("auto", "shared", "per_image"), default="auto",
+                 help="one camera for all images or one per image: auto = shared for a video and for photos "
+                      "of one size from one camera (EXIF) (default %(default)s)")
+  p.add_argument("--camera_model", choices=("auto",) + sfm.CAMERA_MODELS, default="auto",
+                 help="COLMAP camera model: auto = SIMPLE_RADIAL; OPENCV for wide-angle lenses (default "
+                      "%(default)s)")
+  p.add_argument("--max_image_size", type=_positive(int), default=1600,
+                 help="SIFT runs on images shrunk to this long side, in pixels (default %(default)s)")
+  p.add_argument("--min_registered", type=_fraction, default=0.5,
+                 help="fail unless at least this share of the images is registered (default %(default)s)")
+  p.add_argument("--threads", type=_positive(int), default=_threads(),
+                 help="CPU threads (default: this machine's cores, %(default)s)")
+  p.add_argument("--overwrite", action="store_true",
+                 help="start again: replace an earlier prepare's capture at --out and its unfinished work")
+  p.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+  return p
+
+
+def _check_out(out: str, overwrite: bool, input_path: str):
+  """Refuses an --out that is not ours to write."""
+  if os.path.abspath(out) == os.path.abspath(input_path):
+    raise UserError(f"--out {out} is the input itself; pass a new folder for the capture, e.g. "
+                    f"--out={out}_capture.")
+  if os.path.isfile(out):
+    raise UserError(f"--out {out} is a file; pass a folder path for the capture (it is created).")
+  if os.path.isdir(out) and os.listdir(out):
+    if not os.path.isfile(os.path.join(out, capture.PREPARE_JSON)):
+      raise UserError(f"--out {out} already holds other files (it has no {capture.PREPARE_JSON}, so it is not a "
+                      f"capture prepare wrote); pass a new or empty folder.")
+    if not overwrite:
+      raise UserError(f"--out {out} already holds a prepared capture; pass --overwrite to prepare it again, or "
+                      f"choose another --out.")
+
+
+def _load_state(work: str) -> dict:
+  try:
+    with open(os.path.join(work, STATE)) as f:
+      state = json.load(f)
+    return state if isinstance(state, dict) else {}
+  except (OSError, ValueError):
+    return {}
+
+
+def prepare(args) -> dict:
+  """The whole command: returns prepare.json's content."""
+  t0 = time.monotonic()
+  src = frames.scan_input(args.input)
+  out = os.path.normpath(args.out)
+  _check_out(out, args.overwrite, args.input)
+  try:
+    import pycolmap
+  except ImportError as e:
+    raise UserError("nerfpod prepare needs the pycolmap package: pip install 'nerfpod[colmap]' (or pip install "
+                    "pycolmap).") from e
+  if not args.verbose:
+    pycolmap.logging.minloglevel = 3  # COLMAP logs every step at INFO; what goes wrong, prepare says itself
+  sizes = src.sizes if src.kind == "photos" else [(src.video["width"], src.video["height"])]
+  cameras = sfm.choose_cameras(src.kind, sizes, src.makers or [None], args.cameras)
+  camera_model = sfm.choose_camera_model(args.camera_model)
+  work = out + ".partial"
+  if args.overwrite and os.path.isdir(work):
+    shutil.rmtree(work)
+  os.makedirs(work, exist_ok=True)
+  state = _load_state(work)
+  signature = src.signature()
+  if state and state.get("input") != signature:
+    print(f"nerfpod prepare: {work} holds an earlier run for other input; starting again", flush=True)
+    shutil.rmtree(work)
+    os.makedirs(work)
+    state = {}
+  state["input"] = signature
+  stages = state.setdefault("stages", {})
+  image_dir, db_path = os.path.join(work, "images"), os.path.join(work, "database.db")
+  timings, counts = {}, {}
+  what = (f"{len(src.files)} photos in {src.path}" if src.kind == "photos" else
+          f"video {src.path} ({src.video['frames']} frames, {src.video['width']}x{src.video['height']}, "
+          f"{src.video['duration_s']:.1f} s)")
+  print(f"nerfpod prepare: {what} -> {out} ({args.threads} threads; work in {work})", flush=True)
+
+  def save_state():
+    capture._write_json(os.path.join(work, STATE), state)
+
+  # 1. images
+  key = {"num_frames": args.num_frames} if src.kind == "video" else {}
+  t = time.monotonic()
+  if stages.get("images", {}).get("key") == key and os.path.isdir(image_dir):
+    names, info = stages["images"]["names"], stages["images"]["info"]
+    print(f"[1/5] {'frames' if src.kind == 'video' else 'images'}: {len(names)} reused from the earlier run",
+          flush=True)
+  else:
+    windows = len(frames.frame_windows(src.video["frames"], args.num_frames)) - 1 if src.kind == "video" else 0
+    print("[1/5] " + (f"frames: the sharpest of each of {windows} even windows in time" if src.kind == "video"
+                      else f"images: linking {len(src.files)} photos"), flush=True)
+    for later in ("images", "features", "matching"):
+      stages.pop(later, None)
+    if os.path.exists(db_path):
+      os.remove(db_path)
+    try:
+      names, info = frames.stage_images(src, image_dir, args.num_frames)
+    except UserError:  # the input's fault (a video that breaks off): nothing here is worth keeping
+      shutil.rmtree(work, ignore_errors=True)
+      raise
+    stages["images"] = {"key": key, "names": names, "info": info}
+    save_state()
+  timings["frames" if src.kind == "video" else "images"] = time.monotonic() - t
+  counts["images"] = len(names)
+
+  # 2. features
+  key = {"cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size}
+  t = time.monotonic()
+  print(f"[2/5] features: SIFT on {len(names)} images, {'one shared' if cameras == 'shared' else 'one per image'} "
+        f"{camera_model} camera", flush=True)
+  if stages.get("features", {}).get("key") != key:  # not started with these settings: start them afresh
+    stages.pop("features", None)
+    stages.pop("matching", None)
+    if os.path.exists(db_path):
+      os.remove(db_path)
+    stages["features"] = {"key": key}
+    save_state()
+  counts.update(sfm.stage_features(db_path, image_dir, names, cameras, camera_model, args.max_image_size,
+                               args.threads))
+  timings["features"] = time.monotonic() - t
+
+  # 3. matching
+  matching = sfm.choose_matching(src.kind, len(names), args.matching)
+  pairs = sfm.image_pairs(len(names), matching)
+  key = {"matching": matching}
+  t = time.monotonic()
+  order = " (neighbours in time, and loop pairs)" if matching == "sequential" else ""
+  print(f"[3/5] matching: {matching}{order}, {len(pairs):,} pairs", flush=True)
+  if stages.get("matching", {}).get("key") != key:
+    if "matching" in stages:
+      sfm._count(db_path, lambda db: (db.clear_matches(), db.clear_two_view_geometries()))
+    stages["matching"] = {"key": key}
+    save_state()
+  counts.update(sfm.stage_matching(db_path, work, names, pairs, args.threads))
+  timings["matching"] = time.monotonic() - t
+
+  # 4. mapping
+  t = time.monotonic()
+  print("[4/5] mapping: " + (f"the {args.mapper} mapper" if args.mapper != "auto" else
+                              "the incremental mapper (and the global one if it leaves over 5% out)"), flush=True)
+  best, note, tried = sfm.stage_mapping(db_path, work, image_dir, len(names), args.mapper, args.threads)
+  timings["mapping"] = time.monotonic() - t
+  needed = max(sfm.MIN_IMAGES, math.ceil(args.min_registered * len(names)))
+  if best["registered"] < needed:
+    raise UserError(sfm.too_few_message(best["registered"], len(names), needed, tried, matching, work))
+  rec = best["reconstruction"]
+
+  # 5. writing
+  t = time.monotonic()
+  print("[5/5] writing the capture", flush=True)
+  capture_dir = os.path.join(work, "capture")
+  model, factors = capture.stage_writing(capture_dir, image_dir, rec)
+  timings["writing"] = time.monotonic() - t
+  registered = set(model.names)
+  counts.update({"registered": len(model.names), "unregistered": [n for n in names if n not in registered],
+                 "points": int(rec.num_points3D()),
+                 "reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+                 "track_length": float(rec.compute_mean_track_length()),
+                 "other_models": best["models"] - 1, "other_models_images": best["others"]})
+  if best["others"]:
+    note += f"; {best['models'] - 1} smaller model(s) held {best['others']} images it lacks"
+  timings["total"] = time.monotonic() - t0
+  summary = {
+      "version": 1,
+      "out": out,
+      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **info},
+      "options": {"num_frames": args.num_frames, "matching": matching, "mapper": args.mapper,
+                  "cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size,
+                  "min_registered": args.min_registered, "threads": args.threads},
+      "versions": _versions(),
+      "counts": counts,
+      "mapping": {"kept": best["mapper"], "note": note,
+                  "tried": [{"mapper": r["mapper"], "registered": r["registered"], "models": r["models"],
+                             "other_models_images": r["others"], "seconds": round(r["seconds"], 2),
+                             "reprojection_error_px": (None if math.isinf(r["reprojection_error"]) else
+                                                       r["reprojection_error"]),
+                             **({"agreement_with_incremental": {
+                                 k: None if isinstance(v, float) and math.isnan(v) else v
+                                 for k, v in r["agreement"].items()}} if "agreement" in r else {})}
+                            for r in tried]},
+      "downscales": factors,
+      "forward_facing": capture.looks_forward_facing(model.c2w_opencv()),
+      "timings_s": {k: round(v, 2) for k, v in timings.items()},
+  }
+  capture._write_json(os.path.join(capture_dir, capture.PREPARE_JSON), summary)
+  # Only now does --out appear, whole: an earlier capture there (--overwrite) is replaced.
+  if os.path.isdir(out):
+    shutil.rmtree(out)
+  os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+  os.replace(capture_dir, out)
+  shutil.rmtree(work, ignore_errors=True)
+  return summary
+
+
+def _versions() -> dict:
+  import pycolmap
+  versions = {"pycolmap": getattr(pycolmap, "__version__", "?"),
+              "colmap": getattr(pycolmap, "COLMAP_version", "?")}
+  try:
+    from importlib.metadata import version
+    versions["nerfpod"] = version("nerfpod")
+  except Exception:  # not installed (a checkout on sys.path)
+    versions["nerfpod"] = "?"
+  try:
+    import imageio_ffmpeg
+    versions["ffmpeg"] = imageio_ffmpeg.get_ffmpeg_version()
+  except Exception:  # only videos need it
+    pass
+  return versions
+
+
+def run(argv=None) -> int:
+  """`nerfpod prepare ...` and `python -m nerfpod.prepare ...`; argv: the arguments after `prepare`. Returns 0
+  when the capture is written; a user's mistake is one sentence on stderr and exit code 2; Ctrl-C exits 130,
+  keeping the finished stages for the same command to resume."""
+  args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+  try:
+    summary = prepare(args)
+  except UserError as e:
+    print(f"nerfpod: error: {e}", file=sys.stderr, flush=True)
+    sys.exit(2)
+  except KeyboardInterrupt:
+    print(f"nerfpod: interrupted; the same command resumes from the finished stages in "
+          f"{os.path.normpath(args.out)}.partial (--overwrite starts again)", file=sys.stderr, flush=True)
+    sys.exit(128 + signal.SIGINT)
+  print("nerfpod prepare: done")
+  for line in report(summary):
+    print("  " + line)
+  sys.stdout.flush()
+  return 0
