@@ -21,7 +21,7 @@ SUBCOMMANDS = {
     "view": ("nerfpod.view", "a live web viewer of a workdir (training may still be running)", False),
     "prepare": ("nerfpod.prepare", "photos or a video -> a posed capture folder (COLMAP structure from motion)",
                 False),
-    "export": ("nerfpod.export", "what a trained run gives other tools: `nerfpod export video` (orbit videos)",
+    "export": ("nerfpod.export", "what a trained run gives other tools: video, pointcloud, mesh, cameras, depth",
                False),
     "aot": ("nerfpod.pod.aot", "compile a config for a TPU pod topology here, and report memory and time",
             True),

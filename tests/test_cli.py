@@ -78,7 +78,7 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
   top_level = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
   assert top_level == {"nerfpod"}
   assert "nerfpod = nerfpod.cli:run" in entry_points
-  assert "nerfpod/pod/aot.py" in names and "nerfpod/bench.py" in names and "nerfpod/export.py" in names
+  assert "nerfpod/pod/aot.py" in names and "nerfpod/bench.py" in names and "nerfpod/export/__init__.py" in names
   # Every third-party package the package imports is a declared dependency (or an extra, for optional ones).
   required = {line.split(":", 1)[1].split(";")[0].split("[")[0].split(">")[0].split("=")[0].strip().lower()
               for line in metadata.splitlines() if line.startswith("Requires-Dist:")}

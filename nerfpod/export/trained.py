@@ -1,0 +1,235 @@
+"""What the exports of a trained run share: the workdir restored read-only, the field and the renderer over
+the whole device mesh, the capture's own coordinates, the output path's check, progress lines.
+
+`restore(workdir)` reads DIR/config.json (the scene, the model, the ray bounds: a user passes nothing else),
+the newest checkpoint that reads back whole (read-only: nothing in the workdir is written, deleted or
+locked, so a training run may go on) and scene.json's capture -> scene similarity. Rendering and field
+queries span every device of every host (as evaluation does); every process passes the same inputs and
+only process 0 writes files.
+"""
+import dataclasses
+import json
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import logging
+from etils import epath
+from jax.sharding import PartitionSpec as P
+
+from nerfpod import checkpoints, compilation, components, distributed, render, workdir_files
+from nerfpod.errors import UserError
+from nerfpod.nerf import coord, fields
+from nerfpod.nerf import poses as pose_math
+
+
+@dataclasses.dataclass(frozen=True)
+class Trained:
+  """A workdir's newest checkpoint with everything needed to render it and query its field."""
+  workdir: str
+  config: Any
+  comps: components.Components
+  params: Any
+  step: int
+  capture_to_scene: np.ndarray  # (4, 4) similarity: a capture point X lies at capture_to_scene @ X here
+
+  @property
+  def scale(self) -> float:
+    """Scene units per capture unit."""
+    return pose_math.scale_of(self.capture_to_scene)
+
+  def points_out(self, points_Nx3, normalized: bool) -> np.ndarray:
+    """Scene points in the capture's coordinates (or as they are, `normalized`)."""
+    points = np.asarray(points_Nx3, np.float64)
+    if normalized:
+      return points
+    inverse = np.linalg.inv(self.capture_to_scene)
+    return points @ inverse[:3, :3].T + inverse[:3, 3]
+
+  def directions_out(self, directions_Nx3, normalized: bool) -> np.ndarray:
+    """Unit directions (normals) in the capture's coordinates (or as they are)."""
+    directions = np.asarray(directions_Nx3, np.float64)
+    if normalized:
+      return directions
+    rotation = self.capture_to_scene[:3, :3] / self.scale
+    return directions @ rotation  # R^T d, row-wise
+
+  def poses_out(self, poses_Nx4x4, normalized: bool) -> np.ndarray:
+    """Camera-to-world poses in the capture's coordinates (or as they are)."""
+    poses = np.asarray(poses_Nx4x4, np.float64)
+    return poses if normalized else pose_math.transform_poses(np.linalg.inv(self.capture_to_scene), poses)
+
+  def field_name(self) -> str:
+    """The NeRF field whose density and colour the renderer shows: the fine one of a hierarchical model."""
+    return "fine" if self.config.render.num_importance > 0 else "coarse"
+
+
+def read_config(workdir: str):
+  """The workdir's config, checked to have a checkpoint to restore: one sentence where it has none, or no
+  config.json, or cannot be reached. Cheap: no JAX computation."""
+  workdir = str(workdir)
+  config = workdir_files.read_config(workdir)
+  try:
+    newest = checkpoints.latest_step(workdir)
+  except Exception as e:  # noqa: BLE001 (an unreachable bucket)
+    raise UserError(f"could not list the checkpoints of {workdir} ({' '.join(str(e).split())[:300]}); check the "
+                    f"--workdir path and, for gs://, your network and credentials.") from None
+  if newest is None:
+    raise UserError(f"workdir {workdir} holds no checkpoint yet; train first (nerfpod train ...) or pass the "
+                    f"--workdir of a trained run.")
+  return config
+
+
+def restore(workdir: str) -> Trained:
+  """The workdir's config, newest checkpoint (read-only) and capture transform, on every device of every
+  host. A workdir without config.json or a checkpoint, or an unreachable one, is one sentence."""
+  workdir = str(workdir)
+  config = read_config(workdir)
+  compilation.tune_host(config)
+  logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore
+  comps = components.build(config)
+  cc = config.checkpoint
+  with checkpoints.Checkpoints(workdir, cc.every_steps, cc.max_to_keep, read_only=True) as ckpt:
+    state, _ = ckpt.restore(comps.state_shapes)
+  step = int(jax.device_get(state.step))
+  transform = np.asarray(comps.scene.transform, np.float64)
+  scene_json = epath.Path(workdir) / "scene.json"
+  if scene_json.exists():  # what the run trained with (the loader gives the same from the same data)
+    transform = np.asarray(json.loads(scene_json.read_text())["capture_to_scene"], np.float64)
+  say(f"restored step {step} of {workdir}")
+  return Trained(workdir, config, comps, state.params, step, transform)
+
+
+def say(line: str) -> None:
+  """One console line, from process 0."""
+  if jax.process_index() == 0:
+    print(f"nerfpod: export: {line}", flush=True)
+
+
+class Progress:
+  """'nerfpod: export: WHAT 40/100 UNIT' lines from process 0, at most one every `seconds`, and the last."""
+
+  def __init__(self, what: str, total: int, unit: str, seconds: float = 5.0):
+    self.what, self.total, self.unit, self.seconds = what, int(total), unit, seconds
+    self.started = self.shown = time.monotonic()
+
+  def update(self, done: int, extra: str = "") -> None:
+    now = time.monotonic()
+    if done < self.total and now - self.shown < self.seconds:
+      return
+    self.shown = now
+    say(f"{self.what} {done}/{self.total} {self.unit}{extra} ({now - self.started:.0f} s)")
+
+
+def output_path(out: str | None, default: str, workdir: str, kind: str) -> str:
+  """--out (default: WORKDIR/exports/`default`), checked writable before any work: its folder is made and a
+  probe file written and removed (local paths; gs:// is left to its own errors)."""
+  path = str(out) if out else str(epath.Path(workdir) / "exports" / default)
+  if "://" in path or jax.process_index() != 0:
+    return path
+  target = epath.Path(path)
+  folder = target if kind == "folder" else target.parent
+  if target.exists() and (target.is_dir() != (kind == "folder")):
+    raise UserError(f"--out={path} is an existing {'file' if kind == 'folder' else 'folder'}; pass a "
+                    f"{kind} path.")
+  probe = folder / f".nerfpod-export-probe-{id(path)}"
+  try:
+    folder.mkdir(parents=True, exist_ok=True)
+    probe.write_text("")
+    probe.unlink()
+  except OSError as e:
+    raise UserError(f"--out={path} cannot be written ({e.strerror or e}); pass a path this user may write.") from None
+  return path
+
+
+def box_bound(trained: Trained, bound: float) -> float:
+  """Half the side of the box [-b, b]^3 (the scene's normalised frame) that exports keep: `bound` where > 0,
+  else where the field lives: the hash grid's box, or the unit ball's for a contracted (unbounded) scene,
+  whose field past it is the contracted background."""
+  if bound > 0:
+    return float(bound)
+  if trained.config.render.space == "contract":
+    return 1.0
+  return float(trained.config.model.hashgrid.bound)
+
+
+def hit_points(out: dict, origins_Nx3, directions_Nx3, space: str, min_opacity: float):
+  """(points (N, 3), hit (N,) bool) where the rays of a rendering `out` end: at their expected depth given
+  that they hit something (the composited depth over the opacity, as nerfstudio's expected depth), where the
+  opacity reaches `min_opacity`. In NDC space the renderer's depth is already the world depth along -z."""
+  acc = np.asarray(out["acc"], np.float64)
+  origins, directions = np.asarray(origins_Nx3, np.float64), np.asarray(directions_Nx3, np.float64)
+  if space == "ndc":
+    with np.errstate(divide="ignore", invalid="ignore"):
+      t = (-np.asarray(out["depth"], np.float64) - origins[:, 2]) / directions[:, 2]
+  else:
+    t = np.asarray(out["depth"], np.float64) / np.maximum(acc, 1e-10)
+  points = origins + t[:, None] * directions
+  hit = (acc >= min_opacity) & np.isfinite(points).all(1)
+  return points, hit
+
+
+def render_rays(trained: Trained, origins_Nx3, directions_Nx3, chunk: int) -> dict:
+  """render.render_rays of the run's renderer over every device of every host."""
+  comps = trained.comps
+  return render.render_rays(comps.renderer, trained.params, comps.mesh, np.asarray(origins_Nx3, np.float32),
+                            np.asarray(directions_Nx3, np.float32), chunk)
+
+
+class FieldQuery:
+  """The trained NeRF field at points (in the scene's frame; contracted first in a contracted scene), split
+  over every device of every host in chunks of `chunk` points:
+
+      density(points_Nx3) -> sigma (N,)
+      query(points_Nx3, viewdirs_Nx3=None) -> rgb (N, 3), sigma (N,), normals (N, 3)
+
+  rgb is the colour seen along the view directions (default: looking down -z), normals the outward unit
+  normals (minus the density's gradient, normalised)."""
+
+  def __init__(self, trained: Trained, chunk: int):
+    self.trained, self.mesh = trained, trained.comps.mesh
+    self.chunk = max(self.mesh.size, chunk - chunk % self.mesh.size)
+    model = trained.comps.model
+    field = fields.make_field(trained.config.model, model.dtype, matmul_max_rows=model.grid_matmul_max_rows)
+    name, contracted = trained.field_name(), trained.config.render.space == "contract"
+
+    def apply(params, points, viewdirs):
+      return field.apply({"params": params["params"][name]}, coord.contract(points) if contracted else points,
+                         viewdirs)
+
+    def full(params, points, viewdirs):
+      sigma, pullback = jax.vjp(lambda p: apply(params, p, viewdirs)[1], points)
+      (gradient,) = pullback(jnp.ones_like(sigma))
+      normals = -gradient / jnp.maximum(jnp.linalg.norm(gradient, axis=-1, keepdims=True), 1e-12)
+      return apply(params, points, viewdirs)[0], sigma, normals
+
+    axis = distributed.DATA_AXIS
+    program = lambda fn, outputs: jax.jit(jax.shard_map(fn, mesh=self.mesh, in_specs=(P(), P(axis), P(axis)),
+                                                        out_specs=(P(axis),) * outputs))
+    self._density = program(lambda params, points, viewdirs: (apply(params, points, viewdirs)[1],), 1)
+    self._full = program(full, 3)
+
+  def density(self, points_Nx3) -> np.ndarray:
+    return self._map(self._density, points_Nx3, None)[0]
+
+  def query(self, points_Nx3, viewdirs_Nx3=None):
+    return self._map(self._full, points_Nx3, viewdirs_Nx3)
+
+  def _map(self, program, points_Nx3, viewdirs_Nx3):
+    points = np.asarray(points_Nx3, np.float32).reshape(-1, 3)
+    viewdirs = (np.broadcast_to(np.float32([0.0, 0.0, -1.0]), points.shape) if viewdirs_Nx3 is None
+                else np.asarray(viewdirs_Nx3, np.float32).reshape(-1, 3))
+    n = len(points)
+    if n == 0:
+      return np.zeros((0, 3), np.float32), np.zeros((0,), np.float32), np.zeros((0, 3), np.float32)
+    chunk = min(self.chunk, -(-n // self.mesh.size) * self.mesh.size)
+    padded = -(-n // chunk) * chunk
+    pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - n, axis=0)]) if padded > n else x
+    points, viewdirs = pad(points), pad(viewdirs)
+    rows = distributed.local_slice(chunk, self.mesh)
+    pieces = [program(self.trained.params, *distributed.to_global(
+        self.mesh, (points[s:s + chunk][rows], viewdirs[s:s + chunk][rows]))) for s in range(0, padded, chunk)]
+    pieces = distributed.to_host(pieces)
+    return tuple(np.concatenate([p[i] for p in pieces])[:n] for i in range(len(pieces[0])))

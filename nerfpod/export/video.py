@@ -1,0 +1,56 @@
+"""`nerfpod export video`: the orbit archive to videos and a contact sheet.
+
+--workdir is a training workdir (its renders/orbit.zarr is used) or an archive folder itself
+(`nerfpod-export WORKDIR_OR_ARCHIVE ...`, the earlier spelling, still works). Writes
+PREFIX_{rgb,depth,acc,disparity}.{mp4,gif} and PREFIX_sheet.png, PREFIX being the archive's name without
+.zarr ("orbit"), into --out (default: the folder holding the archive). Depth and disparity are colour-mapped
+(turbo, near warm); acc is grey. An archive that misses frames is refused with the list of them.
+"""
+import argparse
+import os
+
+from nerfpod import archive, video
+from nerfpod.errors import UserError
+
+ABOUT = "the orbit archive (renders/orbit.zarr) to videos and a contact sheet"
+
+
+def find_archive(path: str) -> str:
+  """The archive that `path` names: the folder itself, or a workdir's renders/orbit.zarr."""
+  if archive.is_url(path):  # gs://...: no cheap existence checks; a workdir unless it names a .zarr
+    return path if path.rstrip("/").endswith(".zarr") else archive.join(path, archive.ORBIT)
+  in_workdir = os.path.join(path, archive.ORBIT)
+  if not os.path.exists(os.path.join(path, "zarr.json")) and os.path.isdir(in_workdir):
+    return in_workdir
+  if not os.path.exists(path):
+    raise UserError(f"{path} does not exist; pass a training workdir or an orbit archive (.zarr folder).")
+  return path
+
+
+def write_files(path: str, out_dir: str | None = None, fps: float | None = None,
+                formats=("mp4", "gif", "png")) -> list[str]:
+  """Exports the archive at (or in the workdir) `path` (archive.Archive.export); returns the files' paths."""
+  try:
+    formats = video.check_formats(formats)
+  except ValueError as e:
+    raise UserError(f"{e}.") from e
+  if fps is not None and fps <= 0:
+    raise UserError(f"--fps={fps} must be a positive number of frames per second.")
+  files, _ = archive.Archive.open(find_archive(path)).export(out_dir, fps, formats)
+  return files
+
+
+def add_arguments(parser: argparse.ArgumentParser, positional: bool = False) -> None:
+  help_text = "a training workdir (uses renders/orbit.zarr) or an orbit archive folder"
+  if positional:
+    parser.add_argument("workdir", metavar="WORKDIR_OR_ARCHIVE", help=help_text)
+  else:
+    parser.add_argument("--workdir", required=True, metavar="WORKDIR_OR_ARCHIVE", help=help_text)
+  parser.add_argument("--out", default=None, help="output folder (default: the folder holding the archive)")
+  parser.add_argument("--fps", type=float, default=None,
+                      help="frames per second (default: the archive's, from orbit.fps)")
+  parser.add_argument("--formats", default="mp4,gif,png", help="comma-separated: mp4, gif, png")
+
+
+def export(args) -> list[str]:
+  return write_files(args.workdir, args.out, args.fps, args.formats.split(","))
