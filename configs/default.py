@@ -110,6 +110,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.eval.split = "test"           # held-out split the final metrics are computed on
   c.eval.max_views = 0            # evaluate at most this many views of the split; 0: all
   c.eval.chunk = 4096             # rays rendered per device call, over all devices (bounds memory)
+  c.eval.lpips_net = "alex"       # LPIPS network: 'alex' (the papers'), 'vgg', or 'none'; needs nerfpod[lpips]
 
   c.orbit = ml_collections.ConfigDict()
   c.orbit.render_after_training = True  # render the orbit (archive + videos) when training ends
@@ -124,6 +125,14 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.orbit.focal = 0.0             # focal length, pixels; 0: the eval split's field of view at this width
   c.orbit.chunk = 4096            # rays per device call, over this host's own devices (bounds memory)
   c.orbit.fps = 30.0              # frames per second of the exported videos
+
+  c.monitor = ml_collections.ConfigDict()  # TensorBoard always; Weights & Biases as well (the wandb extra)
+  c.monitor.wandb = ml_collections.ConfigDict()
+  c.monitor.wandb.mode = "disabled"  # 'online', 'offline' (a local run folder for `wandb sync`) or 'disabled'
+  c.monitor.wandb.project = ""    # W&B project; '': $WANDB_PROJECT, else 'nerfpod'
+  c.monitor.wandb.entity = ""     # W&B user or team; '': $WANDB_ENTITY, else your default entity
+  c.monitor.wandb.name = ""       # the run's display name; '': $WANDB_NAME, else the workdir's folder name
+  c.monitor.wandb.tags = ()       # the run's tags, e.g. ("lego", "hashgrid"); (): $WANDB_TAGS
 
   if args["smoke"]:
     shrink_for_smoke(c)

@@ -61,6 +61,9 @@ def main(argv):
     for old in schema.migrate(config):  # a config file of an earlier version
       print(f"nerfpod: note: config field {old} is now {schema.LEGACY_NAMES[old]}", file=sys.stderr)
     schema.validate(config)  # every mistake, before JAX starts: no process waits for a peer in vain
+    missing = schema.package_rules(schema.flatten(config))  # an optional extra the config asks for
+    if missing:
+      raise schema.ConfigError(missing)
     from nerfpod import distributed  # imports jax; no JAX call happens before initialize
     distributed.keep_off_absent_tpu()
     distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,

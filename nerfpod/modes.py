@@ -7,8 +7,13 @@
 Each checks the whole config first (nerfpod.schema; a mistake is a UserError before any work) and builds
 the shared pieces once (nerfpod.components). Calls flow one way: this module calls train, evaluate and
 orbit, which call the components below them, and none of them calls back up here.
+
+What a run shows goes through one monitor.Writer (process 0): TensorBoard, and W&B where
+config.monitor.wandb asks. Evaluation and the orbit write to it themselves; this module adds what they
+return: the metrics of every view (a table) and the orbit's videos.
 """
 import json
+import os
 
 import jax
 
@@ -37,17 +42,43 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
   done (the entry point exits with checkpoint.preempted_exit_code).
   """
   comps = _prepare(config, workdir)
-  watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size)
+  watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size, config)
+  exit_code = 1  # for the W&B run: an exception, unless training stops early (preempted) or ends
   try:
     trained = train.train(comps, workdir, watch)
     if trained is None:
+      exit_code = config.checkpoint.preempted_exit_code
       return None
     state, step = trained
-    result = evaluate.evaluate(comps, state.params, workdir, step, writer=watch.writer)
+    result = _evaluate(comps, state.params, workdir, step, writer=watch.writer)
     if config.orbit.render_after_training:
-      orbit.render_orbit(comps, state.params, workdir, step, writer=watch.writer)
+      _render_orbit(comps, state.params, workdir, step, writer=watch.writer)
+    exit_code = 0
   finally:
-    watch.close()
+    watch.close(exit_code)
+  return result
+
+
+def _evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
+  """evaluate.evaluate, then (process 0) every view's metrics as one table, beside the means it logged."""
+  result = evaluate.evaluate(comps, params, workdir, step, writer=writer)
+  if writer is not None and result["views"]:
+    columns = list(dict.fromkeys(key for view in result["views"] for key in view))
+    writer.add_table(f"eval/{result['split']}/views", columns,
+                     [[view.get(key) for key in columns] for view in result["views"]], step)
+    writer.flush()
+  return result
+
+
+def _render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
+  """orbit.render_orbit, then (process 0) its videos, one per channel (orbit_rgb.mp4 -> orbit/rgb)."""
+  result = orbit.render_orbit(comps, params, workdir, step, writer=writer)
+  if writer is not None:
+    for path in result["files"]:
+      name = os.path.basename(str(path))
+      if name.endswith(".mp4"):
+        writer.add_video(f"orbit/{name.removesuffix('.mp4').removeprefix('orbit_')}", str(path), step)
+    writer.flush()
   return result
 
 
@@ -65,21 +96,25 @@ def restore_trained(config, workdir: str) -> tuple[components.Components, object
 
 
 def _from_newest_checkpoint(config, workdir: str, work):
-  """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint."""
+  """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint; the writer goes on
+  with the run's TensorBoard events and its W&B run."""
   comps, params, step = restore_trained(config, workdir)
-  writer = monitor.summary_writer(workdir)
+  writer = monitor.summary_writer(workdir, config)
+  exit_code = 1
   try:
-    return work(comps, params, workdir, step, writer=writer)
+    result = work(comps, params, workdir, step, writer=writer)
+    exit_code = 0
+    return result
   finally:
     if writer is not None:
-      writer.close()
+      writer.close(exit_code)
 
 
 def evaluate_workdir(config, workdir: str) -> dict:
   """--mode=eval: evaluates workdir's newest checkpoint (no training) and writes eval/metrics.json."""
-  return _from_newest_checkpoint(config, workdir, evaluate.evaluate)
+  return _from_newest_checkpoint(config, workdir, _evaluate)
 
 
 def render_workdir(config, workdir: str) -> dict:
   """--mode=render: the orbit of workdir's newest checkpoint, into the archive and videos."""
-  return _from_newest_checkpoint(config, workdir, orbit.render_orbit)
+  return _from_newest_checkpoint(config, workdir, _render_orbit)

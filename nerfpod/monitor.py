@@ -1,16 +1,257 @@
-"""What a person watches: TensorBoard events and console lines, written by process 0 only."""
+"""What a person watches: TensorBoard events, a Weights & Biases run (optional) and console lines, written by
+process 0 only.
+
+One interface, two sinks: `summary_writer` gives process 0 a `Writer` whose add_scalar / add_image /
+add_table / add_video / flush / close go to TensorBoard and, with config.monitor.wandb.mode 'online' or
+'offline', to W&B as well. Training (Monitor), evaluation and the orbit call only the Writer, so both sinks
+get the same values at the same steps.
+
+W&B (the `wandb` extra): the run's id is kept in workdir/wandb.json, so a resumed run continues the same W&B
+run; the same file records the last step W&B got and the metrics it got at that step, and a resumed run
+(which re-trains the steps after its newest checkpoint) sends W&B nothing below that step nor any metric
+again at it, so W&B's steps never go backwards. Its x-axis is the metric `step`. A W&B failure (no network,
+a bad key, ...) is one warning on stderr, and the run goes on with TensorBoard alone.
+"""
+import json
+import os
+import secrets
+import shutil
+import string
+import sys
+import tempfile
 import time
 
 import jax
 import numpy as np
+from etils import epath
+
+WANDB_RECORD = "wandb.json"  # in the workdir: {"id", "step", "keys"}
+WANDB_STEP = "step"          # the W&B metric every other metric is plotted against
+WANDB_FLUSH_SECONDS = 1.0    # W&B's .wandb file is written this often (its default, 15 s, loses more to a kill)
 
 
-def summary_writer(workdir: str, **kwargs):
-  """A TensorBoard writer of `workdir` on process 0, None on the others: only process 0 writes events."""
+def summary_writer(workdir: str, config=None, **kwargs):
+  """Process 0: a Writer of workdir's TensorBoard events and, where `config` (the run's) asks for it, of its
+  W&B run; None on the other processes: only process 0 writes. kwargs go to tensorboardX.SummaryWriter."""
   if jax.process_index() != 0:
     return None
   import tensorboardX
-  return tensorboardX.SummaryWriter(logdir=workdir, **kwargs)
+  tensorboard = tensorboardX.SummaryWriter(logdir=workdir, **kwargs)
+  wandb_run = None
+  if config is not None and config.monitor.wandb.mode != "disabled":
+    wandb_run = WandbRun.start(workdir, config)
+  return Writer(tensorboard, wandb_run)
+
+
+class Writer:
+  """The one monitor interface: each call goes to TensorBoard and, where there is one, to the W&B run.
+
+  Images are HWC (or CHW, HW: `dataformats`), floats in [0, 1] or uint8. Tables (e.g. metrics per view) are
+  text in TensorBoard and tables in W&B; videos (files) go to W&B only (TensorBoard shows the orbit's contact
+  sheet)."""
+
+  def __init__(self, tensorboard, wandb_run=None):
+    self.tensorboard, self.wandb = tensorboard, wandb_run
+
+  def add_scalar(self, tag: str, value, step: int) -> None:
+    self.tensorboard.add_scalar(tag, value, step)
+    if self.wandb is not None:
+      self.wandb.add(step, tag, float(value))
+
+  def add_image(self, tag: str, image, step: int, dataformats: str = "CHW") -> None:
+    self.tensorboard.add_image(tag, image, step, dataformats=dataformats)
+    if self.wandb is not None:
+      self.wandb.add_media(step, tag, "Image", to_uint8_hwc(image, dataformats))
+
+  def add_table(self, tag: str, columns: list[str], rows: list[list], step: int) -> None:
+    header = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
+    self.tensorboard.add_text(tag, header + "\n".join("| " + " | ".join(map(str, r)) + " |" for r in rows), step)
+    if self.wandb is not None:
+      self.wandb.add_media(step, tag, "Table", columns=list(columns), data=[list(r) for r in rows])
+
+  def add_video(self, tag: str, path: str, step: int) -> None:
+    """A video file (local or gs://) into W&B; TensorBoard shows the orbit's contact sheet instead."""
+    if self.wandb is not None:
+      self.wandb.add_video(step, tag, str(path))
+
+  def flush(self) -> None:
+    self.tensorboard.flush()
+    if self.wandb is not None:
+      self.wandb.commit()
+
+  def close(self, exit_code: int = 0) -> None:
+    """Closes both sinks; `exit_code` != 0 marks the W&B run as stopped early or failed."""
+    self.tensorboard.close()
+    if self.wandb is not None:
+      self.wandb.finish(exit_code)
+      self.wandb = None
+
+
+def to_uint8_hwc(image, dataformats: str = "HWC") -> np.ndarray:
+  """An image as TensorBoard takes it -> uint8 HxWxC, or HxW for one channel."""
+  array = np.asarray(image)
+  if dataformats == "CHW":
+    array = np.moveaxis(array, 0, -1)
+  elif dataformats == "HW":
+    array = array[..., None]
+  elif dataformats != "HWC":
+    raise ValueError(f"dataformats {dataformats!r}: use 'HWC', 'CHW' or 'HW'")
+  if array.dtype != np.uint8:
+    array = np.round(np.clip(np.nan_to_num(array.astype(np.float32)), 0.0, 1.0) * 255.0).astype(np.uint8)
+  return array[..., 0] if array.shape[-1] == 1 else array
+
+
+def read_wandb_record(workdir: str) -> dict:
+  """workdir/wandb.json: {"id": the W&B run's id, "step": the last step W&B got, "keys": the metrics it got
+  at that step}; {} where there is none (or it cannot be read: a new W&B run then starts)."""
+  path = epath.Path(workdir) / WANDB_RECORD
+  try:
+    record = json.loads(path.read_text())
+  except (OSError, ValueError):
+    return {}
+  return record if isinstance(record, dict) and isinstance(record.get("id"), str) else {}
+
+
+def new_run_id() -> str:
+  """A new W&B run id: 8 random lowercase letters and digits, as W&B's own."""
+  return "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(8))
+
+
+def _write_json(path: epath.Path, value: dict) -> None:
+  """Whole or not at all (PATH.tmp, then renamed)."""
+  tmp = path.parent / f"{path.name}.tmp"
+  tmp.write_text(json.dumps(value, indent=2))
+  tmp.replace(path)
+
+
+def _warn(message: str) -> None:
+  print(f"nerfpod: warning: {message}", file=sys.stderr, flush=True)
+
+
+class WandbRun:
+  """The W&B side of a Writer: one row of metrics per step, sent when the step changes or on flush, with
+  nothing below the last step W&B got (workdir/wandb.json) nor a metric it already has at that step."""
+
+  def __init__(self, run, workdir: str, record: dict):
+    self.run, self.path = run, epath.Path(workdir) / WANDB_RECORD
+    self.record = {"id": record["id"], "step": record.get("step"), "keys": list(record.get("keys", []))}
+    self.pending_step, self.pending = None, {}
+    self.copies = []  # local copies of gs:// videos, removed at the end
+
+  @classmethod
+  def start(cls, workdir: str, config) -> "WandbRun | None":
+    """Starts (or resumes: the id in workdir/wandb.json) the W&B run of config.monitor.wandb, with the whole
+    config; None, after one warning, where W&B fails."""
+    wc = config.monitor.wandb
+    try:
+      import wandb
+      record = read_wandb_record(workdir)
+      if not record:  # the id first: a run killed during wandb.init still resumes the same W&B run
+        record = {"id": new_run_id(), "step": None, "keys": []}
+        epath.Path(workdir).mkdir(parents=True, exist_ok=True)
+        _write_json(epath.Path(workdir) / WANDB_RECORD, record)
+      local = "://" not in str(workdir)
+      try:  # a private setting of W&B's: where a version no longer has it, W&B's own default
+        settings = wandb.Settings(x_transaction_log_flush_interval=WANDB_FLUSH_SECONDS)
+      except Exception:  # noqa: BLE001
+        settings = None
+      run = wandb.init(
+          id=record["id"], resume="allow", mode=wc.mode, allow_val_change=True,
+          project=wc.project or os.environ.get("WANDB_PROJECT") or "nerfpod", entity=wc.entity or None,
+          name=wc.name or os.environ.get("WANDB_NAME") or (os.path.basename(os.path.normpath(workdir))
+                                                          if local else None),
+          tags=list(wc.tags) or None, config=json.loads(config.to_json_best_effort()),
+          dir=workdir if local and not os.environ.get("WANDB_DIR") else None, settings=settings)
+      run.define_metric(WANDB_STEP)
+      run.define_metric("*", step_metric=WANDB_STEP)
+    except Exception as e:  # noqa: BLE001 (no network, a bad key, a broken install: W&B's own errors vary)
+      _warn(f"Weights & Biases could not start ({_reason(e)}); the run goes on with TensorBoard only.")
+      return None
+    return cls(run, workdir, record)
+
+  def add(self, step: int, key: str, value) -> None:
+    if self.run is None:
+      return
+    step = int(step)
+    if self.pending_step is not None and step != self.pending_step:
+      self.commit()
+    self.pending_step = step
+    self.pending[key] = value
+
+  def add_media(self, step: int, key: str, kind: str, *args, **kwargs) -> None:
+    """A wandb.Image, wandb.Table, ... (by name: wandb is imported only where a run exists)."""
+    if self.run is not None:
+      self._safely(lambda: self.add(step, key, getattr(sys.modules["wandb"], kind)(*args, **kwargs)))
+
+  def add_video(self, step: int, key: str, path: str) -> None:
+    if self.run is None:
+      return
+
+    def add():
+      import wandb
+      local = path
+      if "://" in path:  # W&B reads local files: a local copy of a gs:// video first
+        self.copies.append(tempfile.mkdtemp(prefix="nerfpod-wandb-"))
+        local = os.path.join(self.copies[-1], os.path.basename(path))
+        epath.Path(path).copy(epath.Path(local), overwrite=True)
+      self.add(step, key, wandb.Video(local, format=os.path.splitext(local)[1].lstrip(".") or None))
+    self._safely(add)
+
+  def admitted(self, step: int, row: dict) -> dict:
+    """What of `row` W&B may still get at `step`: nothing below its last step, no metric twice at it."""
+    last = self.record["step"]
+    if last is None or step > last:
+      return row
+    if step < last:
+      return {}
+    return {k: v for k, v in row.items() if k not in self.record["keys"]}
+
+  def commit(self) -> None:
+    """Sends the pending row (if W&B may have it) and records what W&B got in workdir/wandb.json."""
+    if self.run is None or self.pending_step is None:
+      return
+    step, row = self.pending_step, self.admitted(self.pending_step, self.pending)
+    self.pending_step, self.pending = None, {}
+    if not row:
+      return
+
+    def send():
+      self.run.log({**row, WANDB_STEP: step})
+      if self.record["step"] == step:
+        self.record["keys"] = sorted(set(self.record["keys"]) | set(row))
+      else:
+        self.record["step"], self.record["keys"] = step, sorted(row)
+      _write_json(self.path, self.record)
+    self._safely(send)
+
+  def finish(self, exit_code: int = 0) -> None:
+    self.commit()
+    if self.run is not None:
+      run, self.run = self.run, None
+      try:
+        run.finish(exit_code=exit_code or None)
+      except Exception as e:  # noqa: BLE001
+        _warn(f"Weights & Biases could not finish its run ({_reason(e)}); TensorBoard has everything.")
+    for folder in self.copies:
+      shutil.rmtree(folder, ignore_errors=True)
+
+  def _safely(self, work) -> None:
+    """Runs `work`; on a W&B failure, one warning and W&B is left alone for the rest of the run."""
+    try:
+      work()
+    except Exception as e:  # noqa: BLE001
+      run, self.run = self.run, None
+      if run is None:  # it failed before, and said so
+        return
+      _warn(f"Weights & Biases failed ({_reason(e)}); the run goes on with TensorBoard only.")
+      try:
+        run.finish(exit_code=1)
+      except Exception:  # noqa: BLE001 (already warned once)
+        pass
+
+
+def _reason(error: Exception) -> str:
+  return " ".join(str(error).split())[:300] or type(error).__name__
 
 
 def duration(seconds: float) -> str:
@@ -22,16 +263,18 @@ def duration(seconds: float) -> str:
 
 
 class Monitor:
-  """Training's TensorBoard scalars and images and its console lines (step, loss, PSNR, lr, rays/s, ETA).
+  """Training's scalars and images (TensorBoard, and W&B where config.monitor.wandb asks) and its console
+  lines (step, loss, PSNR, lr, rays/s, ETA).
 
-  Every process makes one and calls it alike; only process 0's writes anything. `writer` (None elsewhere)
-  is shared with evaluation and the orbit, so that all of a run's events go to one file.
+  Every process makes one and calls it alike; only process 0's writes anything. `writer` (a Writer; None
+  elsewhere) is shared with evaluation and the orbit, so that all of a run's events go to one file and one
+  W&B run. `config`: the run's (None: TensorBoard only).
   """
 
-  def __init__(self, workdir: str, num_steps: int, batch_size: int):
+  def __init__(self, workdir: str, num_steps: int, batch_size: int, config=None):
     self.enabled = jax.process_index() == 0
     self.num_steps, self.batch_size = num_steps, batch_size
-    self.writer = summary_writer(workdir, flush_secs=10)
+    self.writer = summary_writer(workdir, config, flush_secs=10)
     self._last = None  # (step, time) of the last console line
 
   def scalars(self, step: int, metrics: dict, lr: float) -> None:
@@ -61,7 +304,7 @@ class Monitor:
       for name, image in images.items():
         self.writer.add_image(name, np.clip(image, 0.0, 1.0), step, dataformats="HWC")
 
-  def close(self) -> None:
+  def close(self, exit_code: int = 0) -> None:
     if self.writer is not None:
-      self.writer.close()
+      self.writer.close(exit_code)
       self.writer = None

@@ -33,6 +33,9 @@ ADDED_FIELDS = {
     "data.llffhold": 8, "data.orient": "auto", "data.center": "auto",      # captures only: earlier versions
     "data.scale": 0.0, "data.space": "auto",                               # loaded none
     "compile.cpu_reuse_host_memory": False,                                # glibc's defaults
+    "monitor.wandb.mode": "disabled", "monitor.wandb.project": "",         # TensorBoard only
+    "monitor.wandb.entity": "", "monitor.wandb.name": "", "monitor.wandb.tags": [],
+    "eval.lpips_net": "none",                                              # PSNR and SSIM only
 }
 
 
@@ -62,8 +65,9 @@ class Field:
 def _show(value) -> str:
   if isinstance(value, bool):
     return str(value).lower()
-  if isinstance(value, (tuple, list)):
-    return "'(" + ",".join(map(str, value)) + (",)'" if len(value) == 1 else ")'")
+  if isinstance(value, (tuple, list)):  # strings quoted, as the command line's tuples need them: '("a",)'
+    items = [f'"{v}"' if isinstance(v, str) else str(v) for v in value]
+    return "'(" + ",".join(items) + (",)'" if len(value) == 1 else ")'")
   if isinstance(value, str):
     return value if value else "''"
   return str(value)
@@ -121,6 +125,11 @@ def choice(*values: str) -> Field:
 
 def text() -> Field:
   return Field(lambda v: isinstance(v, str), "a string", "")
+
+
+def strings() -> Field:
+  return Field(lambda v: isinstance(v, (tuple, list)) and all(isinstance(i, str) for i in v),
+               "a tuple of strings", ("nerf",), ((1,),))
 
 
 def integers(low: int = 0) -> Field:
@@ -202,6 +211,7 @@ FIELDS: dict[str, Field] = {
     "eval.split": choice("test", "val", "train"),
     "eval.max_views": integer(0),
     "eval.chunk": integer(1, example=4096),
+    "eval.lpips_net": choice("alex", "vgg", "none"),
 
     "orbit.render_after_training": boolean(),
     "orbit.path": choice("orbit", "spiral", "ellipse", "file"),
@@ -214,6 +224,12 @@ FIELDS: dict[str, Field] = {
     "orbit.focal": number(0.0),
     "orbit.chunk": integer(1, example=4096),
     "orbit.fps": number(above=0.0, example=30.0),
+
+    "monitor.wandb.mode": choice("disabled", "online", "offline"),
+    "monitor.wandb.project": text(),
+    "monitor.wandb.entity": text(),
+    "monitor.wandb.name": text(),
+    "monitor.wandb.tags": strings(),
 }
 
 
@@ -282,6 +298,19 @@ def device_rules(c: dict, device_count: int) -> list[str]:
   return []
 
 
+def package_rules(c: dict) -> list[str]:
+  """Optional packages the config asks for that this machine lacks (checked for a run, not for the tools that
+  only read a workdir's config)."""
+  if c["monitor.wandb.mode"] != "disabled":
+    try:
+      import wandb  # noqa: F401 (imported only when asked for)
+    except ImportError as e:
+      return [f"monitor.wandb.mode={c['monitor.wandb.mode']} logs to Weights & Biases, but its package cannot be "
+              f"imported ({e}): install nerfpod's wandb extra (pip install 'nerfpod[wandb]') or leave W&B off "
+              f"(--config.monitor.wandb.mode=disabled)."]
+  return []
+
+
 def flatten(tree, prefix: str = "") -> dict:
   """{"a.b.c": leaf} of a nested dict or ConfigDict."""
   out = {}
@@ -342,7 +371,8 @@ def rewrite_legacy_flags(argv: list[str]) -> list[str]:
 
 
 def problems(config, device_count: int | None = None) -> list[str]:
-  """Every mistake in `config`, one sentence each; empty if it is valid."""
+  """Every mistake in `config`, one sentence each; empty if it is valid. With `device_count` (a run on this
+  machine), also the batch's split over the devices and the optional packages the config asks for."""
   flat = flatten(config)
   out = []
   for name in sorted(set(flat) - set(FIELDS)):
@@ -362,7 +392,7 @@ def problems(config, device_count: int | None = None) -> list[str]:
     return out
   out += _rules(flat)
   if not out and device_count is not None:
-    out += device_rules(flat, device_count)
+    out += device_rules(flat, device_count) + package_rules(flat)
   return out
 
 

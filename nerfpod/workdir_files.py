@@ -19,7 +19,7 @@ from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
-                     "checkpoint.", "eval.", "orbit.", "compile.")
+                     "checkpoint.", "eval.", "orbit.", "compile.", "monitor.")
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
@@ -81,8 +81,8 @@ def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> N
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
                     f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
-                    f"logging cadence, train.max_nonfinite_steps, checkpoint.*, eval.*, orbit.* and compile.* may "
-                    f"change on resuming).")
+                    f"logging cadence, train.max_nonfinite_steps, checkpoint.*, eval.*, orbit.*, compile.* and "
+                    f"monitor.* may change on resuming).")
 
 
 def write_json(path, value, sort_keys: bool = False) -> None:
@@ -121,10 +121,23 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
     raise UserError(f"could not read {path} ({reason}); check the --workdir path and, for gs://, your "
                     f"network and credentials (gcloud auth application-default login).") from None
   try:
-    config = ml_collections.ConfigDict(json.loads(text))
+    tree = json.loads(text)
+    if not isinstance(tree, dict):
+      raise ValueError("not a JSON object")
   except ValueError as e:
     raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
+  config = ml_collections.ConfigDict(tree)
   schema.migrate(config)
+  present = schema.flatten(config)
+  for name, value in schema.ADDED_FIELDS.items():  # a workdir written before these fields: what it did then
+    if name not in present:
+      *sections, leaf = name.split(".")
+      node = config
+      for section in sections:
+        if section not in node:
+          node[section] = ml_collections.ConfigDict()
+        node = node[section]
+      node[leaf] = tuple(value) if isinstance(value, list) else value
   try:
     schema.validate(config)
   except schema.ConfigError as e:  # its fixes name command-line overrides, which these tools do not take

@@ -161,3 +161,16 @@ def test_restoring_a_state_of_another_shape_is_one_sentence_and_keeps_the_checkp
   np.testing.assert_array_equal(state["params"]["w"], np.ones((4, 3)))
   assert checkpoints.state_differences(checkpoints.checkpoint_dir(str(tmp_path)) / "1" / "state",
                                        _abstract(_state(mesh, 0))) == ""
+
+
+def test_a_workdir_written_before_fields_were_added_is_read_as_it_was_trained(tmp_path):
+  """The viewer and the exports read a run's config.json: one written before fields were added (here the
+  monitor section, LPIPS and proposal sampling) reads with what that version did (schema.ADDED_FIELDS)."""
+  from nerfpod import schema
+  config = _config_json()
+  del config["monitor"], config["eval"]["lpips_net"], config["render"]["proposal_samples"]
+  (tmp_path / "config.json").write_text(json.dumps(config))
+  read = workdir_files.read_config(str(tmp_path))
+  assert read.monitor.wandb.mode == "disabled" and read.eval.lpips_net == "none"
+  assert read.render.proposal_samples == () and read.train.seed == config["train"]["seed"]
+  assert set(schema.ADDED_FIELDS) <= set(schema.flatten(read))

@@ -117,7 +117,7 @@ def test_earlier_field_names_still_work_in_overrides_config_files_and_saved_conf
 # Fields whose value in configs/default.py changed after they were added, with the value the default had
 # then: proposal sampling became the default (32 proposal intervals, 16 for the field) once measured.
 CHANGED_DEFAULTS = {"render.proposal_samples": [], "render.num_samples": 48,
-                    "compile.cpu_reuse_host_memory": False}
+                    "compile.cpu_reuse_host_memory": False, "eval.lpips_net": "none"}
 
 
 def _default_json(**values) -> dict:
@@ -172,6 +172,7 @@ def test_an_unknown_config_argument_is_one_sentence(tmp_path):
       "cpu, smoke (e.g. --config=configs/blender.py:scene=lego,smoke)."]
 
 
+@pytest.mark.slow  # a run of the command (no steps, but the evaluation's compiles)
 def test_config_json_of_a_run_holds_exactly_the_schemas_fields(tmp_path):
   result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}",
                           "--config.train.num_steps=0", "--config.model.num_frequencies=0",
