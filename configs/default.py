@@ -123,7 +123,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.orbit.width = 0               # frame width, pixels; 0: the eval split's
   c.orbit.height = 0              # frame height, pixels; 0: from the width with the eval split's aspect
   c.orbit.focal = 0.0             # focal length, pixels; 0: the eval split's field of view at this width
-  c.orbit.chunk = 4096            # rays per device call, over this host's own devices (bounds memory)
+  c.orbit.chunk = 4096            # rays each host feeds per call of the whole-slice renderer (bounds memory)
   c.orbit.fps = 30.0              # frames per second of the exported videos
 
   c.monitor = ml_collections.ConfigDict()  # TensorBoard always; Weights & Biases as well (the wandb extra)

@@ -28,6 +28,36 @@ import sys
 ACCELERATOR_LABELS = {"v4": "tpu-v4-podslice", "v5e": "tpu-v5-lite-podslice", "v5p": "tpu-v5p-slice",
                       "v6e": "tpu-v6e-slice"}
 GRACE_SECONDS = 300  # after SIGTERM: long enough for every host to agree on a step and save it
+REPLICATED_JOB = "workers"  # the JobSet's one replicated job: its pods are NAME-workers-0-<host>-<5 letters>
+MAX_RESTARTS = 2**31 - 1  # failurePolicy.maxRestarts is an int32
+
+
+def pod_name_length(name: str, pod) -> int:
+  """The length of the longest pod name the JobSet controller makes for `pod`'s hosts: the JobSet webhook
+  refuses a JobSet whose `NAME-workers-<job>-<host>` plus a 5-letter suffix exceeds a DNS label (63)."""
+  return len(f"{name}-{REPLICATED_JOB}-0-{pod.num_hosts - 1}-abcde")
+
+
+def check(args, pod) -> str | None:
+  """What Kubernetes would refuse in the manifest (or what cannot be written), in one sentence; else None."""
+  if pod_name_length(args.name, pod) > 63:
+    longest = 63 - pod_name_length("", pod)
+    return (f"--name={args.name} is too long for a JobSet of {pod.num_hosts} host(s): the names of its pods "
+            f"({args.name}-{REPLICATED_JOB}-0-{pod.num_hosts - 1}-xxxxx) must fit in 63 characters; use at most "
+            f"{longest} characters")
+  if not 0 <= args.max_restarts <= MAX_RESTARTS:
+    return f"--max-restarts={args.max_restarts} must be 0 or more (each restart resumes from the newest checkpoint)"
+  if not args.image or any(c.isspace() for c in args.image):
+    return f"--image={args.image!r} must name a container image, e.g. python:3.11-slim"
+  path = args.manifest or f"{args.name}-jobset.yaml"
+  if os.path.isdir(path):
+    return f"--manifest={path} is a folder; name the file to write, e.g. {os.path.join(path, args.name + '-jobset.yaml')}"
+  folder = os.path.dirname(os.path.abspath(path))
+  if not os.path.isdir(folder):
+    return f"--manifest={path}: its folder {folder} does not exist; create it or name another file"
+  if not os.access(folder, os.W_OK) or (os.path.exists(path) and not os.access(path, os.W_OK)):
+    return f"--manifest={path} cannot be written here; name another file"
+  return None
 
 
 def _yaml_scalar(value) -> str:
@@ -95,7 +125,7 @@ def manifest(name: str, pod, image: str, script: str, max_restarts: int) -> dict
           "failurePolicy": {"maxRestarts": max_restarts},
           "network": {"enableDNSHostnames": True},
           "replicatedJobs": [{
-              "name": "workers",
+              "name": REPLICATED_JOB,
               "replicas": 1,
               "template": {"spec": {
                   "parallelism": hosts,
@@ -121,17 +151,20 @@ def manifest(name: str, pod, image: str, script: str, max_restarts: int) -> dict
   }
 
 
-def launch(args, forwarded: list[str], tarball: str, pod, repo: str, device_check: str) -> int:
+def launch(args, forwarded: list[str], pack_step: tuple[str, list[str]], pod, device_check: str) -> int:
   """Packs and uploads the project, writes the manifest and applies it (or, with --dry-run, prints all).
-  `device_check`: the command that fails in one sentence unless a host sees its TPU chips."""
+  `pack_step`: (what, tar command) packing the project's own files (launch/pack.py); `device_check`: the
+  command that fails in one sentence unless a host sees its TPU chips. The arguments were checked
+  (tpu_pod.parse, check above)."""
   path = args.manifest or f"{args.name}-jobset.yaml"
   script = container_script(args.workdir, forwarded, device_check)
   with open(path, "w") as f:
     f.write(to_yaml(manifest(args.name, pod, args.image, script, args.max_restarts)))
+  tarball = pack_step[1][2]
+  project = [f"--project={args.project}"] if args.project else []
   steps = [
-      ("pack the project", ["tar", "-czf", tarball, "--exclude=.git", "--exclude=__pycache__",
-                            "--exclude=.venv", "-C", repo, "."]),
-      ("upload it next to the workdir", ["gcloud", "storage", "cp", tarball, source_url(args.workdir)]),
+      pack_step,
+      ("upload it next to the workdir", ["gcloud", "storage", "cp", tarball, source_url(args.workdir), *project]),
       ("start the JobSet on the cluster", ["kubectl", "apply", "-f", path]),
   ]
   print(f"launch/tpu_pod.py: wrote the JobSet manifest {path}; follow the logs with: "

@@ -1,9 +1,10 @@
 """Preflight: compile the job for the pod it is launched on, here, before any pod is created or used.
 
-Runs `python -m nerfpod.pod.aot` (the pod compile tool, `nerfpod aot`: the real train step, compiled for the
-pod's TPU topology on this machine) with the job's --config and overrides, prints the predicted per-chip
-memory and time, and refuses a job whose step does not fit in a chip's HBM, with the figures and the ways
-to make it fit.
+Runs `python -m nerfpod.pod.aot` (the pod compile tool, `nerfpod aot`: the run's real programs, the train
+step, the evaluation renderer and the orbit renderer, each over the whole pod, compiled for the pod's TPU
+topology on this machine) with the job's --config and overrides, prints the predicted per-chip memory and
+time, and refuses a job with a program the TPU compiler refuses (the tool's one sentence) or one that does
+not fit in a chip's HBM, with the figures and the ways to make it fit.
 Standard library only (the tool runs in its own process, with this interpreter).
 """
 import json
@@ -14,6 +15,9 @@ import sys
 import tempfile
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# Every program a run compiles (train, evaluate, render the orbit): one the pod refuses would stop the run.
+PROGRAMS = ("step", "eval", "orbit")
+_CHUNKS = {"eval": ("the evaluation renderer", "eval.chunk"), "orbit": ("the orbit renderer", "orbit.chunk")}
 
 
 def config_args(forwarded: list[str]) -> list[str]:
@@ -23,7 +27,7 @@ def config_args(forwarded: list[str]) -> list[str]:
 
 def command(forwarded: list[str], accelerator_type: str, json_path: str) -> list[str]:
   return [sys.executable, "-m", "nerfpod.pod.aot", *config_args(forwarded), f"--topology={accelerator_type}",
-          "--what=step", f"--json={json_path}"]
+          f"--what={','.join(PROGRAMS)}", f"--json={json_path}"]
 
 
 def _gib(n: float) -> str:
@@ -53,10 +57,16 @@ def summary(report: dict) -> str:
 
 
 def refusal(report: dict) -> str | None:
-  """One sentence when the step does not fit a chip's HBM, with the figures and the fixes; else None."""
+  """One sentence when a program does not fit a chip's HBM, with the figures and the fixes; else None."""
   step = report["step"]
   memory = step["memory"]
   if step["fits_hbm"]:
+    for name, (what, field) in _CHUNKS.items():
+      program = report.get(name)
+      if program is not None and not program["fits_hbm"]:
+        return (f"{what} needs {_gib(program['memory']['peak_bytes'])} per chip on {report['pod']} for "
+                f"{program['rays']:,} rays a call but a chip has {_gib(report['chip']['hbm_bytes'])} of HBM; "
+                f"use a smaller --config.{field}.")
     return None
   return (f"the train step needs {_gib(memory['peak_bytes'])} per chip on {report['pod']} (temporaries "
           f"{_gib(memory['temp_bytes'])}, arguments {_gib(memory['argument_bytes'])}) but a chip has "

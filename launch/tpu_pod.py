@@ -28,12 +28,14 @@ the TPU quota; standard library only.
 """
 import argparse
 import os
+import re
 import shlex
 import subprocess
 import sys
 import tempfile
 
 import gke
+import pack
 import preflight
 from _cli import split_forwarded  # launch/ is on sys.path: these run as scripts
 
@@ -53,43 +55,140 @@ STATUS = f"~/{REMOTE_DIR}/run.status"
 PREEMPTED_EXIT_CODE = 75
 
 
+class _Parser(argparse.ArgumentParser):
+  """argparse, with a mistake said in one line (no usage block), exit 2."""
+
+  def error(self, message):
+    print(f"launch/tpu_pod.py: error: {message} (--help lists the options)", file=sys.stderr, flush=True)
+    sys.exit(2)
+
+
+# A TPU VM's or JobSet's name: an RFC 1035 label (what Compute Engine and Kubernetes both take).
+NAME = re.compile(r"[a-z]([-a-z0-9]*[a-z0-9])?")
+ZONE = re.compile(r"[a-z]+-[a-z]+[0-9]+-[a-z]")  # e.g. us-central2-b, europe-west4-a
+BUCKET = re.compile(r"[a-z0-9][a-z0-9._-]{1,61}[a-z0-9]")
+PYTHON = re.compile(r"3\.(\d+)(\.\d+)?")
+MIN_PYTHON = (3, 11)  # pyproject.toml's requires-python
+# Options that only one way of launching uses: given to the other, they would be ignored without a word.
+GKE_ONLY = ("manifest", "image", "max_restarts")
+VM_ONLY = ("spot", "version", "skip_setup")
+
+
 def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
+  """(options, nerfpod.main arguments), every value checked: a mistake is refused in one sentence (exit 2)
+  before anything runs, including what Compute Engine or Kubernetes would refuse only later."""
   own, forwarded = split_forwarded(argv)
-  p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                              usage="%(prog)s --name=NAME --zone=ZONE --workdir=gs://... [options] -- "
-                                    "[nerfpod.main flags]")
-  p.add_argument("--name", required=True, help="TPU VM name (created if it does not exist)")
+  p = _Parser(description=__doc__.split("\n\n")[0],
+              usage="%(prog)s --name=NAME --zone=ZONE --workdir=gs://... [options] -- [nerfpod.main flags]")
+  p.add_argument("--name", required=True, help="TPU VM name (created if it does not exist), or the JobSet's "
+                                               "with --gke: lowercase letters, digits and hyphens")
   p.add_argument("--zone", required=True, help="e.g. us-central2-b")
   p.add_argument("--project", default="", help="GCP project; default: gcloud's configured one")
   p.add_argument("--accelerator-type", default="v4-32", help="for a new pod, e.g. v4-32, v5litepod-16")
-  p.add_argument("--version", default="", help="for a new pod: the TPU VM software version (default: the "
-                                             "image Google lists for the generation, e.g. v2-alpha-tpuv5-lite)")
-  p.add_argument("--spot", action="store_true", help="for a new pod: a Spot VM (cheaper, may be preempted)")
+  p.add_argument("--version", default=None, help="for a new pod: the TPU VM software version (default: the "
+                                               "image Google lists for the generation, e.g. v2-alpha-tpuv5-lite)")
+  p.add_argument("--spot", action="store_true", default=None,
+                 help="for a new pod: a Spot VM (cheaper, may be preempted); not with --gke, where the node "
+                      "pool decides")
   p.add_argument("--workdir", required=True, help="gs://bucket/path shared by all workers")
-  p.add_argument("--skip-setup", action="store_true", help="do not copy and install the project again")
-  p.add_argument("--python", default="3.11", help="the Python version set up on every worker (JAX's supported)")
+  p.add_argument("--skip-setup", action="store_true", default=None,
+                 help="do not copy and install the project again")
+  p.add_argument("--python", default="3.11", help="the Python version set up on every worker (3.11 or newer)")
   p.add_argument("--skip-preflight", action="store_true", help="launch without compiling the job here first")
   p.add_argument("--gke", action="store_true", help="run as a JobSet on a GKE TPU slice (kubectl's current "
                                                     "cluster) instead of on TPU VMs")
-  p.add_argument("--manifest", default="", help="--gke: where to write the JobSet manifest (default: "
-                                                "NAME-jobset.yaml here)")
-  p.add_argument("--image", default="python:3.11-slim", help="--gke: the container image (a Python >= 3.11)")
-  p.add_argument("--max-restarts", type=int, default=10, help="--gke: JobSet restarts (each resumes from the "
-                                                                "newest checkpoint) before it is declared failed")
+  p.add_argument("--manifest", default=None, help="--gke: where to write the JobSet manifest (default: "
+                                                  "NAME-jobset.yaml here)")
+  p.add_argument("--image", default=None, help="--gke: the container image (a Python >= 3.11; default "
+                                               "python:3.11-slim)")
+  p.add_argument("--max-restarts", type=int, default=None, help="--gke: JobSet restarts (each resumes from the "
+                                                                "newest checkpoint) before it is declared failed "
+                                                                "(default 10)")
   p.add_argument("--dry-run", action="store_true", help="print every command instead of running it")
   args = p.parse_args(own)
-  if not args.workdir.startswith("gs://") or len(args.workdir) <= len("gs://"):
-    p.error(f"--workdir={args.workdir} must be a gs:// path: every worker writes checkpoints into it")
-  if any(a.startswith(("--workdir", "--coordinator_address", "--num_processes", "--process_id"))
-         for a in forwarded):
-    p.error("pass --workdir to this script, not after `--`; on TPU the processes find each other by themselves")
   pod = chips.lookup(args.accelerator_type)
   if pod is None:
     p.error(f"--accelerator-type={args.accelerator_type} is not a pod this script knows; known: "
             f"{', '.join(chips.known_names())}")
+  if not NAME.fullmatch(args.name) or len(args.name) > 63:
+    p.error(f"--name={args.name!r} must be lowercase letters, digits and hyphens, start with a letter, end with a "
+            f"letter or digit and have at most 63 characters (Compute Engine and Kubernetes take no other)")
+  if not ZONE.fullmatch(args.zone):
+    p.error(f"--zone={args.zone} is not a Google Cloud zone (region-zone, e.g. us-central2-b or europe-west4-a)")
+  bucket = args.workdir[len("gs://"):].split("/")[0] if args.workdir.startswith("gs://") else ""
+  if not bucket:
+    p.error(f"--workdir={args.workdir} must be a gs:// path: every worker writes checkpoints into it")
+  if not BUCKET.fullmatch(bucket) or ".." in bucket:
+    p.error(f"--workdir={args.workdir}: {bucket!r} is not a Cloud Storage bucket name (3-63 lowercase letters, "
+            f"digits, dots, hyphens and underscores, starting and ending with a letter or digit)")
+  version = PYTHON.fullmatch(args.python)
+  if not version or (3, int(version.group(1))) < MIN_PYTHON:
+    p.error(f"--python={args.python}: nerfpod needs Python {'.'.join(map(str, MIN_PYTHON))} or newer (e.g. "
+            f"--python=3.11 or 3.12)")
+  if args.gke:
+    given = [f"--{name.replace('_', '-')}" for name in VM_ONLY if getattr(args, name) is not None]
+    if given:
+      p.error(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for TPU VMs and would be ignored with --gke "
+              f"(a GKE slice's node pool decides Spot and the software; the project is always uploaded); "
+              f"leave {'it' if len(given) == 1 else 'them'} out")
+    args.image = "python:3.11-slim" if args.image is None else args.image
+    args.max_restarts = 10 if args.max_restarts is None else args.max_restarts
+    problem = gke.check(args, pod)
+    if problem:
+      p.error(problem)
+  else:
+    given = [f"--{name.replace('_', '-')}" for name in GKE_ONLY if getattr(args, name) is not None]
+    if given:
+      p.error(f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for --gke and would be ignored on TPU VMs; "
+              f"add --gke or leave {'it' if len(given) == 1 else 'them'} out")
+  args.spot, args.skip_setup = bool(args.spot), bool(args.skip_setup)
   if not args.version:
     args.version = RUNTIME_IMAGES[pod.generation]
+  if any(a.startswith(("--workdir", "--coordinator_address", "--num_processes", "--process_id"))
+         for a in forwarded):
+    p.error("pass --workdir to this script, not after `--`; on TPU the processes find each other by themselves")
+  forwarded, problem = check_config(forwarded)
+  if problem:
+    p.error(problem)
   return args, forwarded
+
+
+def check_config(forwarded: list[str]) -> tuple[list[str], str | None]:
+  """(the nerfpod.main arguments, with an absolute --config inside the project made relative to it, as the
+  workers see it), or a problem: no --config, or a config file the workers would not have."""
+  configs = [i for i, a in enumerate(forwarded) if a.startswith("--config=")]
+  if not configs:
+    return forwarded, ("the workers need at least --config=CONFIG after `--` (e.g. -- "
+                       "--config=configs/blender.py:scene=lego); nothing after `--` names one")
+  index = configs[-1]
+  value = forwarded[index][len("--config="):]
+  path, colon, arg = value.partition(":")
+  full = os.path.normpath(os.path.join(REPO, path))
+  if not os.path.isfile(full):
+    return forwarded, (f"--config={value}: {full} does not exist (a relative path is from the project folder, "
+                       f"{REPO}, where the workers run)")
+  relative = os.path.relpath(full, REPO)
+  if relative.startswith(".."):
+    return forwarded, (f"--config={value} is outside the project ({REPO}); the workers get the project's files "
+                       f"only: move it into configs/")
+  forwarded = list(forwarded)
+  forwarded[index] = f"--config={relative.replace(os.sep, '/')}{colon}{arg}"
+  return forwarded, None
+
+
+def config_file(forwarded: list[str]) -> str:
+  """The run's config file, relative to the project (after check_config)."""
+  value = next(a for a in reversed(forwarded) if a.startswith("--config="))[len("--config="):]
+  return value.partition(":")[0]
+
+
+def pack_step(tarball: str, forwarded: list[str]) -> tuple[str, list[str]]:
+  """The packing step: the project's own files (launch/pack.py) listed next to the tarball, and tar."""
+  files = pack.project_files(REPO, extra=(config_file(forwarded),))
+  list_path = tarball + ".files"
+  pack.write_list(files, list_path)
+  return f"pack the project's {len(files)} files (launch/pack.py; not runs/, data or caches)", \
+      pack.tar_command(REPO, tarball, list_path)
 
 
 def _tpu(args, verb: str, *rest: str) -> list[str]:
@@ -125,8 +224,7 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
   ]
   if not args.skip_setup:
     steps += [
-        ("pack the project", ["tar", "-czf", tarball, "--exclude=.git", "--exclude=__pycache__",
-                              "--exclude=.venv", "-C", REPO, "."], False),
+        (*pack_step(tarball, forwarded), False),
         ("copy it to every worker", _tpu(args, "scp", tarball, f"{args.name}:~/nerfpod-src.tar.gz",
                                          "--worker=all"), False),
         ("unpack it and set up Python " + args.python + " with the pinned versions on every worker",
@@ -172,7 +270,7 @@ def main(argv: list[str]) -> int:
   tarball = os.path.join(tempfile.gettempdir(), "nerfpod-src.tar.gz")
   if args.gke:
     pod = chips.lookup(args.accelerator_type)
-    return gke.launch(args, forwarded, tarball, pod, REPO, device_check(pod, "python"))
+    return gke.launch(args, forwarded, pack_step(tarball, forwarded), pod, device_check(pod, "python"))
   steps = plan(args, forwarded, tarball)
   print(f"launch/tpu_pod.py: follow the log again: "
         f"{shlex.join(_on_workers(args, f'tail -n 50 -F {LOG}', worker='0'))}", flush=True)

@@ -7,13 +7,18 @@ whose cameras, size and frame rate are used as they are.
 
 The archive (nerfpod.archive) is renders/orbit.zarr in the workdir, a local folder or a gs:// URL.
 
-Work split: frame i belongs to process i % P, and each process renders its frames on its own devices only
-(a process-local mesh; a frame's rays are split over those devices in chunks of orbit.chunk rays). Frames
-are independent, so this needs no collective while rendering: hosts never wait for each other between
-frames, nothing is gathered across hosts, and each host writes exactly the chunks it rendered. (Rendering
-every frame with all hosts together, as the evaluator does, would keep them in lockstep and gather every
-pixel on every host, for no gain: a frame is small next to a device's memory.) Two barriers frame the
-render: one after process 0 has created or validated the archive, one before it exports the videos.
+Work split: frame i belongs to process i % P, which alone renders and writes it. The rendering itself is
+one program over every device of every host: the run's renderer (comps.renderer, compiled once on the
+run's mesh), as a pod requires (TPU v5e refuses a program on one host's chips of a slice of 32 or more;
+every compiled program of a run spans the whole slice). In each call every process feeds one chunk of its
+own current frame (orbit.chunk rays, padded as before) onto its own devices (distributed.make_mesh orders
+the mesh host by host), and reads back only the rows its own devices computed: the program has no
+collective, nothing is gathered across hosts, and each device renders exactly the rays, in the very
+blocks, it rendered when each host had a renderer of its own, so the frames are those of a one-host render.
+Hosts take part in every call, so a host with fewer frames left (the last of an uneven split, or after a
+resume) feeds a padding chunk, whose results it drops. Barriers frame the render: after process 0 has
+created or validated the archive, after every process has read which frames are done (the plan of calls is
+computed alike on all of them), and before process 0 exports the videos.
 
 Resuming: a render cut off mid-frame leaves that frame incomplete, and the next render redoes exactly the
 incomplete frames. An archive of another checkpoint step, camera path or model is replaced, not resumed.
@@ -28,12 +33,12 @@ import jax
 import numpy as np
 from absl import logging
 from jax.experimental import multihost_utils
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh
 
 from nerfpod import archive as archives
-from nerfpod import camera_path, distributed, render, video
+from nerfpod import camera_path, distributed, video
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras, paths
+from nerfpod.nerf import cameras, compositing, paths
 
 
 def orbit_poses(num_frames: int, elevation_deg: float, radius: float) -> np.ndarray:
@@ -140,28 +145,69 @@ def open_for_render(path: str, attributes: dict) -> archives.Archive:
   return archives.Archive.open(path)
 
 
-def local_mesh() -> Mesh:
-  """This process's own devices, on the data axis: frames are rendered without other hosts."""
-  return Mesh(np.array(jax.local_devices()), (distributed.DATA_AXIS,))
+def chunk_rays(chunk: int, num_rays: int, mesh: Mesh) -> int:
+  """Rays per call that each process feeds for one frame of `num_rays` rays: `chunk` (orbit.chunk) rounded
+  down to a multiple of this process's devices, and no more than the frame needs, as render.render_rays
+  picks them on one host."""
+  local = _local_device_count(mesh)
+  per_call = max(local, chunk - chunk % local)
+  return min(per_call, -(-num_rays // local) * local)
 
 
-def to_local(params, mesh: Mesh):
-  """Replicated (possibly multi-host) parameters -> replicated over this process's devices only."""
-  def local(x):
-    if isinstance(x, jax.Array) and not x.is_fully_addressable:
-      if not x.is_fully_replicated:
-        raise ValueError("orbit rendering needs replicated parameters")
-      x = x.addressable_data(0)
-    return jax.device_put(x, NamedSharding(mesh, P()))
-  return jax.tree.map(local, params)
+def _local_device_count(mesh: Mesh) -> int:
+  counts = {}
+  for device in mesh.devices.flat:
+    counts[device.process_index] = counts.get(device.process_index, 0) + 1
+  if len(set(counts.values())) != 1:
+    raise UserError(f"the orbit needs the same number of devices on every process; this run has "
+                    f"{sorted(counts.values())}.")
+  return counts[jax.process_index()]
 
 
-def render_frame(renderer, params, mesh: Mesh, c2w_4x4, intr: cameras.Intrinsics, pixel_center: float,
-                 chunk: int) -> dict:
-  """One frame on this process's devices (`mesh`), rgb as uint8."""
-  out = render.render_image(renderer, params, mesh, c2w_4x4, intr, pixel_center, chunk)
-  out["rgb"] = video.to_uint8(out["rgb"])
-  return out
+def _own_rows(array: jax.Array) -> np.ndarray:
+  """This process's rows of an array sharded over the mesh's data axis, in order: what its own devices
+  computed (no transfer from other hosts)."""
+  shards = sorted(array.addressable_shards, key=lambda s: s.index[0].start or 0)
+  return np.concatenate([np.asarray(s.data) for s in shards])
+
+
+class FrameRenderer:
+  """Renders one frame per process per round with the run's renderer over the whole mesh (see the module's
+  docstring). Collective: every process calls render() the same number of times, with or without a frame."""
+
+  def __init__(self, renderer, params, mesh: Mesh, intr: cameras.Intrinsics, pixel_center: float, chunk: int,
+               filler_pose):
+    self.renderer, self.params, self.mesh = renderer, params, mesh
+    self.height, self.width, self.pixel_center = intr.height, intr.width, pixel_center
+    self.num_rays = intr.height * intr.width
+    self.chunk = chunk_rays(chunk, self.num_rays, mesh)
+    self.calls = -(-self.num_rays // self.chunk)
+    # What a process without a frame this round feeds: one real ray (of `filler_pose`) repeated.
+    self.filler = tuple(np.repeat(x.reshape(-1, 3)[:1], self.chunk, axis=0)
+                        for x in cameras.image_rays(filler_pose, intr, pixel_center))
+
+  def render(self, c2w_4x4=None, intr: cameras.Intrinsics | None = None) -> dict | None:
+    """This process's frame (rgb uint8, depth, acc, disparity), or None without one (a padding round)."""
+    if c2w_4x4 is not None:
+      origins, directions = cameras.image_rays(c2w_4x4, intr, self.pixel_center)
+      origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
+      padded = self.calls * self.chunk
+      if padded > self.num_rays:  # the last chunk padded with the frame's last ray, as render_rays pads
+        origins, directions = (np.concatenate([x, np.repeat(x[-1:], padded - self.num_rays, axis=0)])
+                               for x in (origins, directions))
+    pieces = []
+    for call in range(self.calls):
+      rows = (self.filler if c2w_4x4 is None else
+              (origins[call * self.chunk:(call + 1) * self.chunk],
+               directions[call * self.chunk:(call + 1) * self.chunk]))
+      pieces.append(self.renderer(self.params, *distributed.to_global(self.mesh, rows)))
+    if c2w_4x4 is None:
+      jax.block_until_ready(pieces)
+      return None
+    out = {k: np.concatenate([_own_rows(p[k]) for p in pieces])[:self.num_rays] for k in compositing.OUTPUTS}
+    out = {k: v.reshape((self.height, self.width) + v.shape[1:]) for k, v in out.items()}
+    out["rgb"] = video.to_uint8(out["rgb"])
+    return out
 
 
 def archive_attributes(comps, step: int) -> dict:
@@ -201,22 +247,29 @@ def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
           f"step {step}, {len(skipped)} already written, over {count} process(es)", flush=True)
 
   logging.info("orbit: process %d of %d renders frames %s", me, count, todo)
-  if todo:
-    mesh = local_mesh()
-    local_params = to_local(params, mesh)
-    renderer = comps.make_renderer(mesh)
+  # Every process plans the same rounds from the same `written`, read before any process writes a frame.
+  _barrier("nerfpod_orbit_planned")
+  rounds = max(len([i for i in range(p, archive.num_frames, count) if written[i] == archives.NOT_WRITTEN])
+               for p in range(count))
+  if rounds:
+    frames = FrameRenderer(comps.renderer, params, comps.mesh, archive.frame_intrinsics(0),
+                           attributes["pixel_center"], config.orbit.chunk, archive.poses[0])
     start = time.perf_counter()
     # Writing frame i overlaps rendering frame i + 1.
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
       pending = None
-      for index in todo:
-        frame = render_frame(renderer, local_params, mesh, archive.poses[index], archive.frame_intrinsics(index),
-                             attributes["pixel_center"], config.orbit.chunk)
+      for round_ in range(rounds):
+        if round_ >= len(todo):
+          frames.render()  # this process's frames are done: it feeds padding, as the program spans all hosts
+          continue
+        index = todo[round_]
+        frame = frames.render(archive.poses[index], archive.frame_intrinsics(index))
         if pending is not None:
           pending.result()
         pending = pool.submit(archive.write_frame, index, frame, me)
-      pending.result()
-    if me == 0:
+      if pending is not None:
+        pending.result()
+    if me == 0 and todo:
       seconds = time.perf_counter() - start
       print(f"orbit: process 0 rendered {len(todo)} frames in {seconds:.1f} s "
             f"({seconds / len(todo):.2f} s/frame)", flush=True)

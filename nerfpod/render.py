@@ -28,7 +28,7 @@ def render_rays(renderer, params, mesh, origins_Nx3, directions_Nx3, chunk: int,
   """Renders N rays in chunks of `chunk` rays (a multiple of the mesh's device count) sharded over `mesh`.
 
   On a mesh over every host, every process passes the same rays, feeds only its own share of each chunk
-  and gets all results back; on a mesh of this process's own devices, no other host takes part. The last
+  and gets all results back; a process of its own (the viewer) passes the mesh of every device it has. The last
   chunk is padded; a small input is one call of fewer rays, unless `fixed_chunk` (every call then has
   `chunk` rays: one compilation for inputs of any size, as the viewer wants).
 

@@ -32,13 +32,11 @@ import sys
 import threading
 import time
 
-import jax
 import numpy as np
 from absl import logging
-from jax.sharding import Mesh
 
 from nerfpod import camera_path as camera_paths
-from nerfpod import checkpoints, compilation, components, distributed, render, video, workdir_files
+from nerfpod import checkpoints, compilation, components, render, video, workdir_files
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing, keyframes
 
@@ -120,9 +118,12 @@ class Viewer:
                       f"save (every checkpoint.every_steps={self.config.checkpoint.every_steps} steps) or pass "
                       f"the --workdir of a trained run.")
     check_port_free(host, port)
-    mesh = Mesh(np.array(jax.local_devices()), (distributed.DATA_AXIS,))  # this machine's devices only
     compilation.tune_host(self.config)  # process-wide: the viewer is a process of its own
-    self.comps = components.build(self.config, mesh)
+    # The viewer is a process of its own, never one of a pod run's processes (it starts no jax.distributed):
+    # its mesh, every device of this process (distributed.make_mesh), is all the devices its runtime has, so
+    # its renderer is not a program on a subset of anyone's slice.
+    self.comps = components.build(self.config)
+    mesh = self.comps.mesh
     self.step, self.params = step, self._restore(step)
     self.chunk = max(mesh.size, self.config.orbit.chunk - self.config.orbit.chunk % mesh.size)
     self.max_resolution, self.coarse_resolution = int(max_resolution), int(coarse_resolution)

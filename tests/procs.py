@@ -20,9 +20,11 @@ import time
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
-# JAX's persistent compilation cache, shared by the test processes: a process that runs a program another
-# one compiled before skips the compilation (seconds each on a small CPU).
-COMPILATION_CACHE = pathlib.Path(tempfile.gettempdir()) / f"nerfpod-test-jax-cache-{os.getuid()}"
+# JAX's persistent compilation cache, shared by the test processes and the test session itself: a process
+# that runs a program another one (or the session) compiled before skips the compilation (seconds each on a
+# small CPU). conftest.py sets JAX_COMPILATION_CACHE_DIR to a folder of the session; this is the fallback
+# when procs.py runs without it.
+DEFAULT_COMPILATION_CACHE = pathlib.Path(tempfile.gettempdir()) / f"nerfpod-test-jax-cache-{os.getuid()}"
 # Multi-process runs in tests: quick to notice a dead peer, quick to exit.
 FAST_FAILURE_FLAGS = ("--heartbeat_timeout_seconds=30", "--shutdown_timeout_seconds=20",
                       "--initialization_timeout=60")
@@ -37,9 +39,10 @@ def environment(devices_per_process: int, **extra: str) -> dict:
   the path, and none of the multi-process variables of whoever runs the tests."""
   env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(devices_per_process), JAX_PLATFORMS="cpu",
              PYTHONUNBUFFERED="1", PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
-             JAX_COMPILATION_CACHE_DIR=str(COMPILATION_CACHE), JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+             JAX_COMPILATION_CACHE_DIR=os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(DEFAULT_COMPILATION_CACHE),
+             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "XLA_FLAGS",
-               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN"):
+               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES"):
     env.pop(name, None)
   env.update(extra)
   return env
@@ -59,13 +62,14 @@ class Run:
   def __init__(self, workdir, overrides: dict | None = None, num_processes: int = 1,
                devices_per_process: int = 8, extra_flags=(), record_dir=None, log_dir=None,
                config="configs/default.py:smoke", via_launcher: bool = False, launcher_flags=(),
-               stand_in: str | None = None):
+               stand_in: str | None = None, compiles_dir=None):
     """Starts the processes.
 
     via_launcher: through launch/local.py (one child here, the launcher, whose output is process 0's),
     else each process directly (so that a test can signal any one of them). stand_in: the processes are
     stand-ins doing what it says, comma-separated per process: 'exit:N' or 'wait' (until SIGTERM, then
-    exit 0; 'wait:N': exit N); `config`, `overrides` and `workdir` are then only passed on.
+    exit 0; 'wait:N': exit N); `config`, `overrides` and `workdir` are then only passed on. compiles_dir:
+    each process records the devices of every program it compiles there (tests/compiles.py).
     """
     import portpicker
     self.workdir = pathlib.Path(workdir)
@@ -86,6 +90,8 @@ class Run:
       extra["NERFPOD_TEST_RECORD"] = str(record_dir)
     if stand_in is not None:
       extra["NERFPOD_TEST_STAND_IN"] = stand_in
+    if compiles_dir is not None:
+      extra["NERFPOD_TEST_COMPILES"] = str(compiles_dir)
     env = environment(devices_per_process, **extra)
     attempt = len(list(self.log_dir.glob("run*_process_0.log")))
     self.launcher_log_dir = self.log_dir / f"run{attempt}"  # via the launcher: processes 1..'s logs
@@ -214,6 +220,10 @@ if __name__ == "__main__":
   sys.path.insert(0, str(REPO))
   if os.environ.get("NERFPOD_TEST_RECORD"):
     _record_loaded_rays(os.environ["NERFPOD_TEST_RECORD"])
+  if os.environ.get("NERFPOD_TEST_COMPILES"):
+    import compiles
+    index = next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0")
+    compiles.install(os.path.join(os.environ["NERFPOD_TEST_COMPILES"], f"compiles_process_{index}.jsonl"))
   from nerfpod import main
   sys.argv[0] = "nerfpod.main"
   main.run()

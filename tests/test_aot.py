@@ -42,6 +42,71 @@ def test_unknown_topology_is_refused_in_one_sentence_listing_the_known_ones(entr
     assert name in lines[0]
 
 
+def _one_sentence(out: subprocess.CompletedProcess, code: int = 2) -> str:
+  """The tool's one line on stderr (after libtpu's own log lines, if any), no traceback; returns it."""
+  assert out.returncode == code, out.stderr
+  assert "Traceback" not in out.stderr + out.stdout
+  lines = [l for l in out.stderr.strip().splitlines() if not l.startswith(("I1", "I0", "W1", "W0"))]
+  assert len(lines) == 1 and lines[0].startswith("nerfpod aot: error: "), out.stderr
+  return lines[0]
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--topology="], "--topology is empty; name the pod to compile for, e.g. --topology=v5e-64 (known pods: v4-8"),
+    (["--topology=,"], "--topology is empty"),
+    (["--config=configs/nope.py", "--topology=v5e-8"], "the --config file configs/nope.py does not exist"),
+    (["--topology=v5e-8", "--config.train.nope=3"], "bad --config file or override"),
+    (["--topology=v5e-8", "--config.train.num_steps=many"], "flag --config.train.num_steps=many: invalid literal"),
+    (["--config=configs/default.py:nosuch", "--topology=v5e-8"], "unknown config argument 'nosuch'"),
+    (["--topology=v5e-8", "--bogus"], "Unknown command line flag 'bogus'"),
+    (["--topology=v5e-8", "extra"], "unexpected arguments: extra"),
+    (["--topology=v5e-8", "--what="], "--what=: choose one or more of step, eval, orbit"),
+    (["--topology=v5e-8", "--what=step,train"], "--what=step,train: choose one or more of step, eval, orbit"),
+    (["--topology=v5e-8", "--json=/nonexistent/r.json"], "--json=/nonexistent/r.json: its folder /nonexistent "
+                                                         "does not exist"),
+    (["--topology=v5e-8", "--json=tests"], "--json=tests is a folder; name a file"),
+    (["--config=configs/default.py:smoke"], "flag --topology=None: Flag --topology must have a value"),
+], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_bad_arguments_are_one_sentence_and_exit_2(args, message):
+  if not any(a.startswith("--config=") for a in args) and "--config=configs/default.py:smoke" not in args:
+    args = ["--config=configs/default.py:smoke", *args]
+  line = _one_sentence(_aot(*args, timeout=120))
+  assert message in line, line
+
+
+def test_a_compiler_refusal_is_one_sentence_naming_the_program_the_pod_and_xlas_reason_exit_1():
+  """As the TPU compiler refused the orbit's per-host program on v5e pods (tests/test_pod_sweep.py has the
+  real refusal): here a stand-in compile_pod raises XLA's error through the tool's own handling."""
+  script = (
+      "import sys, jax\n"
+      "from nerfpod.pod import aot, chips\n"
+      "def refuse(config, pod, what):\n"
+      "  def compile_fn():\n"
+      "    raise jax.errors.JaxRuntimeError('INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count\\n"
+      "   == target.Topology()->LogicalDeviceCount() should include all slice devices\\nmore detail')\n"
+      "  return {'orbit': aot._compile('orbit', compile_fn, pod, 4, 1024)}\n"
+      "aot.compile_pod = refuse\n"
+      "aot.run(['nerfpod aot'] + sys.argv[1:])\n")
+  out = _aot("--config=configs/default.py:smoke", "--topology=v5e-64", "--what=orbit", entry=["-c", script])
+  line = _one_sentence(out, code=1)
+  assert line == ("nerfpod aot: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 hosts): "
+                  "INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count")
+  crash = script.replace("raise jax.errors.JaxRuntimeError(", "raise IndexError(")
+  line = _one_sentence(_aot("--config=configs/default.py:smoke", "--topology=v5e-64", entry=["-c", crash]), code=1)
+  assert line.startswith("nerfpod aot: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 "
+                         "hosts): IndexError: INTERNAL: RET_CHECK")
+
+
+@pytest.mark.slow
+@needs_libtpu
+def test_json_to_stdout_is_the_report_alone_and_the_tables_go_to_stderr():
+  out = _aot("--config=configs/default.py:smoke", "--topology=v4-8", "--what=eval", "--json=-", timeout=300)
+  assert out.returncode == 0, out.stderr
+  report = json.loads(out.stdout)
+  assert report["pod"] == "v4-8" and set(report) >= {"eval"} and "step" not in report
+  assert "v4-8 (v4:2x2x1, 4 chips of TPU v4 on 1 hosts)" in out.stderr and "Traceback" not in out.stderr
+
+
 def test_a_batch_that_does_not_split_over_the_pod_is_refused():
   out = _aot("--config=configs/default.py:smoke", "--config.train.batch_size=100", "--topology=v5e-64")
   assert out.returncode == 2
@@ -62,8 +127,9 @@ def test_smoke_step_and_renderers_compile_for_a_multi_host_pod(tmp_path):
     program = report[name]
     assert program["fits_hbm"] and 0 < program["memory"]["peak_bytes"] <= 32 * 2**30
     assert program["seconds"] > 0 and program["rays_per_s"] > 0
-    assert program["rays_per_s_per_chip"] == pytest.approx(
-        program["rays_per_s"] / (report["chips"] if name != "orbit" else report["chips"] // report["hosts"]))
+    # Every program spans every chip of the pod (the orbit too: each host's orbit.chunk rays in one call).
+    assert program["rays_per_s_per_chip"] == pytest.approx(program["rays_per_s"] / report["chips"])
+  assert report["orbit"]["rays"] == 1024 * report["hosts"]
   step = report["step"]
   # A data-parallel step's only cross-chip traffic: one all-reduce of the gradients and a few scalars.
   assert [c["op"] for c in step["collectives"]] == ["all-reduce"]
@@ -82,12 +148,12 @@ def test_smoke_step_and_renderers_compile_for_a_multi_host_pod(tmp_path):
 def test_the_launchers_preflight_refuses_a_job_too_large_for_the_chips_with_the_figures(tmp_path):
   from test_launch import _tpu_pod
   result, calls = _tpu_pod(tmp_path, "--dry-run", "--name=p", "--zone=us-central2-b",
-                           "--accelerator-type=v5litepod-16", "--workdir=gs://b/x", "--",
+                           "--accelerator-type=v5litepod-16", "--workdir=gs://bkt/x", "--",
                            "--config=configs/default.py:smoke", "--config.train.batch_size=16777216")
   assert result.returncode == 2, result.stdout + result.stderr
   assert calls == []  # refused before any pod is created or used
   assert "-m nerfpod.pod.aot --config=configs/default.py:smoke --config.train.batch_size=16777216 " \
-         "--topology=v5litepod-16 --what=step" in result.stdout
+         "--topology=v5litepod-16 --what=step,eval,orbit" in result.stdout
   assert "preflight: v5litepod-16 (16 chips, 4 hosts): per chip" in result.stdout
   error = result.stderr.strip().splitlines()[-1]
   assert "the train step needs" in error and "of HBM" in error

@@ -1,5 +1,6 @@
 """launch/: the local N-process launcher (with stand-in processes, no JAX) and the TPU pod script."""
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -108,14 +109,15 @@ def test_tpu_pod_dry_run_prints_every_command_and_runs_none(tmp_path):
       ["gcloud", "storage", "buckets", "create", "gs://my-bucket"],
       ["gcloud", "compute", "tpus", "tpu-vm", "describe"],
       ["gcloud", "compute", "tpus", "tpu-vm", "create"],
-      ["tar", "-czf", str(tmp_path / "nerfpod-src.tar.gz"), "--exclude=.git", "--exclude=__pycache__"],
+      ["tar", "-czf", str(tmp_path / "nerfpod-src.tar.gz"), "-C", str(REPO)],
       ["gcloud", "compute", "tpus", "tpu-vm", "scp"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
       ["gcloud", "compute", "tpus", "tpu-vm", "ssh"],
   ]
-  bucket_create, _, pod_create, _, scp, install, check, start, follow = commands[1:]
+  bucket_create, _, pod_create, pack, scp, install, check, start, follow = commands[1:]
+  assert pack[5:] == ["--null", f"--files-from={tmp_path / 'nerfpod-src.tar.gz.files'}"]
   assert "--location=us-central2" in bucket_create
   assert pod_create[5] == "nerf-pod" and "--accelerator-type=v4-32" in pod_create
   assert "--zone=us-central2-b" in pod_create and "--project=my-proj" in pod_create
@@ -151,7 +153,14 @@ def test_tpu_pod_reuses_an_existing_pod_and_creates_a_missing_bucket(tmp_path):
   assert verbs == ["storage buckets describe gs://my-bucket", "storage buckets create gs://my-bucket",
                    "compute tpus tpu-vm describe", "compute tpus tpu-vm scp", "compute tpus tpu-vm ssh",
                    "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh", "compute tpus tpu-vm ssh"]
-  assert (tmp_path / "nerfpod-src.tar.gz").stat().st_size > 0  # the project, packed for the workers
+  # The project's own files, packed for the workers: what installing and running nerfpod needs there.
+  import tarfile
+  with tarfile.open(tmp_path / "nerfpod-src.tar.gz") as tar:
+    names = set(tar.getnames())
+  assert {"pyproject.toml", "constraints.txt", "README.md", "nerfpod/main.py", "nerfpod/pod/chips.py",
+          "configs/default.py", "launch/check_devices.py"} <= names
+  assert not {n for n in names if n.startswith(("tests/", "docs/", "runs/", "build/", ".git"))
+              or "__pycache__" in n or n.endswith(".pyc")}, names
 
 
 def test_tpu_pod_passes_a_preempted_runs_status_75_on_with_how_to_resume(tmp_path):
@@ -163,14 +172,73 @@ def test_tpu_pod_passes_a_preempted_runs_status_75_on_with_how_to_resume(tmp_pat
   assert result.returncode == 1 and "failed (stream worker 0's log" in result.stderr
 
 
+RUN = ("--", "--config=configs/default.py")
+
+
 @pytest.mark.parametrize("bad,message", [
-    (("--workdir=/tmp/local",), "must be a gs:// path"),
-    (("--workdir=gs://b/x", "--", "--workdir=gs://b/y"), "pass --workdir to this script"),
-    (("--workdir=gs://b/x", "--accelerator-type=v9-8"), "--accelerator-type=v9-8 is not a pod this script knows"),
-])
-def test_tpu_pod_refuses_what_cannot_work_on_a_pod(tmp_path, bad, message):
+    (("--workdir=/tmp/local", *RUN), "must be a gs:// path"),
+    (("--workdir=gs://bkt/x", "--", "--config=configs/default.py", "--workdir=gs://bkt/y"),
+     "pass --workdir to this script"),
+    (("--workdir=gs://bkt/x", "--accelerator-type=v9-8", *RUN), "--accelerator-type=v9-8 is not a pod this script knows"),
+    (("--workdir=gs://bkt/x", "--name=Bad_Name", *RUN), "--name='Bad_Name' must be lowercase letters, digits and hyphens"),
+    (("--workdir=gs://bkt/x", "--name=Bad Name!", *RUN), "--name='Bad Name!' must be lowercase letters"),
+    (("--workdir=gs://bkt/x", "--gke", "--name=Bad_Name", *RUN), "--name='Bad_Name' must be lowercase letters"),
+    (("--workdir=gs://bkt/x", f"--name={'n' * 64}", *RUN), "at most 63 characters"),
+    (("--workdir=gs://bkt/x", "--gke", "--accelerator-type=v5litepod-256", f"--name={'n' * 45}", *RUN),
+     f"--name={'n' * 45} is too long for a JobSet of 64 host(s): the names of its pods"),
+    (("--workdir=gs://bkt/x", "--zone=mars-1", *RUN), "--zone=mars-1 is not a Google Cloud zone"),
+    (("--workdir=gs://My_Bucket/x", *RUN), "'My_Bucket' is not a Cloud Storage bucket name"),
+    (("--workdir=gs://bkt/x", "--python=2.7", *RUN), "--python=2.7: nerfpod needs Python 3.11 or newer"),
+    (("--workdir=gs://bkt/x", "--python=3.10", *RUN), "--python=3.10: nerfpod needs Python 3.11 or newer"),
+    (("--workdir=gs://bkt/x", "--gke", "--max-restarts=-1", *RUN), "--max-restarts=-1 must be 0 or more"),
+    (("--workdir=gs://bkt/x", "--max-restarts=3", *RUN), "--max-restarts is for --gke and would be ignored on TPU VMs"),
+    (("--workdir=gs://bkt/x", "--image=python:3.12", *RUN), "--image is for --gke"),
+    (("--workdir=gs://bkt/x", "--gke", "--spot", *RUN), "--spot is for TPU VMs and would be ignored with --gke"),
+    (("--workdir=gs://bkt/x", "--gke", "--skip-setup", "--version=x", *RUN),
+     "--version, --skip-setup are for TPU VMs and would be ignored with --gke"),
+    (("--workdir=gs://bkt/x", "--gke", "--manifest=no/such/folder/job.yaml", *RUN),
+     "--manifest=no/such/folder/job.yaml: its folder"),
+    (("--workdir=gs://bkt/x", "--gke", "--manifest=.", *RUN), "--manifest=. is a folder; name the file to write"),
+    (("--workdir=gs://bkt/x", "--skip-preflight", "--"), "the workers need at least --config=CONFIG after `--`"),
+    (("--workdir=gs://bkt/x", "--skip-preflight"), "the workers need at least --config=CONFIG after `--`"),
+    (("--workdir=gs://bkt/x", "--", "--config=configs/nope.py:smoke"), "configs/nope.py does not exist"),
+    (("--workdir=gs://bkt/x", "--", "--config=/etc/hostname"), "--config=/etc/hostname is outside the project"),
+], ids=lambda v: " ".join(v)[:60] if isinstance(v, tuple) else None)
+def test_tpu_pod_refuses_what_cannot_work_on_a_pod_in_one_sentence_before_anything_runs(tmp_path, bad, message):
   result, calls = _tpu_pod(tmp_path, "--name=p", "--zone=us-central2-b", "--dry-run", *bad)
-  assert result.returncode == 2 and message in result.stderr and calls == []
+  assert result.returncode == 2, result.stdout + result.stderr
+  lines = result.stderr.strip().splitlines()
+  assert len(lines) == 1 and lines[0].startswith("launch/tpu_pod.py: error: ") and message in lines[0], lines
+  assert calls == [] and result.stdout == ""  # nothing ran, nothing was planned
+  assert not list(tmp_path.glob("*.yaml")) and not list(tmp_path.glob("nerfpod-src*"))
+
+
+def test_the_project_is_packed_without_runs_data_or_caches(tmp_path):
+  """launch/pack.py: in a git checkout, what git does not ignore of the project's folders (a new config
+  too); elsewhere, the same folders walked; never a user's runs/, data or a virtual environment."""
+  import subprocess as sp
+  sys.path.insert(0, str(REPO / "launch"))
+  import pack
+  for folder in ("nerfpod/pod", "configs", "launch", "runs/lego/checkpoints", "data", ".venv/lib", "tests",
+                 "nerfpod/__pycache__"):
+    (tmp_path / folder).mkdir(parents=True)
+  for name in ("pyproject.toml", "constraints.txt", "README.md", "nerfpod/__init__.py", "nerfpod/pod/aot.py",
+               "configs/default.py", "launch/check_devices.py", "runs/lego/checkpoints/state", "data/img.png",
+               ".venv/lib/site.py", "tests/test_x.py", "nerfpod/__pycache__/x.pyc", "notes.txt"):
+    (tmp_path / name).write_text("x")
+  wanted = ["README.md", "configs/default.py", "constraints.txt", "launch/check_devices.py", "nerfpod/__init__.py",
+            "nerfpod/pod/aot.py", "pyproject.toml"]
+  assert pack.project_files(str(tmp_path)) == wanted  # not a git checkout: the folders walked
+  git = lambda *a: sp.run(["git", "-C", str(tmp_path), *a], check=True, capture_output=True)
+  git("init", "-q")
+  (tmp_path / ".gitignore").write_text("/runs/\n__pycache__/\n/.venv/\n")
+  git("add", "pyproject.toml", "constraints.txt", "README.md", "nerfpod", "configs", "launch/check_devices.py")
+  (tmp_path / "configs" / "mine.py").write_text("x")  # new, not yet added: goes along
+  (tmp_path / "configs" / "old.py").write_text("x")
+  git("add", "configs/old.py")
+  (tmp_path / "configs" / "old.py").unlink()  # deleted, not yet committed: left out
+  assert pack.project_files(str(tmp_path)) == sorted(wanted + ["configs/mine.py"])
+  assert pack.project_files(str(tmp_path), extra=("notes.txt",)) == sorted(wanted + ["configs/mine.py", "notes.txt"])
 
 
 def test_tpu_pod_on_gke_writes_a_valid_jobset_with_one_process_per_host(tmp_path):
@@ -188,10 +256,18 @@ def test_tpu_pod_on_gke_writes_a_valid_jobset_with_one_process_per_host(tmp_path
   assert calls == []  # a dry run: nothing uploaded or applied
   commands = [shlex.split(line) for line in result.stdout.splitlines()
               if line and not line.startswith(("#", "launch/tpu_pod.py:"))]
+  assert commands[0][:5] == ["tar", "-czf", str(tmp_path / "nerfpod-src.tar.gz"), "-C", str(REPO)]
   assert commands[1][:3] == ["gcloud", "storage", "cp"]
-  assert commands[1][-1] == "gs://my-bucket/runs/lego/_launch/nerfpod-src.tar.gz"
+  assert commands[1][-2:] == ["gs://my-bucket/runs/lego/_launch/nerfpod-src.tar.gz", "--project=my-proj"]
   assert commands[2] == ["kubectl", "apply", "-f", str(manifest_path)]
   job = yaml.safe_load(manifest_path.read_text())
+  # The upstream CRD's own schema, as the API server checks it (tests/data/README.md) ...
+  crd = json.loads((REPO / "tests" / "data" / "jobset_crd_v1alpha2.openapi.json").read_text())
+  jsonschema.Draft4Validator(crd).validate(job)
+  # ... and the names the JobSet webhook derives: its pods' names must be DNS labels of 63 characters at most.
+  for host in range(4):
+    name = f"{job['metadata']['name']}-{job['spec']['replicatedJobs'][0]['name']}-0-{host}-abcde"
+    assert len(name) <= 63 and re.fullmatch(r"[a-z]([-a-z0-9]*[a-z0-9])?", name)
   schema = json.loads((REPO / "tests" / "data" / "jobset_v1alpha2.schema.json").read_text())
   jsonschema.validate(job, schema)
   assert job["metadata"]["annotations"]["alpha.jobset.sigs.k8s.io/exclusive-topology"] == \
@@ -211,7 +287,11 @@ def test_tpu_pod_on_gke_writes_a_valid_jobset_with_one_process_per_host(tmp_path
   assert "python launch/check_devices.py --pod=v5litepod-16 --chips=16 --per-host=4" in script
   assert shlex.split(script[-1]) == ["exec", "python", "-m", "nerfpod.main", "--config=configs/default.py",
                                      "--config.train.num_steps=500", "--workdir=gs://my-bucket/runs/lego"]
-  # A broken manifest fails the same check.
+  # A broken manifest fails the same checks.
+  broken = json.loads(json.dumps(job))
+  broken["spec"]["failurePolicy"]["maxRestarts"] = "ten"
+  with pytest.raises(jsonschema.ValidationError):
+    jsonschema.Draft4Validator(crd).validate(broken)
   del pod["containers"][0]["image"]
   with pytest.raises(jsonschema.ValidationError):
     jsonschema.validate(job, schema)
@@ -251,4 +331,10 @@ def test_preflight_prints_the_figures_and_refuses_only_what_does_not_fit():
   assert preflight.config_args(["--config=c.py", "--config.train.num_steps=5", "--mode=eval"]) == [
       "--config=c.py", "--config.train.num_steps=5"]
   assert preflight.command(["--config=c.py", "--mode=eval"], "v4-32", "r.json")[1:] == [
-      "-m", "nerfpod.pod.aot", "--config=c.py", "--topology=v4-32", "--what=step", "--json=r.json"]
+      "-m", "nerfpod.pod.aot", "--config=c.py", "--topology=v4-32", "--what=step,eval,orbit", "--json=r.json"]
+  # A renderer that does not fit: the chunk is the fix.
+  report["step"].update(fits_hbm=True)
+  report["orbit"] = {"fits_hbm": False, "rays": 65536, "memory": {"peak_bytes": 18 * gib}}
+  assert preflight.refusal(report) == (
+      "the orbit renderer needs 18.00 GiB per chip on v5litepod-16 for 65,536 rays a call but a chip has 16.00 GiB "
+      "of HBM; use a smaller --config.orbit.chunk.")

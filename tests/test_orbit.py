@@ -6,7 +6,7 @@ import pytest
 
 from conftest import smoke_config
 from nerfpod import archive as archives
-from nerfpod import components, orbit, render
+from nerfpod import components, orbit, render, video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
 
@@ -146,3 +146,20 @@ def test_archive_of_another_step_is_replaced_not_resumed(trained, tmp_path):
 def test_a_missing_archive_is_a_user_error(tmp_path):
   with pytest.raises(UserError, match="no orbit archive"):
     archives.Archive.open(str(tmp_path / "nothing.zarr"))
+
+
+def test_a_frame_renders_as_the_chunked_renderer_renders_it_and_a_padding_round_renders_nothing(trained):
+  """orbit.FrameRenderer (one call per chunk over every device, each process feeding its own frame) gives
+  the bits of render.render_image with the same chunk, also where the last chunk is padded."""
+  comps, params = trained
+  intr = cameras.Intrinsics.from_focal(16, 12, 20.0)
+  pose = orbit.orbit_poses(3, -30.0, 4.0)[1]
+  frames = orbit.FrameRenderer(comps.renderer, params, comps.mesh, intr, 0.5, 56, pose)
+  assert (frames.chunk, frames.calls) == (56, 4)  # 192 rays: 3 full chunks of 56 and one padded
+  got = frames.render(pose, intr)
+  want = render.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 56)
+  np.testing.assert_array_equal(got["rgb"], video.to_uint8(want["rgb"]))
+  for name in ("depth", "acc", "disparity"):
+    np.testing.assert_array_equal(got[name], want[name])
+  assert frames.render() is None
+  assert orbit.chunk_rays(4096, 192, comps.mesh) == 192 and orbit.chunk_rays(5, 192, comps.mesh) == 8

@@ -10,15 +10,19 @@ topology's chips, hosts in order), lays the global batch over it as each host fe
 with the batch's sharding: no data is loaded), and compiles the very functions a run compiles, from the one
 builder a run uses (components.build_program): the train step (step.compile_fitted, micro-batches fitted to
 85% of a chip's HBM where train.microbatches=0, as a run on the pod fits them), the evaluation renderer over
-the whole pod (eval.chunk rays) and the orbit renderer over one host's chips (orbit.chunk rays). It reports
+the whole pod (eval.chunk rays) and the orbit renderer, also over the whole pod (orbit.chunk rays from each
+host: every host feeds its own frame's rays, nerfpod.orbit). Every program spans every chip of the pod, as
+every program of a run does (TPU v5e refuses a program on some of a slice's chips). It reports
 per-chip memory against the chip's HBM, FLOPs and bytes per step, the estimated step time (hlo_cost's
 roofline; XLA's own figures beside it where they are sane), rays/s per chip and for the pod, every
 collective in the step with its size, and the estimated time of the config's train.num_steps. Estimates
 from XLA's program and the chips' published peaks, not measurements. A program too large for a chip is a
 report too (fits_hbm false, with XLA's figures), not a crash.
 
-A topology it does not know, or a config whose batch does not split over the pod, is refused in one
-sentence (exit 2).
+Nothing it is given ends in a traceback: a topology it does not know (or none), a config file that does not
+load, a bad override or --json path, a config whose batch does not split over the pod: one sentence, exit 2;
+a program the TPU compiler refuses: one sentence naming the program, the pod and XLA's reason, exit 1.
+With --json=-, stdout holds the JSON report alone (the tables go to stderr).
 """
 import json
 import os
@@ -147,18 +151,45 @@ def _out_of_memory_report(error: Exception, pod: chips.Pod, rays: int, seconds_t
   }
 
 
-def _compile(compile_fn, pod: chips.Pod, num_devices: int, rays: int) -> dict:
+PROGRAMS = {"step": "the train step", "eval": "the evaluation renderer", "orbit": "the orbit renderer"}
+
+
+class CompileError(Exception):
+  """XLA refused to compile one of the programs for the pod (not for want of memory: that is a report)."""
+
+  def __init__(self, program: str, pod: chips.Pod, reason: str):
+    self.program, self.pod, self.reason = program, pod, reason
+    super().__init__(f"{PROGRAMS[program]} does not compile for {pod.name} ({pod.num_chips} chips on "
+                     f"{pod.num_hosts} hosts): {reason}")
+
+
+def _reason(error: Exception) -> str:
+  """XLA's reason in one line: the error's first line that says something, whitespace collapsed (an error
+  other than XLA's runtime error is named by its type)."""
+  import jax
+  lines = [" ".join(line.split()) for line in str(error).splitlines()]
+  text = next((line for line in lines if line), "")
+  if not isinstance(error, jax.errors.JaxRuntimeError):
+    text = f"{type(error).__name__}: {text}" if text else type(error).__name__
+  return text if len(text) <= 400 else text[:397] + "..."
+
+
+def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: int) -> dict:
   """compile_fn() and its report; a program too large for the chip is a report too (fits_hbm false), not a
-  crash."""
+  crash; any other refusal is a CompileError naming the program, the pod and XLA's reason."""
   import jax
   start = time.perf_counter()
   try:
     compiled = compile_fn()
+  except UserError:
+    raise
   except jax.errors.JaxRuntimeError as e:
     report = _out_of_memory_report(e, pod, rays, time.perf_counter() - start)
     if report is None:
-      raise
+      raise CompileError(program, pod, _reason(e)) from None
     return report
+  except Exception as e:  # noqa: BLE001 (lowering or compiling failed in another way: still one sentence)
+    raise CompileError(program, pod, _reason(e)) from None
   return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start)
 
 
@@ -185,7 +216,6 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit")) -> dict:
   """Compiles `config`'s programs for `pod` and reports on them (see the module's docstring)."""
   import jax
   import numpy as np
-  from jax.sharding import Mesh
   from nerfpod import compilation, components, distributed, step
 
   schema.validate(config, pod.num_chips)  # e.g. a batch that does not split over the pod's chips
@@ -218,7 +248,7 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit")) -> dict:
     def compile_step():
       fitted["microbatches"], compiled, _ = step.compile_fitted(program, key, budget, backend="tpu")
       return compiled
-    report["step"] = _compile(compile_step, pod, pod.num_chips, tc.batch_size)
+    report["step"] = _compile("step", compile_step, pod, pod.num_chips, tc.batch_size)
     # Where XLA refused the step as too large: train.microbatches as configured (0: refused while fitting).
     report["microbatches"] = fitted.get("microbatches", tc.microbatches)
     step_report = report["step"]
@@ -229,18 +259,16 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit")) -> dict:
   if "eval" in what:
     chunk = max(pod.num_chips, config.eval.chunk - config.eval.chunk % pod.num_chips)
     rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
-    report["eval"] = _compile(program.make_renderer().lower(params, rays, rays).compile, pod, pod.num_chips,
-                              chunk)
+    report["eval"] = _compile("eval", lambda: program.make_renderer().lower(params, rays, rays).compile(), pod,
+                              pod.num_chips, chunk)
   if "orbit" in what:
-    host_mesh = Mesh(np.array([d for d in mesh.devices.flat if d.process_index == hosts[0]]),
-                     (distributed.DATA_AXIS,))
-    local = host_mesh.size
-    chunk = max(local, config.orbit.chunk - config.orbit.chunk % local)
-    rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(host_mesh))
-    host_params = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype,
-                                                              sharding=distributed.replicated(host_mesh)), params)
-    report["orbit"] = _compile(program.make_renderer(host_mesh).lower(host_params, rays, rays).compile, pod,
-                               local, chunk)
+    # The orbit's call: every host feeds orbit.chunk rays (rounded to its chips) of its own frame, on its
+    # own chips, into the one renderer over the whole pod (nerfpod.orbit).
+    per_host = pod.num_chips // len(hosts)
+    chunk = max(per_host, config.orbit.chunk - config.orbit.chunk % per_host) * len(hosts)
+    orbit_rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
+    report["orbit"] = _compile("orbit", lambda: program.make_renderer().lower(params, orbit_rays, orbit_rays)
+                               .compile(), pod, pod.num_chips, chunk)
   return report
 
 
@@ -304,34 +332,102 @@ def format_report(report: dict) -> str:
   return "\n".join(lines)
 
 
-def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+def _error(message: str, code: int = 2):
+  """Ends the tool with one sentence on stderr (no traceback): exit 2 for bad input, 1 for a refusal."""
+  print(f"nerfpod aot: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
+  sys.exit(code)
+
+
+def _check_json_path(path: str | None) -> None:
+  """--json names a file that can be written once the compiles (minutes) are done: checked first."""
+  if not path or path == "-":
+    return
+  if os.path.isdir(path):
+    raise UserError(f"--json={path} is a folder; name a file, e.g. --json={os.path.join(path, 'report.json')} "
+                    f"(or --json=- for stdout).")
+  folder = os.path.dirname(os.path.abspath(path))
+  if not os.path.isdir(folder):
+    raise UserError(f"--json={path}: its folder {folder} does not exist; create it or name another file.")
+  if not os.access(folder, os.W_OK):
+    raise UserError(f"--json={path}: its folder {folder} is not writable; name another file.")
+
+
+def _load_config():
+  """The --config value (with its overrides): a file that fails to load is one sentence."""
+  path = config_flags.get_config_filename(flags.FLAGS["config"]).split(":")[0]
+  if not os.path.isfile(path):
+    raise UserError(f"the --config file {path} does not exist (a relative path is from the current folder, "
+                    f"{os.getcwd()}).")
   try:
     config = _CONFIG.value
-    config.keys()
-    schema.migrate(config)
-    schema.validate(config)
+    config.keys()  # the value is a lazy proxy until first touched
+  except UserError:
+    raise
+  except (OSError, AttributeError, KeyError, TypeError, ValueError, SyntaxError, ImportError) as e:
+    raise UserError(f"could not load the --config file {path} ({' '.join(str(e).split())[:300]}).") from None
+  for old in schema.migrate(config):
+    print(f"nerfpod aot: note: config field {old} is now {schema.LEGACY_NAMES[old]}", file=sys.stderr)
+  schema.validate(config)
+  return config
+
+
+def main(argv):
+  if len(argv) > 1:
+    _error(f"unexpected arguments: {' '.join(argv[1:])} (flags take the form --name=value; `nerfpod aot "
+           f"--help` lists them).")
+  to_json = _JSON.value == "-"
+  tables = sys.stderr if to_json else sys.stdout  # --json=-: stdout is the JSON report alone
+  try:
+    if not [name for name in (_TOPOLOGY.value or "").split(",") if name.strip()]:
+      raise UserError(f"--topology is empty; name the pod to compile for, e.g. --topology=v5e-64 (known pods: "
+                      f"{', '.join(chips.known_names())}).")
     chosen = resolve_pods(_TOPOLOGY.value)
-    unknown = set(_WHAT.value) - {"step", "eval", "orbit"}
-    if unknown:
-      raise UserError(f"--what={','.join(_WHAT.value)}: choose among step, eval, orbit.")
+    what = [w.strip() for w in _WHAT.value if w.strip()]
+    if not what or set(what) - set(PROGRAMS):
+      raise UserError(f"--what={','.join(_WHAT.value)}: choose one or more of step, eval, orbit.")
+    _check_json_path(_JSON.value)
+    config = _load_config()
     reports = []
     for pod in chosen:
-      report = compile_pod(config, pod, tuple(_WHAT.value))
-      print(format_report(report), flush=True)
+      report = compile_pod(config, pod, tuple(what))
+      print(format_report(report), file=tables, flush=True)
       reports.append(report)
-  except UserError as e:
-    for message in getattr(e, "messages", None) or [str(e)]:
-      print(f"nerfpod aot: error: {message}", file=sys.stderr, flush=True)
-    sys.exit(2)
-  if _JSON.value:
     text = json.dumps(reports if len(reports) > 1 else reports[0], indent=2)
-    if _JSON.value == "-":
-      print(text)
-    else:
-      with open(_JSON.value, "w") as f:
-        f.write(text)
+    if to_json:
+      print(text, flush=True)
+    elif _JSON.value:
+      try:
+        with open(_JSON.value, "w") as f:
+          f.write(text + "\n")
+      except OSError as e:
+        raise UserError(f"could not write --json={_JSON.value} ({e.strerror or e}).") from None
+  except UserError as e:
+    for message in (getattr(e, "messages", None) or [str(e)])[:-1]:
+      print(f"nerfpod aot: error: {' '.join(message.split())}", file=sys.stderr, flush=True)
+    _error((getattr(e, "messages", None) or [str(e)])[-1])
+  except CompileError as e:
+    _error(str(e), code=1)
+  except KeyboardInterrupt:
+    _error("interrupted.", code=130)
+  except Exception as e:  # noqa: BLE001 (a tool's user gets one sentence, never a traceback)
+    _error(f"compiling failed unexpectedly: {_reason(e)}", code=1)
+
+
+def _parse_flags(argv):
+  """absl's parsing, with any mistake (a missing or unknown flag, a bad --config override) in one sentence,
+  exit 2. Overrides that use an earlier name of a field (schema.LEGACY_NAMES) are renamed first."""
+  argv = schema.rewrite_legacy_flags(argv)
+  sys.argv[:] = argv  # ml_collections reads the overrides off sys.argv when it parses --config
+  try:
+    return flags.FLAGS(argv)
+  except UserError as e:  # raised by a config file's get_config (e.g. an unknown argument after the colon)
+    _error(str(e))
+  except flags.Error as e:
+    message = str(e)
+  except (OSError, AttributeError, KeyError, TypeError, ValueError, SyntaxError, ImportError) as e:
+    message = f"bad --config file or override ({e})"
+  message = " ".join(message.replace("\\n", " ").replace("\\'", "'").replace("''", "'").split()).rstrip(".")
+  _error(f"{message}; `nerfpod aot --help` lists the flags.")
 
 
 def run(argv: list[str] | None = None) -> None:
@@ -339,7 +435,7 @@ def run(argv: list[str] | None = None) -> None:
   are required here, not where they are defined: tools.pod_tables imports this module for compile_pod."""
   flags.mark_flags_as_required(["config", "topology"])
   _quiet_libtpu()
-  app.run(main, argv=argv)
+  app.run(main, argv=argv, flags_parser=_parse_flags)
 
 
 if __name__ == "__main__":
