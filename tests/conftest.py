@@ -1,11 +1,24 @@
-"""Test set-up: 8 simulated CPU devices (before any JAX call), the shared real data, tiny configs."""
+"""Test set-up: 8 simulated CPU devices (before any JAX call), a compilation cache for the session, the shared
+real data, tiny configs."""
 import os
 import pathlib
+import tempfile
 
 import jax
 
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_platforms", "cpu")  # CPU only, also where libtpu (the `tpu` extra) is installed
+
+# JAX's persistent compilation cache in a folder of this session (removed at its end): a program that an
+# earlier test compiled, here or in a process a test started (procs.environment passes the folder on), is
+# read back instead of compiled again (seconds each on a small CPU); the same executable, so the same
+# results. JAX_COMPILATION_CACHE_DIR set by whoever runs the tests (e.g. a cache kept between runs) wins.
+if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+  _CACHE = tempfile.TemporaryDirectory(prefix="nerfpod-test-jax-cache-")
+  os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE.name
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # every program (most take < 1 s)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 import pytest  # noqa: E402
 
@@ -32,3 +45,31 @@ def load_config(name: str, arg: str | None = None):
   """The config that --config=configs/<name>.py:<arg> gives, e.g. load_config("llff", "scene=horns")."""
   from nerfpod.config_util import sibling_module
   return sibling_module(str(REPO / "configs" / f"{name}.py"), name).get_config(arg)
+
+
+# The smoke job's settings for the shared run below: logging every step, no preview images and no orbit
+# change nothing that training or evaluation compute, only what is written and shown.
+SMOKE_RUN_OVERRIDES = {"train.log_every": 1, "train.image_every": 0, "orbit.render_after_training": False}
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory):
+  """The smoke job (configs/default.py:smoke: 20 steps on the 8 devices) trained and evaluated once per
+  session through nerfpod.modes.train_and_evaluate with SMOKE_RUN_OVERRIDES: a namespace of `workdir` (its
+  checkpoints, config.json, scene.json, eval/metrics.json, events), `losses` ({step: training loss} of
+  every step) and `metrics` (what eval/metrics.json holds). Tests that write into the workdir copy it first."""
+  import types
+
+  from nerfpod import modes, monitor
+  losses = {}
+
+  class Recording(monitor.Monitor):
+    def scalars(self, step, metrics, lr):
+      losses[step] = float(metrics["loss"])
+      super().scalars(step, metrics, lr)
+
+  workdir = tmp_path_factory.mktemp("smoke_run")
+  with pytest.MonkeyPatch.context() as patch:
+    patch.setattr(monitor, "Monitor", Recording)
+    metrics = modes.train_and_evaluate(smoke_config(**SMOKE_RUN_OVERRIDES), str(workdir))
+  return types.SimpleNamespace(workdir=workdir, losses=losses, metrics=metrics)

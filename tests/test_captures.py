@@ -512,7 +512,11 @@ def test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_li
   reloaded = scenes.load(data_config("nerfstudio", FOX, downscale=8))
   np.testing.assert_allclose(transform, reloaded.transform, rtol=1e-12)
   metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
-  assert metrics["views"][0]["name"] == "images/0001.jpg" and np.isfinite(metrics["mean"]["psnr"])
+  assert metrics["views"][0]["name"] == "images/0001.jpg"
+  # Recorded with the code of 2025-11 (the same bits as the commit before the package's restructuring); the
+  # tolerance is test_golden's (a real change moves these far more, another CPU's round-off far less).
+  got = {k: metrics["mean"][k] for k in ("psnr", "ssim")}
+  assert got == pytest.approx({"psnr": 11.92064805256965, "ssim": 0.3321046715177183}, rel=1e-5, abs=0), got
 
 
 def test_scene_report_tool_says_what_was_loaded(lego):

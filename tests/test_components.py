@@ -44,9 +44,21 @@ def test_gradient_clipping_scales_the_global_norm_to_the_limit_before_adam():
       np.testing.assert_allclose(updates[name], -lr * g / (np.abs(g) + eps), rtol=1e-5, err_msg=name)
 
 
-def test_state_shapes_are_those_of_the_initial_state_without_computing_it():
-  config = smoke_config()
-  comps = components.build(config)
+@pytest.fixture(scope="module")
+def smoke():
+  """The smoke config's components on all 8 devices (built once for the tests that only read them)."""
+  return components.build(smoke_config())
+
+
+@pytest.fixture(scope="module")
+def smoke_on_4():
+  """The smoke config's components on 4 devices and their initial parameters."""
+  comps = components.build(smoke_config(), Mesh(np.array(jax.devices()[:4]), (distributed.DATA_AXIS,)))
+  return comps, comps.init_state().params
+
+
+def test_state_shapes_are_those_of_the_initial_state_without_computing_it(smoke):
+  comps = smoke
   state = comps.init_state()
   got = jax.tree.map(lambda s: (s.shape, s.dtype, s.sharding), comps.state_shapes)
   want = jax.tree.map(lambda x: (x.shape, x.dtype, x.sharding), state)
@@ -55,11 +67,9 @@ def test_state_shapes_are_those_of_the_initial_state_without_computing_it():
 
 
 @pytest.mark.parametrize("num_rays,chunk", [(100, 24), (37, 8), (5, 64), (64, 64)])
-def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_rays(num_rays, chunk):
-  config = smoke_config()
-  mesh = Mesh(np.array(jax.devices()[:4]), (distributed.DATA_AXIS,))
-  comps = components.build(config, mesh)
-  params = comps.init_state().params
+def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_rays(smoke_on_4, num_rays, chunk):
+  comps, params = smoke_on_4
+  mesh = comps.mesh
   rng = np.random.default_rng(0)
   origins = rng.normal(size=(num_rays, 3)).astype(np.float32)
   origins = 4.0 * origins / np.linalg.norm(origins, axis=-1, keepdims=True)
@@ -73,9 +83,8 @@ def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_ra
     np.testing.assert_allclose(chunked[name], whole[name][:num_rays], rtol=1e-5, atol=1e-6, err_msg=name)
 
 
-def test_render_image_is_its_rays_in_row_major_order():
-  config = smoke_config()
-  comps = components.build(config)
+def test_render_image_is_its_rays_in_row_major_order(smoke):
+  comps = smoke
   params = comps.init_state().params
   intr = cameras.Intrinsics.from_focal(6, 5, 8.0)
   pose = cameras.look_at(np.array([0.0, -4.0, 1.0]))
@@ -87,13 +96,12 @@ def test_render_image_is_its_rays_in_row_major_order():
   np.testing.assert_array_equal(image["rgb"].reshape(-1, 3), rays["rgb"])
 
 
-def test_the_program_without_a_scene_has_a_runs_state_and_batch_shapes():
+def test_the_program_without_a_scene_has_a_runs_state_and_batch_shapes(smoke):
   """What the pod compile tool compiles from: the same state as components.build's and the batch the data
   pipeline yields, laid over the mesh's data axis, without loading the scene."""
   from nerfpod import data
-  config = smoke_config()
-  mesh = distributed.make_mesh()
-  built = components.build(config, mesh)
+  built = smoke
+  config, mesh = built.config, built.mesh
   program = components.build_program(config, mesh, backend="cpu")
   same = lambda a, b: jax.tree.map(lambda x, y: (x.shape, x.dtype, x.sharding) == (y.shape, y.dtype, y.sharding),
                                    a, b)

@@ -1,37 +1,47 @@
-"""The entry point as a user runs it: one command, a workdir with config, events and metrics."""
+"""The entry point as a user runs it: one command, a workdir with config, events and metrics.
+
+The whole job (the smoke config, in a process of its own on one device) is marked slow; the refusals below
+stop before any work and stay in the quick loop."""
 import json
 
 import pytest
 
+import test_golden
 from procs import run_main
 
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory):
+  """`python -m nerfpod.main --config=configs/default.py:smoke`: 20 steps, logs every 5, previews at 10."""
   workdir = tmp_path_factory.mktemp("smoke")
-  result = run_main("--config=configs/default.py:smoke", f"--workdir={workdir}", "--config.train.num_steps=40",
-                    "--config.train.log_every=10")
+  result = run_main("--config=configs/default.py:smoke", f"--workdir={workdir}")
   assert result.returncode == 0, result.stderr[-3000:]
   return workdir, result
 
 
+@pytest.mark.slow
 def test_main_writes_resolved_config_metrics_and_progress(smoke_run):
   workdir, result = smoke_run
   config = json.loads((workdir / "config.json").read_text())
-  assert config["train"]["num_steps"] == 40 and config["data"]["kind"] == "procedural"
+  assert config["train"]["num_steps"] == 20 and config["data"]["kind"] == "procedural"
   scene = json.loads((workdir / "scene.json").read_text())
   assert scene["kind"] == "procedural" and scene["space"] == "object" and scene["near"] == 2.0
   assert scene["capture_to_scene"] == [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]
   metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
-  assert metrics["step"] == 40 and metrics["scene"] == "procedural" and metrics["split"] == "test"
+  assert metrics["step"] == 20 and metrics["scene"] == "procedural" and metrics["split"] == "test"
   assert [v["index"] for v in metrics["views"]] == [0, 1]
   assert metrics["mean"]["psnr"] == pytest.approx(sum(v["psnr"] for v in metrics["views"]) / 2)
-  assert 0 < metrics["mean"]["ssim"] <= 1
-  assert "step     40/40" in result.stdout and "rays/s" in result.stdout and "ETA" in result.stdout
-  assert (workdir / "checkpoints" / "40").is_dir()
+  assert metrics["mean"]["ssim"] == pytest.approx(sum(v["ssim"] for v in metrics["views"]) / 2)
+  # The same job as test_golden's on 8 devices in the test process: one device sums the gradient mean in
+  # another order, which moved these by at most 2.3e-7 relative (test_golden's docstring).
+  got = {k: metrics["mean"][k] for k in test_golden.EVAL}
+  assert got == pytest.approx(test_golden.EVAL, rel=test_golden.RTOL, abs=0)
+  assert "step     20/20" in result.stdout and "rays/s" in result.stdout and "ETA" in result.stdout
+  assert (workdir / "checkpoints" / "20").is_dir()
 
 
-def test_tensorboard_can_read_the_events_and_loss_falls(smoke_run):
+@pytest.mark.slow
+def test_tensorboard_can_read_the_events_with_the_recorded_losses(smoke_run):
   event_accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
   workdir, _ = smoke_run
   acc = event_accumulator.EventAccumulator(str(workdir), size_guidance={"images": 0, "scalars": 0})
@@ -40,9 +50,13 @@ def test_tensorboard_can_read_the_events_and_loss_falls(smoke_run):
   for tag in ("train/loss", "train/psnr", "train/learning_rate", "train/rays_per_sec", "eval/test/psnr"):
     assert tag in tags["scalars"], tags
   assert "preview/rgb" in tags["images"] and "preview/depth" in tags["images"]
-  losses = [e.value for e in acc.Scalars("train/loss")]
-  assert [e.step for e in acc.Scalars("train/loss")] == [1, 10, 20, 30, 40]
-  assert losses[-1] < 0.8 * losses[0]
+  losses = {e.step: e.value for e in acc.Scalars("train/loss")}  # float32, as the step computed them
+  assert sorted(losses) == [1, 5, 10, 15, 20]
+  want = {step: test_golden.LOSSES[step] for step in (1, 5, 10, 20)}
+  assert {step: losses[step] for step in want} == pytest.approx(want, rel=test_golden.RTOL, abs=0)
+  eval_psnr = acc.Scalars("eval/test/psnr")
+  assert [e.step for e in eval_psnr] == [20]
+  assert eval_psnr[0].value == pytest.approx(test_golden.EVAL["psnr"], rel=test_golden.RTOL)
 
 
 def test_unknown_config_key_is_refused_clearly(tmp_path):

@@ -23,7 +23,12 @@ def test_ssim_of_identical_images_is_one_and_of_a_constant_shift_closed_form():
 def test_ssim_of_images_smaller_than_the_window_is_defined():
   a = np.random.default_rng(2).uniform(size=(6, 8, 3))
   assert metrics.ssim(a, a) == pytest.approx(1.0)
-  assert 0 < metrics.ssim(a, np.clip(a + 0.2, 0, 1)) < 1
+  b = np.clip(a + 0.2, 0, 1)
+  # The 11-pixel window shrinks to the largest odd size that fits the 6 rows, 5 (not 3: another value).
+  assert metrics.ssim(a, b) == metrics.ssim(a, b, filter_size=5) != metrics.ssim(a, b, filter_size=3)
+  c, d, c1 = 0.3, 0.2, 0.01**2  # constant images: the closed form of the test above, whatever the window
+  expected = (2 * c * (c + d) + c1) / (c**2 + (c + d)**2 + c1)
+  assert metrics.ssim(np.full((6, 8, 3), c), np.full((6, 8, 3), c + d)) == pytest.approx(expected)
 
 
 def test_ssim_matches_scikit_image():

@@ -1,0 +1,36 @@
+"""Golden values: the smoke job (configs/default.py:smoke) on 8 simulated CPU devices, trained through
+nerfpod.modes.train_and_evaluate, must give the training losses and held-out metrics recorded here, so that a
+change that shifts results everywhere (a model, sampling, optimiser or data change) no longer passes unseen.
+
+The tolerance, rtol 1e-5, from measurements (2-core x86 CPU, jax 0.8, the code of 2025-11):
+- between runs of the same code: the same bits (the whole job is deterministic: losses, parameters, metrics
+  and orbit frames; also the same bits as the commit before the package's restructuring, 2bfd0b1);
+- between device counts (1, 2, 4 and 8 devices, one process), the summation order of the gradient mean
+  differs: at most 2.3e-7 relative over the 20 steps' losses, 4e-8 on the eval PSNR;
+- real changes it must catch, relative change of the loss at step 3 / 10 / 20: train.lr_init 1% higher
+  1.0e-4 / 8.3e-4 / 1.1e-3; render.num_samples 17 instead of 16 4.5e-3 / 6.4e-3 / 1.6e-3 (also 2.2e-3 at
+  step 1). train.adam_eps 1e-12 instead of 1e-15 shows only at step 20 (1.2e-4).
+So 1e-5 is 40x what round-off gave between topologies and at least 10x below those changes. Another CPU or
+jaxlib may round differently; if this fails where nothing meant to change numerics did, compare with a run
+on 1 and 8 devices of the previous commit and re-record (the values are printed on failure).
+"""
+import pytest
+
+from conftest import SMOKE_RUN_OVERRIDES, smoke_config
+
+# Training loss (sum of the levels' MSE and the proposal losses) after these steps, and the eval test split's
+# mean PSNR and SSIM (2 views) after step 20.
+LOSSES = {1: 0.06815329194068909, 2: 0.06857083737850189, 3: 0.0693066269159317, 5: 0.06920298933982849,
+          10: 0.06373254209756851, 20: 0.059501729905605316}
+EVAL = {"psnr": 8.248674323522804, "ssim": 0.10327658451099009}
+RTOL = 1e-5
+
+
+def test_smoke_job_gives_the_recorded_losses_and_metrics(smoke_run):
+  """conftest.smoke_run: the smoke job as it is (SMOKE_RUN_OVERRIDES change only what is logged and shown)."""
+  assert smoke_config(**SMOKE_RUN_OVERRIDES).train.num_steps == 20 and sorted(smoke_run.losses) == list(range(1, 21))
+  got = {step: smoke_run.losses[step] for step in LOSSES}
+  got_eval = {k: smoke_run.metrics["mean"][k] for k in EVAL}
+  message = f"recorded {LOSSES} {EVAL}\n     got {got} {got_eval}"
+  assert got == pytest.approx(LOSSES, rel=RTOL, abs=0), message
+  assert got_eval == pytest.approx(EVAL, rel=RTOL, abs=0), message
