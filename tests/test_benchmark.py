@@ -1,4 +1,4 @@
-"""tools/benchmark.py: its throughput report, and FLOPs that count every micro-batch."""
+"""nerfpod bench (nerfpod/bench.py): its throughput report, and FLOPs that count every micro-batch."""
 import pytest
 
 from conftest import smoke_config
