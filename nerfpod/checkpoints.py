@@ -32,11 +32,16 @@ def checkpoint_dir(workdir: str) -> epath.Path:
 
 
 def finished_steps(workdir: str) -> list[int]:
-  """Steps of the complete checkpoints, oldest first; temporary (cut-off) ones are not among them."""
+  """Steps of the complete checkpoints, oldest first; temporary (cut-off) ones are not among them. A workdir
+  that cannot be listed (a bucket without network or credentials) is one sentence."""
   directory = checkpoint_dir(workdir)
-  if not directory.exists():
-    return []
-  return sorted(ocp.path.step.checkpoint_steps(directory))
+  try:
+    if not directory.exists():
+      return []
+    return sorted(ocp.path.step.checkpoint_steps(directory))
+  except Exception as e:  # noqa: BLE001 (whatever a file system or bucket client raises)
+    raise UserError(f"could not list the checkpoints of {workdir} ({' '.join(str(e).split())[:300]}); check the "
+                    f"--workdir path and, for gs://, your network and credentials.") from None
 
 
 def latest_step(workdir: str) -> int | None:

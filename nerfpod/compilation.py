@@ -55,8 +55,8 @@ def reuse_host_memory() -> bool:
   mmap threshold with a fresh mmap and unmaps it when freed, so every step pays the kernel to map and zero
   the same memory again: on a 2-core CPU a fifth of a hash-grid job's CPU time went to the kernel. With no
   mmapped blocks and no trimming, freed blocks are reused, for about 10% more peak memory (figures in
-  docs/results.md). Applied once per process (glibc only; a MALLOC_* environment variable of the user's own wins). Returns
-  whether it was applied."""
+  docs/results.md). Applied once per process (glibc only; a MALLOC_* environment variable of the user's own
+  wins). Returns whether it was applied."""
   if platform.libc_ver()[0] != "glibc" or any(k.startswith("MALLOC_") for k in os.environ):
     return False
   try:
@@ -86,6 +86,10 @@ def gradient_mean_is_ordered(config, backend: str | None = None) -> bool:
   return choice == "ordered"
 
 
+# The share of an accelerator's memory the train step may take (runs and the pod compile tool alike).
+ACCELERATOR_MEMORY_SHARE = 0.85
+
+
 def memory_budget_bytes(config) -> int:
   """The memory one device's train step may use: on accelerators 85% of what the device reports (the rest
   for the runtime, the renderer, fragmentation); on a CPU, compile.cpu_memory_gib shared by this process's
@@ -94,10 +98,6 @@ def memory_budget_bytes(config) -> int:
   if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
     return int(ACCELERATOR_MEMORY_SHARE * stats["bytes_limit"])
   return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
-
-
-# The share of an accelerator's memory the train step may take (runs and the pod compile tool alike).
-ACCELERATOR_MEMORY_SHARE = 0.85
 
 
 def step_memory_bytes(compiled) -> int | None:

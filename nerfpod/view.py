@@ -108,11 +108,7 @@ class Viewer:
       raise UserError("the viewer needs viser: pip install 'nerfpod[viewer]' (or pip install viser).") from None
     self.workdir, self.paths_dir, self.poll_seconds = str(workdir), paths_dir, poll_seconds
     self.config = workdir_files.read_config(self.workdir)
-    try:
-      step = checkpoints.latest_step(self.workdir)
-    except Exception as e:  # noqa: BLE001 (an unreachable bucket)
-      raise UserError(f"could not list the checkpoints of {self.workdir} ({' '.join(str(e).split())[:300]}); "
-                      f"check the --workdir path and, for gs://, your network and credentials.") from None
+    step = checkpoints.latest_step(self.workdir)  # an unreachable bucket: one sentence
     if step is None:
       raise UserError(f"workdir {self.workdir} holds no checkpoint yet; wait for the training run's first "
                       f"save (every checkpoint.every_steps={self.config.checkpoint.every_steps} steps) or pass "

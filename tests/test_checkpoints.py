@@ -174,3 +174,16 @@ def test_a_workdir_written_before_fields_were_added_is_read_as_it_was_trained(tm
   assert read.monitor.wandb.mode == "disabled" and read.eval.lpips_net == "none"
   assert read.render.proposal_samples == () and read.train.seed == config["train"]["seed"]
   assert set(schema.ADDED_FIELDS) <= set(schema.flatten(read))
+
+
+def test_a_workdir_whose_checkpoints_cannot_be_listed_is_one_sentence(tmp_path, monkeypatch):
+  """An unreachable bucket (here: a listing that fails) is one sentence for every caller of latest_step:
+  the run's start-up, the viewer and the exports alike."""
+  import orbax.checkpoint as ocp
+  checkpoints.checkpoint_dir(str(tmp_path)).mkdir(parents=True)
+  def unreachable(_):
+    raise OSError("503 Service Unavailable\nretry later")
+  monkeypatch.setattr(ocp.path.step, "checkpoint_steps", unreachable)
+  with pytest.raises(UserError, match=r"could not list the checkpoints of .* \(503 Service Unavailable retry "
+                                      r"later\); check the --workdir path"):
+    checkpoints.latest_step(str(tmp_path))

@@ -71,11 +71,7 @@ def read_config(workdir: str):
   config.json, or cannot be reached. Cheap: no JAX computation."""
   workdir = str(workdir)
   config = workdir_files.read_config(workdir)
-  try:
-    newest = checkpoints.latest_step(workdir)
-  except Exception as e:  # noqa: BLE001 (an unreachable bucket)
-    raise UserError(f"could not list the checkpoints of {workdir} ({' '.join(str(e).split())[:300]}); check the "
-                    f"--workdir path and, for gs://, your network and credentials.") from None
+  newest = checkpoints.latest_step(workdir)  # an unreachable bucket: one sentence
   if newest is None:
     raise UserError(f"workdir {workdir} holds no checkpoint yet; train first (nerfpod train ...) or pass the "
                     f"--workdir of a trained run.")
