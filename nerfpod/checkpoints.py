@@ -174,6 +174,16 @@ class Checkpoints:
     self.manager.close()
 
 
+def restore_read_only(workdir: str, checkpoint_config, abstract_state, step: int | None = None):
+  """The train state of `step` (default: the newest that reads back whole), restored read-only onto
+  `abstract_state`'s placement: what evaluation, rendering, the viewer and the exports start from. Nothing in
+  the workdir is written, deleted or cleaned, so a training run may go on beside."""
+  cc = checkpoint_config
+  with Checkpoints(workdir, cc.every_steps, cc.max_to_keep, read_only=True) as ckpt:
+    state, _ = ckpt.restore(abstract_state, step)
+  return state
+
+
 def _saved_tree(path):
   """The tree of array metadata (shapes, dtypes) of the pytree item saved at `path`, read without its data."""
   # The handler's own reader: the checkpointer's would also look for step metadata in the item's folder,

@@ -86,9 +86,7 @@ def restore_trained(config, workdir: str) -> tuple[components.Components, object
   """(components, parameters, step) of workdir's newest checkpoint, restored read-only onto this run's
   mesh: what --mode=eval and --mode=render start from."""
   comps = _prepare(config, workdir, trained=True)
-  with checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
-                               read_only=True) as ckpt:
-    state, _ = ckpt.restore(comps.state_shapes)
+  state = checkpoints.restore_read_only(workdir, config.checkpoint, comps.state_shapes)
   step = int(jax.device_get(state.step))
   if jax.process_index() == 0:
     print(f"nerfpod: restored step {step} of {workdir}", flush=True)

@@ -146,10 +146,7 @@ class Viewer:
 
   def _restore(self, step: int):
     """The parameters of `step`, restored read-only onto this machine's devices."""
-    cc = self.config.checkpoint
-    with checkpoints.Checkpoints(self.workdir, cc.every_steps, cc.max_to_keep, read_only=True) as ckpt:
-      state, _ = ckpt.restore(self.comps.state_shapes, step)
-    return state.params
+    return checkpoints.restore_read_only(self.workdir, self.config.checkpoint, self.comps.state_shapes, step).params
 
   def _poll_checkpoints(self):
     """Picks up a newer checkpoint while training goes on. A step deleted (max_to_keep) or unreadable while

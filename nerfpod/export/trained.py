@@ -86,9 +86,7 @@ def restore(workdir: str) -> Trained:
   compilation.tune_host(config)
   logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore
   comps = components.build(config)
-  cc = config.checkpoint
-  with checkpoints.Checkpoints(workdir, cc.every_steps, cc.max_to_keep, read_only=True) as ckpt:
-    state, _ = ckpt.restore(comps.state_shapes)
+  state = checkpoints.restore_read_only(workdir, config.checkpoint, comps.state_shapes)
   step = int(jax.device_get(state.step))
   transform = np.asarray(comps.scene.transform, np.float64)
   scene_json = epath.Path(workdir) / "scene.json"
