@@ -214,6 +214,7 @@ def test_a_checkpoint_written_while_the_page_is_open_appears(page, trained_workd
   from selenium.webdriver.common.by import By
   from nerfpod import checkpoints
   viewer, driver, client = page
+  viewer._set_cameras_visible(False)  # the canvas shows the rendered frame alone (also when run by itself)
   old = _full_frame(viewer, client)
   # The training run's next save, as it would write it: here, the same state with brighter colours.
   with checkpoints.Checkpoints(str(trained_workdir), 10, 5) as ckpt:
