@@ -5,6 +5,7 @@ would not as floats), in one flat (P, 3) buffer of every frame's pixels, row-maj
 of a split may differ in size. Colours become float32 in [0, 1] per batch (`to_float`), and per image for
 evaluation (`Split.image`).
 """
+import concurrent.futures
 import dataclasses
 import functools
 import json
@@ -42,27 +43,62 @@ class Split:
     """A split from per-frame images (an (N, H, W, 3) array or a list of (H_i, W_i, 3) ones), float in
     [0, 1] or uint8, with alphas likewise; `cameras` one per frame, or one Intrinsics shared by all."""
     images = list(images)
+    alphas = None if alphas is None else list(alphas)
     if isinstance(cameras, Intrinsics):
       cameras = Cameras.repeat(cameras, len(images))
-
-    def flat(im, channels, name):
-      im = np.asarray(im)
-      i = names.index(name)
-      if im.shape[:2] != (cameras.height[i], cameras.width[i]):
-        raise UserError(f"the image of frame {name} is {im.shape[1]}x{im.shape[0]} pixels but its camera is "
-                        f"{cameras.width[i]}x{cameras.height[i]}; use the images the cameras were made for.")
-      if im.dtype != np.uint8:
-        if not np.isfinite(im).all():
-          raise UserError(f"the image of frame {name} contains NaN or infinity; fix or remove that frame.")
-        im = to_uint8(im)
-      return im.reshape(-1, channels)
     names = tuple(names)
     if not len(images) == len(cameras) == len(names):
       raise UserError(f"{len(images)} images, {len(cameras)} cameras and {len(names)} names do not match.")
-    pixels = (np.concatenate([flat(im, 3, name) for im, name in zip(images, names)]) if images
-              else np.zeros((0, 3), np.uint8))
-    alpha = None if alphas is None else np.concatenate([flat(a, 1, name)[:, 0] for a, name in zip(alphas, names)])
-    return cls(pixels, np.asarray(poses, np.float32), cameras, names, alpha,
+    return cls.from_frames(lambda i: (images[i], None if alphas is None else alphas[i]), poses, cameras, names,
+                           with_alpha=alphas is not None, bounds=bounds)
+
+  @classmethod
+  def from_frames(cls, read, poses, cameras: Cameras, names, with_alpha: bool = False, bounds=None,
+                  threads: int = 1) -> "Split":
+    """A split whose frames are read one at a time straight into its pixel buffer, allocated once at its final
+    size from the cameras' sizes: `read(i)` gives frame i's (rgb (H_i, W_i, 3), alpha (H_i, W_i) or None),
+    uint8 or float in [0, 1], which is copied into its slot and dropped. So loading holds the final buffer
+    plus one decoded image per thread, never a second copy of the frames. `threads` > 1 reads frames in
+    parallel threads (image decoding releases the GIL); the first bad frame in frame order is the error."""
+    names = tuple(names)
+    if len(cameras) != len(names):
+      raise UserError(f"{len(cameras)} cameras and {len(names)} names do not match.")
+    empty = np.flatnonzero((cameras.width < 1) | (cameras.height < 1))
+    if empty.size:
+      raise UserError(f"frame {names[empty[0]]} has an empty image ({cameras.width[empty[0]]}x"
+                      f"{cameras.height[empty[0]]} pixels); fix its size or remove the frame.")
+    offsets = np.concatenate([[0], np.cumsum(cameras.num_pixels)]).astype(np.int64)
+    pixels = np.empty((int(offsets[-1]), 3), np.uint8)
+    alphas = np.empty((int(offsets[-1]),), np.uint8) if with_alpha else None
+
+    def slot(im, i, channels):
+      im = np.asarray(im)
+      if im.shape[:2] != (cameras.height[i], cameras.width[i]):
+        raise UserError(f"the image of frame {names[i]} is {im.shape[1]}x{im.shape[0]} pixels but its camera "
+                        f"is {cameras.width[i]}x{cameras.height[i]}; use the images the cameras were made for.")
+      if im.dtype != np.uint8:
+        if not np.isfinite(im).all():
+          raise UserError(f"the image of frame {names[i]} contains NaN or infinity; fix or remove that frame.")
+        im = to_uint8(im)
+      return im.reshape(-1, channels)
+
+    def put(i):
+      rgb, alpha = read(i)
+      pixels[offsets[i]:offsets[i + 1]] = slot(rgb, i, 3)
+      if with_alpha:
+        alphas[offsets[i]:offsets[i + 1]] = slot(alpha, i, 1)[:, 0]
+
+    if threads > 1 and len(names) > 1:
+      pool = concurrent.futures.ThreadPoolExecutor(min(threads, len(names)))
+      try:
+        for _ in pool.map(put, range(len(names))):
+          pass
+      finally:
+        pool.shutdown(cancel_futures=True)  # after a bad frame, read no more
+    else:
+      for i in range(len(names)):
+        put(i)
+    return cls(pixels, np.asarray(poses, np.float32), cameras, names, alphas,
                None if bounds is None else np.asarray(bounds, np.float32))
 
   def __len__(self) -> int:
@@ -178,18 +214,76 @@ class Scene:
             "far": float(self.far), "capture_to_scene": np.asarray(self.transform, np.float64).tolist()}
 
 
-def capture_scene(name: str, kind: str, images, cams: Cameras, names, framing, where: str) -> Scene:
+def capture_scene(name: str, kind: str, read, cams: Cameras, names, framing, where: str, threads: int) -> Scene:
   """A real capture's Scene from its frames and their framing (nerfpod.scenes.capture.frame): one split per
-  list of frame indices, black background (captures are opaque)."""
-  full = check_split(Split.from_images(images, framing.poses, cams, names, bounds=framing.bounds), where)
+  list of frame indices, each read straight into its own buffer (`read(i)`: frame i's (H_i, W_i, 3) uint8
+  image; `cams` already the images' sizes); black background (captures are opaque). Frames no split lists
+  are not read."""
   selected: dict[tuple, Split] = {}  # val and test are often the same frames: one copy
-  splits = {k: selected.setdefault(tuple(v), full.select(v)) for k, v in framing.splits.items()}
+  splits = {}
+  for split, indices in framing.splits.items():
+    key = tuple(int(i) for i in indices)
+    if key not in selected:
+      selected[key] = check_split(Split.from_frames(
+          lambda j, key=key: (read(key[j]), None), framing.poses[list(key)], cams.select(list(key)),
+          [names[i] for i in key], bounds=None if framing.bounds is None else framing.bounds[list(key)],
+          threads=threads), where)
+    splits[split] = selected[key]
   return Scene(name, splits, near=framing.near, far=framing.far, background=(0.0, 0.0, 0.0), space=framing.space,
                transform=framing.transform, kind=kind)
 
 
+# A pose must be a rigid camera-to-world transform: its 3x3 rotation R orthonormal to within RIGID_TOLERANCE
+# (the largest entry of |R^T R - I|) with determinant +1, and its last row, where the format has one, 0 0 0 1
+# to within the same. Rays are R @ d with d at camera depth 1, so a scaled or sheared R puts samples at the
+# wrong depths, and an all-zero one (what some tools write for an image they could not register) makes
+# every ray of the frame empty. The real captures of the tests' shared data (lego, tiny, fox, horns, cup)
+# are within 1.3e-6 (float32 rounding); 1e-3 also admits matrices written with 4 decimals.
+RIGID_TOLERANCE = 1e-3
+
+
+def check_poses(poses, names, where: str, what: str = "pose") -> None:
+  """Refuses, naming the first bad frame (and how many more there are), poses (N, 3 or 4, 4) that are not
+  finite or not rigid camera-to-world transforms (see RIGID_TOLERANCE): one shared check, run by every
+  loader on the poses as its file gives them."""
+  poses = np.asarray(poses, np.float64)
+  names = list(names)
+
+  def refuse(bad, problem):
+    more = f" (and {bad.size - 1} more frame{'s' if bad.size > 2 else ''})" if bad.size > 1 else ""
+    raise UserError(f"{where}: the {what} of frame {names[bad[0]]!r}{more} {problem}; fix or remove that "
+                    f"frame.")
+
+  bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))
+  if bad.size:
+    refuse(bad, "contains NaN or infinity")
+  rotation = poses[:, :3, :3]
+  gram = np.einsum("nki,nkj->nij", rotation, rotation)
+  off = np.abs(gram - np.eye(3)).max(axis=(1, 2))
+  det = np.linalg.det(rotation)
+  last = (np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) if poses.shape[1] == 4
+          else np.zeros(len(poses)))
+  bad = np.flatnonzero((off > RIGID_TOLERANCE) | (det <= 0) | (last > RIGID_TOLERANCE))
+  if not bad.size:
+    return
+  i = bad[0]
+  scale = float(np.sqrt(np.trace(gram[i]) / 3))
+  if scale < 1e-6:
+    reason = "has an all-zero rotation (as tools write for a frame they could not register)"
+  elif off[i] > RIGID_TOLERANCE and np.abs(gram[i] / scale**2 - np.eye(3)).max() <= RIGID_TOLERANCE:
+    reason = f"has a rotation scaled by {scale:.6g} (a camera's axes must be unit vectors)"
+  elif off[i] > RIGID_TOLERANCE:
+    reason = (f"has a rotation whose axes are not orthonormal (R^T R is off the identity by up to "
+              f"{off[i]:.3g}, more than the {RIGID_TOLERANCE:g} allowed)")
+  elif det[i] <= 0:
+    reason = "has a mirrored rotation (determinant -1): its axes are left-handed"
+  else:
+    reason = f"has the last row {' '.join(f'{v:g}' for v in poses[i, 3])} instead of 0 0 0 1"
+  refuse(bad, f"is not a rigid camera-to-world transform: it {reason}")
+
+
 def check_split(split: Split, where: str) -> Split:
-  """Validates shapes, value ranges and finiteness; raises UserError naming the first bad frame."""
+  """Validates shapes, value ranges, finiteness and rigid poses; raises UserError naming the first bad frame."""
   n = len(split.poses)
   if n == 0:
     raise UserError(f"{where} has no frames; a split needs at least one posed image.")
@@ -203,10 +297,7 @@ def check_split(split: Split, where: str) -> Split:
     raise UserError(f"{where}: alphas have shape {split.alphas.shape}, expected ({split.num_pixels},).")
   if split.poses.shape != (n, 4, 4):
     raise UserError(f"{where}: poses have shape {split.poses.shape}, expected ({n}, 4, 4) camera-to-world.")
-  bad = np.flatnonzero(~np.isfinite(split.poses).all(axis=(1, 2)))
-  if bad.size:
-    raise UserError(f"{where}: the pose of frame {split.names[bad[0]]} contains NaN or infinity; "
-                    f"fix or remove that frame.")
+  check_poses(split.poses, split.names, where)
   intrinsic = np.stack([cams.fx, cams.fy, cams.cx, cams.cy], 1)
   bad = np.flatnonzero(~(np.isfinite(intrinsic).all(1) & (cams.fx > 0) & (cams.fy > 0)
                          & np.isfinite(cams.distortion).all(1)))

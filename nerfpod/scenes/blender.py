@@ -1,13 +1,13 @@
 """The NeRF synthetic ("Blender") format: transforms_{split}.json + RGBA PNGs composited on white."""
-import concurrent.futures
 import os
 
 import numpy as np
 from PIL import Image
 
 from nerfpod.errors import UserError
-from nerfpod.nerf.cameras import Intrinsics
-from nerfpod.scenes.base import Scene, Split, check_split, read_json, to_uint8
+from nerfpod.nerf.cameras import Cameras, Intrinsics
+from nerfpod.scenes.base import Scene, Split, check_poses, check_split, read_json, to_uint8
+from nerfpod.scenes.capture import READ_THREADS, image_size
 
 SPLITS = ("train", "val", "test")
 
@@ -18,6 +18,14 @@ def _read_json(path: str) -> dict:
     raise UserError(f"{path} needs the keys 'camera_angle_x' (a number) and 'frames' (a list); "
                     f"is it a NeRF synthetic transforms file?")
   return meta
+
+
+def _image_size(path: str, name: str, downscale: int) -> tuple[int, int]:
+  """(width, height) of a frame's image as _read_image gives it, from the file's header."""
+  if not os.path.isfile(path):
+    raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame from the "
+                    f"transforms file.")
+  return image_size(path, name, downscale)
 
 
 def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
@@ -62,26 +70,26 @@ def load_split(root: str, split: str, downscale: int = 1) -> Split:
     names.append(name)
     files.append(file)
     poses.append(pose)
-  poses = np.stack(poses).astype(np.float32)
-  if not np.isfinite(poses).all():  # fail before spending time on the images
-    bad = names[int(np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))[0])]
-    raise UserError(f"{path}: the transform_matrix of frame {bad!r} contains NaN or infinity; fix or remove "
-                    f"that frame.")
-  with concurrent.futures.ThreadPoolExecutor(8) as pool:
-    images = list(pool.map(lambda a: _read_image(a[0], a[1], downscale), zip(files, names)))
-  h, w = images[0].shape[:2]
-  for name, file, im in zip(names, files, images):
-    if im.shape[:2] != (h, w):
-      raise UserError(f"frame {name!r}: {file} is {im.shape[1]}x{im.shape[0]} pixels, but the split's "
-                      f"first frame is {w}x{h}; all frames of a split must have the same size.")
+  poses = np.stack(poses)
+  check_poses(poses, names, path, "transform_matrix")  # before spending time on the images
+  sizes = [_image_size(file, name, downscale) for file, name in zip(files, names)]
+  w, h = sizes[0]
+  for name, file, size in zip(names, files, sizes):
+    if size != (w, h):
+      raise UserError(f"frame {name!r}: {file} is {size[0]}x{size[1]} pixels, but the split's first frame is "
+                      f"{w}x{h}; all frames of a split must have the same size.")
   try:
     angle = float(meta["camera_angle_x"])
   except (TypeError, ValueError) as e:
     raise UserError(f"{path}: camera_angle_x is not a number.") from e
   focal = 0.5 * w / np.tan(0.5 * angle)
   intr = Intrinsics.from_focal(w, h, focal)
-  return check_split(Split.from_images([im[..., :3] for im in images], poses, intr, names,
-                                      alphas=[im[..., 3] for im in images]), path)
+
+  def read(i):
+    rgba = _read_image(files[i], names[i], downscale)
+    return rgba[..., :3], rgba[..., 3]
+  return check_split(Split.from_frames(read, poses.astype(np.float32), Cameras.repeat(intr, len(names)), names,
+                                       with_alpha=True, threads=READ_THREADS), path)
 
 
 def load(root: str, downscale: int = 1, splits=SPLITS) -> Scene:

@@ -1,11 +1,15 @@
 """What the real-capture loaders (llff, colmap, nerfstudio) share: reading their images as uint8, the
 images_N folders, the held-out frames, pose normalisation, their space and ray bounds.
 
+Images are read straight into their split's final buffer (`scenes.base.Split.from_frames`): the loaders
+learn the images' sizes from the files' headers (`image_sizes`), build the cameras and the splits, then
+decode each image into its slot, READ_THREADS at a time. Loading N images of W x H pixels therefore takes
+about N * W * H * 3 bytes of host memory, plus one decoded image per thread (docs/data.md).
+
 Pose normalisation (data.orient, data.center, data.scale) is one similarity computed from every frame of
 the capture (train and held-out alike, as the original LLFF code does) and applied to all of them; the
 Scene records it (`Scene.transform`, capture -> scene) and training writes it to the workdir's scene.json.
 """
-import concurrent.futures
 import dataclasses
 import os
 
@@ -22,6 +26,9 @@ UNBOUNDED_NEAR, UNBOUNDED_FAR = 0.2, 1e6  # mip-NeRF 360's ray bounds, in the no
 # OpenCV/COLMAP cameras (x right, y down, looking down +z) -> OpenGL (x right, y up, looking down -z), as a
 # 4x4: c2w_opengl = c2w_opencv @ OPENCV_TO_OPENGL (nerf/cameras.py's axes, the translation kept).
 OPENCV_TO_OPENGL = np.diag([*np.diag(cameras.OPENCV_TO_OPENGL), 1.0])
+# Images decoded at once while loading: decoding releases the GIL, so one thread per core (at most 8) keeps
+# the cores busy; each thread holds one decoded image on top of the splits' buffers.
+READ_THREADS = max(1, min(8, os.cpu_count() or 1))
 
 
 def list_images(folder: str) -> list[str]:
@@ -60,19 +67,56 @@ def read_image(path: str, name: str, downscale: int = 1) -> np.ndarray:
     raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
 
 
-def read_images(paths: list[str], names: list[str], downscale: int = 1) -> list[np.ndarray]:
-  """Many images, read in parallel threads (decoding releases the GIL)."""
-  with concurrent.futures.ThreadPoolExecutor(8) as pool:
-    return list(pool.map(lambda a: read_image(a[0], a[1], downscale), zip(paths, names)))
+def image_size(path: str, name: str, downscale: int = 1) -> tuple[int, int]:
+  """(width, height) of an image file as read_image gives it (shrunk `downscale` times), from its header
+  alone: nothing is decoded."""
+  try:
+    with Image.open(path) as im:
+      w, h = im.size
+  except FileNotFoundError as e:
+    raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame.") from e
+  except OSError as e:
+    raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
+  return (w // downscale, h // downscale) if downscale > 1 else (w, h)
+
+
+def image_sizes(paths: list[str], names: list[str], downscale=1) -> tuple[np.ndarray, np.ndarray]:
+  """(widths, heights), (N,) int64, of many image files as read_image gives them; `downscale` an int or one
+  per file."""
+  factors = np.broadcast_to(np.asarray(downscale, np.int64), (len(paths),))
+  sizes = [image_size(p, n, int(f)) for p, n, f in zip(paths, names, factors)]
+  return np.array([s[0] for s in sizes], np.int64), np.array([s[1] for s in sizes], np.int64)
 
 
 def check_files_exist(paths: list[str], names: list[str], where: str) -> None:
-  """One sentence naming every missing image (the first few of many)."""
-  missing = [n for p, n in zip(paths, names) if not os.path.isfile(p)]
-  if missing:
-    shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
-    raise UserError(f"{where} lists {len(missing)} image(s) of its {len(names)} frames that do not exist "
-                    f"({shown}); restore them or remove those frames from it.")
+  """One sentence naming every missing image (the first few of many) and the folder looked in; where that
+  folder holds no image at all, it says so, and how to fill it."""
+  missing = [(p, n) for p, n in zip(paths, names) if not os.path.isfile(p)]
+  if not missing:
+    return
+  shown = ", ".join(n for _, n in missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+  folders = sorted({os.path.dirname(p) for p, _ in missing})
+  empty = not (os.path.isdir(folders[0]) and list_images(folders[0]))
+  if len(folders) == 1 and len(missing) == len(names) and empty:
+    raise UserError(empty_folder_message(folders[0], f"{where} lists {len(names)} images ({shown}) to read from "
+                                                     f"{folders[0]}/"))
+  place = f"in {folders[0]}/" if len(folders) == 1 else f"in {len(folders)} folders ({', '.join(folders[:3])})"
+  raise UserError(f"{where} lists {len(missing)} image(s) of its {len(names)} frames that do not exist {place} "
+                  f"({shown}); restore them or remove those frames from it.")
+
+
+def empty_folder_message(folder: str, what: str) -> str:
+  """`what`, then that `folder` holds no images and how to fill it: for an images_N/ beside images/, the
+  ways to images shrunk N times."""
+  state = "holds no images" if os.path.isdir(folder) else "does not exist"
+  parent, base = os.path.split(os.path.normpath(folder))
+  stem, _, factor = base.rpartition("_")
+  if stem and factor.isdigit() and os.path.isdir(os.path.join(parent, stem)):
+    fix = (f"regenerate {base}/ as the images of {stem}/ shrunk {factor} times, delete the empty {base}/ to have "
+           f"{stem}/ shrunk on loading, or use --config.data.downscale=1")
+  else:
+    fix = f"put the capture's images in {folder}/"
+  return f"{what}, but that folder {state}; {fix}."
 
 
 def heldout_indices(n: int, llffhold: int) -> np.ndarray:
@@ -134,11 +178,9 @@ class Framing:
 def frame(poses_opengl: np.ndarray, bounds: np.ndarray | None, names: list[str], data_config, kind: str,
           where: str, default_space: str, split_lists: dict[str, np.ndarray] | None = None) -> Framing:
   """Normalises a capture's poses and bounds (data.orient/center/scale), splits its frames (explicit lists,
-  else every data.llffhold-th frame held out as test and as val) and picks its space and ray bounds."""
+  else every data.llffhold-th frame held out as test and as val) and picks its space and ray bounds. The
+  poses are rigid transforms: the loader has checked them (scenes.base.check_poses) before."""
   poses_opengl = np.asarray(poses_opengl, np.float64)
-  if not np.isfinite(poses_opengl).all():
-    bad = names[int(np.flatnonzero(~np.isfinite(poses_opengl).all(axis=(1, 2)))[0])]
-    raise UserError(f"{where}: the pose of frame {bad!r} contains NaN or infinity; fix or remove that frame.")
   transform = normalization(poses_opengl, bounds, data_config, kind)
   poses = pose_math.transform_poses(transform, poses_opengl).astype(np.float32)
   if bounds is not None:
@@ -161,14 +203,13 @@ def frame(poses_opengl: np.ndarray, bounds: np.ndarray | None, names: list[str],
   return Framing(transform, poses, bounds, split_lists, space, near, far)
 
 
-def scaled_cameras(cams: Cameras, images: list[np.ndarray], names: list[str], where: str,
+def scaled_cameras(cams: Cameras, widths: np.ndarray, heights: np.ndarray, names: list[str], where: str,
                    downscale) -> Cameras:
-  """The cameras of images shrunk `downscale` times (an int, or one per frame) from the cameras' size (an
-  images_N folder, or shrunk on loading): focal lengths and principal points scaled by each image's size
-  over its camera's. An image whose size is not its camera's divided by the factor (to within a pixel) is
-  refused."""
-  h = np.array([im.shape[0] for im in images], np.int64)
-  w = np.array([im.shape[1] for im in images], np.int64)
+  """The cameras of images `widths` x `heights` (image_sizes), shrunk `downscale` times (an int, or one per
+  frame) from the cameras' size (an images_N folder, or shrunk on loading): focal lengths and principal
+  points scaled by each image's size over its camera's. An image whose size is not its camera's divided by
+  the factor (to within a pixel) is refused."""
+  w, h = np.asarray(widths, np.int64), np.asarray(heights, np.int64)
   factor = np.broadcast_to(np.asarray(downscale, np.int64), w.shape)
   bad = np.flatnonzero((np.abs(w * factor - cams.width) > factor) | (np.abs(h * factor - cams.height) > factor))
   if bad.size:

@@ -15,7 +15,7 @@ import numpy as np
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras
 from nerfpod.scenes import capture
-from nerfpod.scenes.base import Scene, capture_scene
+from nerfpod.scenes.base import Scene, capture_scene, check_poses
 
 # COLMAP model name -> the names of its parameters, in COLMAP's order.
 MODELS = {
@@ -92,23 +92,28 @@ def load(root: str, data_config) -> Scene:
   names = [im.name for im in images]
   paths = [os.path.join(image_dir, n) for n in names]
   capture.check_files_exist(paths, names, f"the COLMAP model in {folder}")
+  # World-to-camera poses, checked (finite, rigid) before they are inverted.
+  world_to_camera = np.stack([np.concatenate([np.asarray(im.cam_from_world().matrix(), np.float64),
+                                              [[0.0, 0.0, 0.0, 1.0]]]) for im in images])
+  check_poses(world_to_camera, names, folder, "world-to-camera pose")
   intrinsics, poses, bounds = [], [], []
-  for im in images:
+  for im, w2c in zip(images, world_to_camera):
     cam = rec.cameras[im.camera_id]
     p = camera_params(cam.model.name, cam.params, cam.width, cam.height,
                       f"camera {im.camera_id} of image {im.name!r} in {folder}")
     intrinsics.append((cam.width, cam.height, p["fx"], p["fy"], p["cx"], p["cy"],
                        [p.get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")]))
-    w2c = np.asarray(im.cam_from_world().matrix(), np.float64)
-    c2w = np.linalg.inv(np.concatenate([w2c, [[0.0, 0.0, 0.0, 1.0]]]))
-    poses.append(c2w @ capture.OPENCV_TO_OPENGL)
-    bounds.append(_depth_bounds(rec, im, w2c))
+    poses.append(np.linalg.inv(w2c) @ capture.OPENCV_TO_OPENGL)
+    bounds.append(_depth_bounds(rec, im, w2c[:3]))
   col = lambda i, dtype: np.array([c[i] for c in intrinsics], dtype)
   cams = Cameras(col(0, np.int64), col(1, np.int64), col(2, np.float64), col(3, np.float64), col(4, np.float64),
                  col(5, np.float64), np.array([c[6] for c in intrinsics], np.float64))
-  pixels = capture.read_images(paths, names, shrink)
-  cams = capture.scaled_cameras(cams, pixels, names, folder, downscale)
+  poses = np.stack(poses)
+  widths, heights = capture.image_sizes(paths, names, shrink)
+  cams = capture.scaled_cameras(cams, widths, heights, names, folder, downscale)
   # Bounds where every image sees points (an image seeing none leaves the scene without per-frame bounds).
   bounds = np.array(bounds, np.float64) if all(b is not None for b in bounds) else None
-  framing = capture.frame(np.stack(poses), bounds, names, data_config, "colmap", folder, default_space="unbounded")
-  return capture_scene(os.path.basename(os.path.normpath(root)), "colmap", pixels, cams, names, framing, folder)
+  framing = capture.frame(poses, bounds, names, data_config, "colmap", folder, default_space="unbounded")
+  read = lambda i: capture.read_image(paths[i], names[i], shrink)
+  return capture_scene(os.path.basename(os.path.normpath(root)), "colmap", read, cams, names, framing, folder,
+                       capture.READ_THREADS)

@@ -14,7 +14,7 @@ import numpy as np
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras
 from nerfpod.scenes import capture
-from nerfpod.scenes.base import Scene, capture_scene
+from nerfpod.scenes.base import Scene, capture_scene, check_poses
 
 POSES_FILE = "poses_bounds.npy"
 
@@ -45,6 +45,9 @@ def load(root: str, data_config) -> Scene:
   downscale = int(data_config.downscale)
   folder, shrink = capture.image_folder(root, downscale)
   files = capture.list_images(folder)
+  if not files:
+    raise UserError(capture.empty_folder_message(folder, f"{path} has {len(poses)} poses, one per image of "
+                                                         f"{folder}/"))
   if len(files) != len(poses):
     raise UserError(f"{folder} holds {len(files)} images but {path} has {len(poses)} poses; the images must be "
                     f"the ones the poses were computed for, one per row, in name order.")
@@ -54,11 +57,15 @@ def load(root: str, data_config) -> Scene:
   if bad.size:
     raise UserError(f"{path}: the row of {names[bad[0]]} has a height/width/focal or near/far bound that is not "
                     f"a positive number; regenerate the file.")
-  images = capture.read_images([os.path.join(folder, f) for f in files], names, shrink)
+  check_poses(poses, names, path)
+  paths = [os.path.join(folder, f) for f in files]
+  widths, heights = capture.image_sizes(paths, names, shrink)
   full = Cameras(np.round(hwf[:, 1]).astype(np.int64), np.round(hwf[:, 0]).astype(np.int64), hwf[:, 2].copy(),
                  hwf[:, 2].copy(), hwf[:, 1] / 2.0, hwf[:, 0] / 2.0, np.zeros((len(hwf), 6)))
   # images_N may round the size either way: the factor is each image's size over the full one's.
-  factor = np.maximum(1, np.round(full.width / np.array([im.shape[1] for im in images]))).astype(np.int64)
-  cams = capture.scaled_cameras(full, images, names, path, factor)
+  factor = np.maximum(1, np.round(full.width / widths)).astype(np.int64)
+  cams = capture.scaled_cameras(full, widths, heights, names, path, factor)
   framing = capture.frame(poses, bounds, names, data_config, "llff", path, default_space="forward_facing")
-  return capture_scene(os.path.basename(os.path.normpath(root)), "llff", images, cams, names, framing, path)
+  read = lambda i: capture.read_image(paths[i], names[i], shrink)
+  return capture_scene(os.path.basename(os.path.normpath(root)), "llff", read, cams, names, framing, path,
+                       capture.READ_THREADS)

@@ -17,7 +17,7 @@ import numpy as np
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, DISTORTION_PARAMS
 from nerfpod.scenes import capture
-from nerfpod.scenes.base import Scene, capture_scene, read_json
+from nerfpod.scenes.base import Scene, capture_scene, check_poses, read_json
 
 TRANSFORMS = "transforms.json"
 PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -93,25 +93,17 @@ def load(path: str, data_config) -> Scene:
       raise UserError(f"{path}: frame {name!r} has a transform_matrix that is not a 4x4 matrix of numbers.") from e
     if pose.shape not in ((4, 4), (3, 4)):
       raise UserError(f"{path}: frame {name!r} has a transform_matrix of shape {pose.shape}, expected 4x4.")
-    poses.append(np.concatenate([pose[:3], [[0.0, 0.0, 0.0, 1.0]]]))
+    poses.append(pose if pose.shape == (4, 4) else np.concatenate([pose, [[0.0, 0.0, 0.0, 1.0]]]))
   poses = np.stack(poses)
-  if not np.isfinite(poses).all():  # before spending time on the images
-    bad = names[int(np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)))[0])]
-    raise UserError(f"{path}: the transform_matrix of frame {bad!r} contains NaN or infinity; fix or remove that "
-                    f"frame.")
-  by_factor: dict[int, list[int]] = {}
-  for i, (_, factor) in enumerate(located):
-    by_factor.setdefault(factor, []).append(i)
-  pixels: list = [None] * len(names)
-  for factor, idx in by_factor.items():
-    for i, im in zip(idx, capture.read_images([located[i][0] for i in idx], [names[i] for i in idx], factor)):
-      pixels[i] = im
+  check_poses(poses, names, path, "transform_matrix")  # before spending time on the images
+  poses[:, 3] = [0.0, 0.0, 0.0, 1.0]  # exactly (check_poses allows round-off)
+  widths, heights = capture.image_sizes([p for p, _ in located], names, [f for _, f in located])
   rows = []
-  for name, frame, (file, factor), im in zip(names, frames, located, pixels):
+  for name, frame, image_w, image_h in zip(names, frames, widths, heights):
     where = f"{path}, frame {name!r}"
     # The camera's size is the full images'; a shrunk image (images_N/ or data.downscale) scales it below.
-    w = _number(meta, frame, "w", where) or im.shape[1] * downscale
-    h = _number(meta, frame, "h", where) or im.shape[0] * downscale
+    w = _number(meta, frame, "w", where) or int(image_w) * downscale
+    h = _number(meta, frame, "h", where) or int(image_h) * downscale
     fx = _number(meta, frame, "fl_x", where)
     if fx is None:
       angle = _number(meta, frame, "camera_angle_x", where)
@@ -130,7 +122,7 @@ def load(path: str, data_config) -> Scene:
   col = lambda i, dtype: np.array([r[i] for r in rows], dtype)
   cams = Cameras(col(0, np.int64), col(1, np.int64), col(2, np.float64), col(3, np.float64), col(4, np.float64),
                  col(5, np.float64), np.array([r[6] for r in rows], np.float64))
-  cams = capture.scaled_cameras(cams, pixels, names, path, downscale)
+  cams = capture.scaled_cameras(cams, widths, heights, names, path, downscale)
   split_lists = None
   lists = {s: meta.get(f"{s}_filenames") for s in ("train", "val", "test")}
   if any(v is not None for v in lists.values()):
@@ -151,4 +143,5 @@ def load(path: str, data_config) -> Scene:
   name = os.path.basename(os.path.normpath(base)) or "capture"
   framing = capture.frame(poses, None, names, data_config, "nerfstudio", path, default_space="unbounded",
                           split_lists=split_lists)
-  return capture_scene(name, "nerfstudio", pixels, cams, names, framing, path)
+  read = lambda i: capture.read_image(located[i][0], names[i], located[i][1])
+  return capture_scene(name, "nerfstudio", read, cams, names, framing, path, capture.READ_THREADS)
