@@ -152,6 +152,40 @@ def test_the_real_captures_are_rigid_well_within_the_tolerance():
     base.check_poses(poses, [str(i) for i in range(len(poses))], "real")
 
 
+# --- 6. data.kind=auto and an incomplete COLMAP model. ---
+
+def _broken_colmap(root, with_llff):
+  poses = _poses(3)
+  _write("colmap", root, poses)
+  os.remove(root / "sparse" / "0" / "images.bin")
+  if with_llff:
+    write_llff(root, poses, 10.0, _images(3), _names(3))
+
+
+def test_auto_skips_an_incomplete_colmap_model_saying_which_file_it_lacks(tmp_path, caplog):
+  _broken_colmap(tmp_path, with_llff=True)
+  missing = tmp_path / "sparse" / "0" / "images.bin"
+  with caplog.at_level(logging.WARNING):
+    assert scenes.detect(str(tmp_path)) == "llff"
+  warning = " ".join(r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+  assert f"found a COLMAP model in {tmp_path / 'sparse' / '0'} but {missing} is missing" in warning
+  assert "using poses_bounds.npy (llff) instead" in warning
+  with pytest.raises(UserError) as err:  # data.kind=colmap insists, and names the file
+    scenes.load(as_is("colmap", tmp_path))
+  assert str(err.value) == (f"the COLMAP model in {tmp_path / 'sparse' / '0'} is incomplete: {missing} is missing; "
+                            f"restore it or re-export the model from COLMAP (cameras, images and points3D, as "
+                            f".bin or .txt).")
+
+
+def test_auto_refuses_an_incomplete_colmap_model_with_nothing_beside_it(tmp_path):
+  _broken_colmap(tmp_path, with_llff=False)
+  os.remove(tmp_path / "sparse" / "0" / "points3D.bin")
+  with pytest.raises(UserError, match=(f"holds an incomplete COLMAP model and no other scene: in "
+                                       f"{tmp_path / 'sparse' / '0'}, {tmp_path / 'sparse' / '0' / 'images.bin'}, "
+                                       f"{tmp_path / 'sparse' / '0' / 'points3D.bin'} are missing; restore them")):
+    scenes.detect(str(tmp_path))
+
+
 # --- 7. An empty images_N/ folder is named. ---
 
 @pytest.mark.parametrize("kind", ["llff", "colmap"])

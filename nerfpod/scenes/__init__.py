@@ -1,6 +1,8 @@
 """Scene loaders. `load(config.data)` returns a Scene whatever the format."""
 import os
 
+from absl import logging
+
 from nerfpod.errors import UserError
 from nerfpod.scenes.base import SPACES, Scene, Split
 
@@ -15,7 +17,12 @@ def detect(path: str) -> str:
   or the folder itself) -> colmap, also where a transforms.json (as nerfpod prepare writes beside the model) or
   an LLFF poses_bounds.npy (multinerf too prefers COLMAP's poses) is beside it; transforms.json -> nerfstudio,
   poses_bounds.npy -> llff, transforms_train.json -> blender, an .npz file -> tiny; a .json file is taken as a
-  nerfstudio transforms file."""
+  nerfstudio transforms file.
+
+  An incomplete COLMAP model (sparse/0/ lacking one of cameras, images, points3D) is skipped with a warning
+  that names the missing files, in favour of a transforms.json or poses_bounds.npy beside it (the same
+  capture's poses, written from that model by nerfpod prepare or LLFF's imgs2poses); with nothing else
+  there it is refused, naming them. data.kind=colmap insists on the model."""
   if os.path.isfile(path):
     if path.endswith(".npz"):
       return "tiny"
@@ -25,17 +32,28 @@ def detect(path: str) -> str:
     from nerfpod.scenes import colmap
     if colmap.model_folder(path) is not None:
       return "colmap"
-    if os.path.isfile(os.path.join(path, "transforms.json")):
-      return "nerfstudio"
-    if os.path.isfile(os.path.join(path, "poses_bounds.npy")):
-      return "llff"
-    if os.path.isfile(os.path.join(path, "transforms_train.json")):
-      return "blender"
+    found = next(((kind, name) for kind, name in (("nerfstudio", "transforms.json"), ("llff", "poses_bounds.npy"),
+                                                  ("blender", "transforms_train.json"))
+                  if os.path.isfile(os.path.join(path, name))), None)
+    broken = colmap.incomplete_model(path)
+    if broken is not None:
+      folder, missing = broken
+      if found is None:
+        raise UserError(f"{path} holds an incomplete COLMAP model and no other scene: in {folder}, "
+                        f"{colmap.missing_files(missing)}; restore {'it' if len(missing) == 1 else 'them'} or "
+                        f"re-export the model from COLMAP.")
+      logging.warning("data.kind=auto: found a COLMAP model in %s but %s, so it is skipped; using %s (%s) "
+                      "instead (set data.kind=colmap to use the model once it is whole)", folder,
+                      colmap.missing_files(missing), found[1], found[0])
+    if found is not None:
+      return found[0]
   else:
     raise UserError(f"data.path {path!r} not found; set --config.data.path to a scene folder or file.")
   raise UserError(f"cannot tell the format of {path!r}: it holds none of transforms.json, sparse/0/, "
                   f"poses_bounds.npy, transforms_train.json; set --config.data.kind to one of "
                   f"{', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
+
+
 # Whether a format's images carry alpha (then training batches do too): what the pod compile tool needs to
 # know of a scene without loading it. Captures are opaque (their loaders drop alpha).
 HAS_ALPHA = {"procedural": True, "tiny": False, "blender": True, "llff": False, "colmap": False,

@@ -37,6 +37,30 @@ def model_folder(root: str) -> str | None:
   return None
 
 
+def incomplete_model(root: str) -> tuple[str, list[str]] | None:
+  """Where a capture folder holds a COLMAP model that is not complete: (its folder, the full paths of the
+  files it lacks) for sparse/0/ (or else sparse/) where it is a folder without a whole model, or the
+  folder itself where it holds some of the model's files; None where there is no such thing (no model, or
+  a complete one: `model_folder`). The files are taken in the format (.bin or .txt) most of them are in."""
+  if model_folder(root) is not None:
+    return None
+  sparse = os.path.join(root, "sparse")
+  folders = [os.path.join(sparse, "0")] if os.path.isdir(os.path.join(sparse, "0")) else (
+      [sparse] if os.path.isdir(sparse) else [])
+  for folder in folders + [root]:
+    present = {ext: [f for f in MODEL_FILES if os.path.isfile(os.path.join(folder, f + ext))]
+               for ext in (".bin", ".txt")}
+    ext = max(present, key=lambda e: len(present[e]))  # .bin on a tie
+    if present[ext] or folder != root:
+      return folder, [os.path.join(folder, f + ext) for f in MODEL_FILES if f not in present[ext]]
+  return None
+
+
+def missing_files(paths: list[str]) -> str:
+  """'A is missing' or 'A, B are missing'."""
+  return f"{', '.join(paths)} {'is' if len(paths) == 1 else 'are'} missing"
+
+
 def camera_params(model: str, params, width: int, height: int, where: str) -> dict:
   """A COLMAP camera as {"fx", "fy", "cx", "cy", "k1", ...}; refuses a model nerfpod cannot handle."""
   if model not in MODELS:
@@ -80,6 +104,11 @@ def _depth_bounds(rec, image, w2c_3x4: np.ndarray) -> np.ndarray | None:
 
 def load(root: str, data_config) -> Scene:
   folder = model_folder(root)
+  broken = incomplete_model(root)
+  if broken is not None:
+    raise UserError(f"the COLMAP model in {broken[0]} is incomplete: {missing_files(broken[1])}; restore "
+                    f"{'it' if len(broken[1]) == 1 else 'them'} or re-export the model from COLMAP (cameras, "
+                    f"images and points3D, as .bin or .txt).")
   if folder is None:
     raise UserError(f"{root} holds no COLMAP sparse model (sparse/0/ with cameras, images and points3D as .bin "
                     f"or .txt); set --config.data.path to the capture folder that holds sparse/.")
