@@ -5,12 +5,13 @@ import json
 import numpy as np
 import pytest
 
-from conftest import smoke_config
+from conftest import SMOKE_RUN_OVERRIDES, smoke_config
 from nerfpod import evaluate, lpips, metrics, modes, render
 from nerfpod.errors import UserError
 
-OVERRIDES = {"train.num_steps": 3, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 2,
-             "orbit.render_after_training": False}
+OVERRIDES = SMOKE_RUN_OVERRIDES  # the session's smoke run (conftest.smoke_run): 20 steps, eval.max_views=2
+STEP = 20
+LPIPS = 0.5026521682739258  # eval/metrics.json's mean LPIPS (AlexNet) of that run, as recorded 2026-11-25
 
 
 def _scalars(workdir, tag):
@@ -38,23 +39,25 @@ def test_psnr_and_ssim_closed_forms_at_scale_and_against_a_reference_implementat
 
 
 @pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
-  """A smoke run of 3 steps: checkpoint, eval/metrics.json and TensorBoard events (no orbit)."""
-  directory = tmp_path_factory.mktemp("run")
-  result = modes.train_and_evaluate(smoke_config(**OVERRIDES), str(directory))
-  return directory, result
+def workdir(smoke_run, tmp_path_factory):
+  """A copy of the session's smoke run (these tests evaluate into it): checkpoints, eval/metrics.json and
+  TensorBoard events (no orbit)."""
+  import shutil
+  directory = tmp_path_factory.mktemp("evaluate") / "run"
+  shutil.copytree(smoke_run.workdir, directory)
+  return directory, smoke_run.metrics
 
 
 def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
   directory, result = workdir
   written = json.loads((directory / "eval" / "metrics.json").read_text())
   assert written == result
-  assert written["step"] == 3 and written["scene"] == "procedural" and written["split"] == "test"
+  assert written["step"] == STEP and written["scene"] == "procedural" and written["split"] == "test"
   assert [v["index"] for v in written["views"]] == [0, 1]  # eval.max_views=2 of the 8 test views
   # Recompute every view from the checkpoint with the plain renderer and the metrics module.
   config = smoke_config(**OVERRIDES)
   comps, params, step = modes.restore_trained(config, str(directory))
-  assert step == 3
+  assert step == STEP
   renderer = render.make_renderer(comps.model, comps.mesh, 2.0, 6.0, comps.scene.background)
   split = comps.scene.split("test")
   for view in written["views"]:
@@ -69,11 +72,12 @@ def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
   for name in ("psnr", "ssim", "lpips"):
     if written["mean"][name] is not None:
       assert written["mean"][name] == pytest.approx(np.mean([v[name] for v in written["views"]]))
-  assert _scalars(directory, "eval/test/psnr") == {3: pytest.approx(written["mean"]["psnr"], rel=1e-6)}
+  assert _scalars(directory, "eval/test/psnr") == {STEP: pytest.approx(written["mean"]["psnr"], rel=1e-6)}
   if lpips.available():
     assert written["lpips_net"] == "alex" and "lpips_note" not in written
-    assert 0 < written["mean"]["lpips"] < 1
-    assert _scalars(directory, "eval/test/lpips") == {3: pytest.approx(written["mean"]["lpips"], rel=1e-6)}
+    # The recorded mean of the smoke run's 2 views (as tests/test_golden.py records its PSNR and SSIM).
+    assert written["mean"]["lpips"] == pytest.approx(LPIPS, rel=1e-5), written["mean"]["lpips"]
+    assert _scalars(directory, "eval/test/lpips") == {STEP: pytest.approx(written["mean"]["lpips"], rel=1e-6)}
 
 
 def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, tmp_path):
@@ -81,9 +85,9 @@ def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, 
   config = smoke_config(**dict(OVERRIDES, **{"eval.split": "val", "eval.max_views": 1, "eval.chunk": 64}))
   result = modes.evaluate_workdir(config, str(directory))
   written = json.loads((directory / "eval" / "metrics.json").read_text())
-  assert written == result and written["split"] == "val" and written["step"] == 3
+  assert written == result and written["split"] == "val" and written["step"] == STEP
   assert [v["index"] for v in written["views"]] == [0]
-  assert _scalars(directory, "eval/val/ssim") == {3: pytest.approx(written["mean"]["ssim"], rel=1e-6)}
+  assert _scalars(directory, "eval/val/ssim") == {STEP: pytest.approx(written["mean"]["ssim"], rel=1e-6)}
   with pytest.raises(UserError, match="holds no checkpoint"):
     modes.evaluate_workdir(config, str(tmp_path / "empty"))
   with pytest.raises(UserError, match=r"eval.split=nope is not valid: it must be one of 'test', 'val'"):

@@ -172,13 +172,9 @@ def _export(*argv):
 
 
 @pytest.fixture(scope="module")
-def smoke_workdir(tmp_path_factory):
-  from conftest import smoke_config
-  from nerfpod import modes
-  directory = tmp_path_factory.mktemp("smoke")
-  modes.train_and_evaluate(smoke_config(**{"orbit.render_after_training": False, "train.image_every": 0}),
-                           str(directory))
-  return directory
+def smoke_workdir(smoke_run):
+  """The session's smoke run (conftest.smoke_run), which the exports only read."""
+  return smoke_run.workdir
 
 
 def test_each_kind_refuses_bad_input_in_one_sentence(smoke_workdir, tmp_path, capsys):

@@ -595,5 +595,17 @@ def test_a_horns_video_prepares_into_a_capture_llff_trains_on(tmp_path, capsys):
                     "--config.train.num_steps=10", "--config.eval.max_views=1", "--config.orbit.num_frames=3",
                     timeout=600)
   assert result.returncode == 0, result.stderr[-3000:]
+  # It evaluated the capture's first held-out frame at step 10, trained (the loss fell from step 1 to 10),
+  # and rendered a complete 3-frame orbit at the capture's framing.
   metrics = json.loads((workdir / "eval" / "metrics.json").read_text())
-  assert 5 < metrics["mean"]["psnr"] < 40
+  assert metrics["step"] == 10 and metrics["split"] == "test" and [v["index"] for v in metrics["views"]] == [0]
+  assert np.isfinite(metrics["mean"]["psnr"]) and metrics["mean"]["psnr"] == metrics["views"][0]["psnr"]
+  from tensorboard.backend.event_processing import event_accumulator
+  events = event_accumulator.EventAccumulator(str(workdir), size_guidance={"scalars": 0})
+  events.Reload()
+  losses = {e.step: e.value for e in events.Scalars("train/loss")}
+  print(f"horns video: losses {losses}, held-out PSNR {metrics['mean']['psnr']:.2f} dB")
+  assert losses[10] < losses[1], losses
+  from nerfpod import archive as archives
+  orbit = archives.Archive.open(str(workdir / "renders" / "orbit.zarr"))
+  assert orbit.num_frames == 3 and orbit.missing_frames() == []

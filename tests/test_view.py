@@ -16,7 +16,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import LEGO, REPO, TINY_NPZ, require, smoke_config
+from conftest import LEGO, REPO, SMOKE_RUN_OVERRIDES, TINY_NPZ, require, smoke_config
 from nerfpod import workdir_files
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -114,13 +114,11 @@ def test_a_busy_port_and_a_workdir_without_config_are_user_errors(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def trained_workdir(tmp_path_factory):
-  """A smoke run of 20 steps (checkpoints at 10 and 20), trained in this process."""
-  from nerfpod import modes
+def trained_workdir(smoke_run, tmp_path_factory):
+  """A copy of the session's smoke run (conftest.smoke_run: 20 steps, checkpoints at 10 and 20), which a test
+  below writes a checkpoint into."""
   workdir = tmp_path_factory.mktemp("view") / "run"
-  config = smoke_config(**{"train.num_steps": 20, "checkpoint.every_steps": 10, "eval.max_views": 1,
-                           "orbit.render_after_training": False})
-  modes.train_and_evaluate(config, str(workdir))
+  shutil.copytree(smoke_run.workdir, workdir)
   return workdir
 
 
@@ -265,9 +263,7 @@ def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
 
   # --mode=render renders the saved path into the archive: its cameras are the file's.
   from nerfpod import archive, modes
-  config = smoke_config(**{"train.num_steps": 20, "checkpoint.every_steps": 10, "eval.max_views": 1,
-                           "orbit.render_after_training": False, "orbit.path": "file",
-                           "orbit.path_file": str(saved)})
+  config = smoke_config(**dict(SMOKE_RUN_OVERRIDES, **{"orbit.path": "file", "orbit.path_file": str(saved)}))
   modes.render_workdir(config, str(viewer.workdir))
   rendered = archive.Archive.open(f"{viewer.workdir}/renders/orbit.zarr")
   np.testing.assert_allclose(rendered.attributes["poses"], path.poses, atol=1e-6)
