@@ -9,6 +9,12 @@ and renames it to `<step>` only once every process has finished (on gs://, which
 finished step with a `commit_success.txt` instead), so a save cut off half way is never taken as the latest.
 A state holding a non-finite value is never saved.
 
+Rotation: a step rotated out (beyond checkpoint.max_to_keep) is first renamed into DIR/checkpoints/.rotated/
+(one atomic rename), and only then deleted, by process 0, before the next save and when the run ends; so a
+process killed while deleting leaves its remains there, never a half-deleted step folder beside the good ones
+(which orbax would list as a step without its metadata). On gs://, where orbax deletes objects directly, a cut-off
+deletion leaves objects of a step without its metadata, which is never the newest step.
+
 Damage: a finished step that does not read back whole (a file emptied or deleted by a disk or a person, or
 non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
 deleted), and the restore falls back to the newest step before it that reads back whole.
@@ -29,6 +35,9 @@ from nerfpod.finite import all_finite
 def checkpoint_dir(workdir: str) -> epath.Path:
   workdir = str(workdir)
   return epath.Path(workdir if "://" in workdir else epath.Path(workdir).absolute()) / "checkpoints"
+
+
+ROTATED = ".rotated"  # where rotated-out steps wait to be deleted (a folder of the checkpoints' folder)
 
 
 def finished_steps(workdir: str) -> list[int]:
@@ -62,6 +71,7 @@ class Checkpoints:
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep, enable_async_checkpointing=True, create=not read_only, read_only=read_only,
         cleanup_tmp_directories=not read_only,  # leftovers of a save cut off by a crash
+        todelete_subdir=None if read_only else ROTATED,  # rename first, delete after (the module's docstring)
         # Every `every_steps` steps and at a preemption; explicitly so, as orbax's default policy would
         # also save the first step of every run.
         save_decision_policy=cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
@@ -69,6 +79,16 @@ class Checkpoints:
     self._directory = checkpoint_dir(workdir)
     self._read_only = read_only
     self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
+    if not read_only:
+      self._delete_rotated()
+
+  def _delete_rotated(self) -> None:
+    """Deletes the steps rotated out into .rotated/ (process 0): what orbax renamed there is whole or gone."""
+    rotated = self._directory / ROTATED
+    if jax.process_index() != 0 or not rotated.exists():
+      return
+    for path in rotated.iterdir():
+      path.rmtree() if path.is_dir() else path.unlink()
 
   def __enter__(self):
     return self
@@ -155,6 +175,7 @@ class Checkpoints:
       return False
     if not (force or self.manager.should_save(step)):
       return False
+    self._delete_rotated()  # what the previous save rotated out
     # The step never lets a non-finite value into the state (it skips such updates); this is the last line
     # of defence, as a saved NaN would rotate the good checkpoints out.
     if not bool(all_finite(state)):
@@ -172,6 +193,8 @@ class Checkpoints:
     self._closed = True
     self.manager.wait_until_finished()
     self.manager.close()
+    if not self._read_only:
+      self._delete_rotated()
 
 
 def restore_read_only(workdir: str, checkpoint_config, abstract_state, step: int | None = None):

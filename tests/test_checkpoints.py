@@ -45,6 +45,41 @@ def test_saves_every_n_steps_keeps_the_newest_and_restores_state_and_position(tm
   np.testing.assert_array_equal(state["params"]["b"], np.arange(5.0) * 6)
 
 
+def test_rotated_out_steps_are_renamed_before_they_are_deleted_and_remains_are_cleared(tmp_path, capfd):
+  """A step rotated out is renamed into checkpoints/.rotated/ in one move and deleted there: a process killed
+  while deleting it leaves its remains in .rotated/ (cleared by the next run), never a step folder without
+  its metadata among the good ones (orbax warned "Metadata file does not exist" on every later start)."""
+  mesh = _mesh(8)
+  directory = checkpoints.checkpoint_dir(str(tmp_path))
+  renamed = []
+  original = checkpoints.Checkpoints._delete_rotated
+
+  def recording(self):  # what is in .rotated/ each time it is emptied
+    rotated = directory / checkpoints.ROTATED
+    renamed.append(sorted(p.name for p in rotated.iterdir()) if rotated.exists() else [])
+    original(self)
+
+  with pytest.MonkeyPatch.context() as patch:
+    patch.setattr(checkpoints.Checkpoints, "_delete_rotated", recording)
+    with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=2) as ckpt:
+      for step in range(1, 5):
+        ckpt.save(step, _state(mesh, step), {"next_step": step})
+  # Steps 1 and 2 went through .rotated/ (seen there before a later save, or when the run ended).
+  assert sorted(sum(renamed, [])) == ["1", "2"], renamed
+  assert sorted(p.name for p in directory.iterdir()) == [checkpoints.ROTATED, "3", "4"]
+  assert not list((directory / checkpoints.ROTATED).iterdir())  # emptied when the run ended
+  # What a process killed half way through deleting step 2 leaves: part of it, without its metadata.
+  remains = directory / checkpoints.ROTATED / "2"
+  shutil.copytree(directory / "3", remains)
+  os.remove(remains / "_CHECKPOINT_METADATA")
+  capfd.readouterr()
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=2) as ckpt:
+    assert ckpt.manager.all_steps() == [3, 4]
+    state, position = ckpt.restore(_abstract(_state(mesh, 0)))
+  assert position == {"next_step": 4} and int(state["step"]) == 4
+  assert not remains.exists() and checkpoints.finished_steps(str(tmp_path)) == [3, 4]
+  assert "Metadata file does not exist" not in "".join(capfd.readouterr())
+
 def test_a_save_cut_off_half_way_is_never_the_latest(tmp_path):
   mesh = _mesh(8)
   with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3) as ckpt:
