@@ -107,6 +107,9 @@ class Viewer:
     except ImportError:
       raise UserError("the viewer needs viser: pip install 'nerfpod[viewer]' (or pip install viser).") from None
     self.workdir, self.paths_dir, self.poll_seconds = str(workdir), paths_dir, poll_seconds
+    if "://" not in self.workdir and not os.path.isdir(self.workdir):
+      raise UserError(f"workdir {self.workdir} does not exist; check the --workdir path, or train first "
+                      f"(nerfpod train --config=configs/default.py --workdir={self.workdir}).")
     self.config = workdir_files.read_config(self.workdir)
     step = checkpoints.latest_step(self.workdir)  # an unreachable bucket: one sentence
     if step is None:

@@ -113,6 +113,16 @@ def test_a_busy_port_and_a_workdir_without_config_are_user_errors(tmp_path):
   assert workdir_files.read_config(str(tmp_path)).train.log_every == 5
 
 
+def test_a_missing_workdir_is_named_with_the_way_out(tmp_path):
+  from nerfpod import view
+  from nerfpod.errors import UserError
+  missing = tmp_path / "no-such-run"
+  with pytest.raises(UserError, match=f"workdir {missing} does not exist; check the --workdir path, or train "
+                                      f"first .nerfpod train "):
+    view.Viewer(str(missing), port=0)
+  assert not missing.exists()
+
+
 @pytest.fixture(scope="module")
 def trained_workdir(smoke_run, tmp_path_factory):
   """A copy of the session's smoke run (conftest.smoke_run: 20 steps, checkpoints at 10 and 20), which a test
@@ -290,7 +300,11 @@ def test_bad_workdirs_and_a_busy_port_are_one_sentence(trained_workdir, tmp_path
   empty.mkdir()
   shutil.copy(trained_workdir / "config.json", empty / "config.json")  # a run that has not saved yet
   _assert_one_sentence(_view(f"--workdir={empty}", "--port=0"), "no checkpoint")
-  _assert_one_sentence(_view(f"--workdir={tmp_path / 'missing'}", "--port=0"), "no config.json")
+  _assert_one_sentence(_view(f"--workdir={tmp_path / 'missing'}", "--port=0"),
+                       f"workdir {tmp_path / 'missing'} does not exist", "--workdir", "nerfpod train")
+  no_config = tmp_path / "no-config"
+  no_config.mkdir()
+  _assert_one_sentence(_view(f"--workdir={no_config}", "--port=0"), "no config.json")
   _assert_one_sentence(_view("--workdir=gs://nerfpod-no-such-bucket-for-tests/run", "--port=0"),
                        "could not read gs://nerfpod-no-such-bucket-for-tests/run/config.json")
   with socket.socket() as busy:
