@@ -8,6 +8,13 @@ it never writes, cleans or locks anything a running training job owns). DIR may 
 Training may still be running: the newest complete checkpoint is polled every `poll_seconds` and a newer
 one replaces the parameters on screen, without a restart.
 
+A damaged checkpoint (a step that does not read back whole: a file truncated, emptied or deleted) is
+skipped as `--mode=eval` skips it: the viewer shows the newest step before it that reads back whole, says
+so in one warning line and on the page ("step 10 (step 20 does not read back whole: ...)"), and leaves the
+damaged step where it is (a training run on the workdir sets it aside). A damaged step is not read again;
+a newer one that reads back whole replaces what is on screen as usual. No step reading back whole at
+start-up is one sentence (exit code 2).
+
 What the page shows: the scene from the camera the user drags, rendered on this machine's JAX devices (CPU
 or GPU) by the same compiled renderer evaluation and orbits use; the channel picked (rgb, depth, acc,
 disparity, coloured as the orbit videos are); the training and held-out cameras as frustums holding their
@@ -111,8 +118,8 @@ class Viewer:
       raise UserError(f"workdir {self.workdir} does not exist; check the --workdir path, or train first "
                       f"(nerfpod train --config=configs/default.py --workdir={self.workdir}).")
     self.config = workdir_files.read_config(self.workdir)
-    step = checkpoints.latest_step(self.workdir)  # an unreachable bucket: one sentence
-    if step is None:
+    steps = checkpoints.finished_steps(self.workdir)  # an unreachable bucket: one sentence
+    if not steps:
       raise UserError(f"workdir {self.workdir} holds no checkpoint yet; wait for the training run's first "
                       f"save (every checkpoint.every_steps={self.config.checkpoint.every_steps} steps) or pass "
                       f"the --workdir of a trained run.")
@@ -123,7 +130,15 @@ class Viewer:
     # its renderer is not a program on a subset of anyone's slice.
     self.comps = components.build(self.config)
     mesh = self.comps.mesh
-    self.step, self.params = step, self._restore(step)
+    self.damaged: dict[int, str] = {}  # {step: why it does not read back whole}: skipped, never read again
+    self._poll_error = ""  # the last poll's error, said once
+    newest = self._restore_newest(steps, above=-1)
+    if newest is None:
+      raise UserError(f"no checkpoint in {checkpoints.checkpoint_dir(self.workdir)} reads back whole ("
+                      + "; ".join(f"step {s}: {r}" for s, r in sorted(self.damaged.items(), reverse=True))
+                      + "); the viewer leaves them in place: train again from scratch in a new --workdir (or "
+                        "rerun the training command, which sets them aside and starts from scratch).")
+    self.step, self.params = newest  # the step on screen and its parameters
     self.chunk = max(mesh.size, self.config.orbit.chunk - self.config.orbit.chunk % mesh.size)
     self.max_resolution, self.coarse_resolution = int(max_resolution), int(coarse_resolution)
     self.keyframes: list[tuple[np.ndarray, float]] = []  # (OpenGL pose, vertical fov in degrees)
@@ -151,22 +166,58 @@ class Viewer:
     """The parameters of `step`, restored read-only onto this machine's devices."""
     return checkpoints.restore_read_only(self.workdir, self.config.checkpoint, self.comps.state_shapes, step).params
 
-  def _poll_checkpoints(self):
-    """Picks up a newer checkpoint while training goes on. A step deleted (max_to_keep) or unreadable while
-    being read is tried again at the next poll; what is on screen stays until then."""
-    while not self._stop.wait(self.poll_seconds):
+  def _restore_newest(self, steps, above: int):
+    """(step, params) of the newest of `steps` after step `above` that reads back whole, or None. Newest
+    first, as `--mode=eval` does; each step that does not read back whole is said in one warning line,
+    remembered in `self.damaged` (and so never read again) and left in place: the viewer writes nothing. A
+    step gone meanwhile (rotated out by the training run's max_to_keep) is passed over in silence. A
+    checkpoint of another model is one sentence (UserError), as for evaluation."""
+    for step in sorted((s for s in steps if s > above and s not in self.damaged), reverse=True):
       try:
-        step = checkpoints.latest_step(self.workdir)
-        if step is None or step <= self.step:
-          continue
-        params = self._restore(step)
-      except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
-        print(f"nerfpod: view: could not read the newest checkpoint yet ({e}); trying again", file=sys.stderr)
+        return step, self._restore(step)
+      except UserError:
+        raise
+      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
+        reason = _reason(e)
+      if step not in checkpoints.finished_steps(self.workdir):
         continue
-      self.params, self.step = params, step
+      self.damaged[step] = reason
+      print(f"nerfpod: warning: the checkpoint of step {step} in {checkpoints.checkpoint_dir(self.workdir)} "
+            f"does not read back whole ({reason}); left in place (a training run on this workdir sets it "
+            f"aside); the viewer shows the newest step before it that reads back whole", file=sys.stderr, flush=True)
+    return None
+
+  def poll(self) -> bool:
+    """One look for a newer checkpoint (the poller's, every `poll_seconds`): the newest step after the one
+    on screen that reads back whole replaces it and every page is re-rendered; newer steps that do not read
+    back whole are said on the page and skipped, and what is on screen stays. Returns whether the step on
+    screen changed. An unlistable workdir (a bucket's network) or a checkpoint of another model is said once
+    and looked at again at the next poll."""
+    damaged = len(self.damaged)
+    try:
+      newest = self._restore_newest(checkpoints.finished_steps(self.workdir), above=self.step)
+    except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
+      reason = _reason(e)
+      if reason != self._poll_error:
+        print(f"nerfpod: view: could not read the newest checkpoint ({reason}); still showing step {self.step}, "
+              f"trying again", file=sys.stderr, flush=True)
+      self._poll_error = reason
+      return False
+    self._poll_error = ""
+    if newest is not None:
+      step, self.params = newest
+      self.step = step  # after the parameters: a frame is never labelled with a step it does not show
+    if newest is not None or len(self.damaged) != damaged:
       self._step_text.content = self._step_markdown()
-      print(f"nerfpod: view: now showing step {step}", flush=True)
-      self._all_changed()
+    if newest is None:
+      return False
+    print(f"nerfpod: view: now showing step {self.step}", flush=True)
+    self._all_changed()
+    return True
+
+  def _poll_checkpoints(self):
+    while not self._stop.wait(self.poll_seconds):
+      self.poll()
 
   # ---- rendering ----------------------------------------------------------------------------------------
 
@@ -234,7 +285,11 @@ class Viewer:
   # ---- the page -----------------------------------------------------------------------------------------
 
   def _step_markdown(self) -> str:
-    return f"**Checkpoint** step {self.step}  \n`{self.workdir}`"
+    """The step on screen, and why any newer step is not (e.g. "step 10 (step 20 does not read back whole:
+    ...)")."""
+    skipped = "; ".join(f"step {s} does not read back whole: `{r.replace('`', chr(39))}`"
+                        for s, r in sorted(self.damaged.items(), reverse=True) if s > self.step)
+    return f"**Checkpoint** step {self.step}{f' ({skipped})' if skipped else ''}  \n`{self.workdir}`"
 
   def _build_page(self):
     gui, scene = self.server.gui, self.server.scene
@@ -385,6 +440,30 @@ class Viewer:
     self.server.stop()
 
 
+def _reason(error: BaseException) -> str:
+  """Why a read failed, in one line: the innermost cause's message (orbax wraps tensorstore's error, which
+  names the file and what is wrong with it, in one that names neither)."""
+  while error.__cause__ is not None:
+    error = error.__cause__
+  return " ".join(str(error).split())[:300] or type(error).__name__
+
+
+def _quiet_abandoned_reads(hook):
+  """`hook` (sys.unraisablehook), less the reports of the reads orbax abandons when a restore fails (a
+  damaged step): orbax stops at the first failed read and closes its event loop with the other reads still
+  under way, so each of those later reports "Event loop is closed" (from tensorstore's thread) or, at exit,
+  an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened."""
+  def quiet(unraisable):
+    error, trace = unraisable.exc_value, unraisable.exc_traceback
+    closed_loop = (isinstance(error, RuntimeError) and str(error) == "Event loop is closed" and trace is not None
+                   and trace.tb_frame.f_code.co_name == "call_soon_threadsafe")  # called from no Python frame
+    code = getattr(unraisable.object, "cr_code", None)
+    abandoned_read = code is not None and f"{os.sep}orbax{os.sep}" in code.co_filename
+    if not (closed_loop or abandoned_read):
+      hook(unraisable)
+  return quiet
+
+
 def _thumbnail(image_HxWx3) -> np.ndarray:
   """A small uint8 copy of a training image for its frustum (every other pixel until it fits)."""
   image = np.asarray(image_HxWx3)
@@ -420,6 +499,7 @@ def run(argv=None):
   started = time.perf_counter()
   args = _parse(sys.argv[1:] if argv is None else argv)
   logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore: keep the console readable
+  sys.unraisablehook = _quiet_abandoned_reads(sys.unraisablehook)
   try:
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)

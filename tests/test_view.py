@@ -123,6 +123,70 @@ def test_a_missing_workdir_is_named_with_the_way_out(tmp_path):
   assert not missing.exists()
 
 
+def _damage(step_dir: pathlib.Path):
+  """Truncates the largest file of a checkpoint step's train state to half its size (a disk or a copy cut
+  off): the step no longer reads back whole."""
+  largest = max((p for p in (step_dir / "state").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+  with open(largest, "r+b") as f:
+    f.truncate(largest.stat().st_size // 2)
+
+
+def _files(directory: pathlib.Path) -> dict[str, bytes]:
+  return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
+
+
+def _warnings(capsys) -> list[str]:
+  return [line for line in capsys.readouterr().err.splitlines() if line.startswith("nerfpod: warning:")]
+
+
+def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_place(trained_workdir, tmp_path,
+                                                                                     capsys, monkeypatch):
+  from nerfpod import checkpoints, view
+  # What `nerfpod view` does (view.run): orbax's reads abandoned by a failed restore report nothing.
+  monkeypatch.setattr(sys, "unraisablehook", view._quiet_abandoned_reads(sys.unraisablehook))
+  workdir = tmp_path / "run"
+  shutil.copytree(trained_workdir, workdir)
+  ckpts = workdir / "checkpoints"
+  for newer in set(checkpoints.finished_steps(str(workdir))) - {10, 20}:  # one written by the page test
+    shutil.rmtree(ckpts / str(newer))
+  _damage(ckpts / "20")
+  damaged = _files(ckpts / "20")
+  capsys.readouterr()
+  viewer = view.Viewer(str(workdir), port=0, poll_seconds=3600)  # polled by hand below
+  try:
+    # Start-up: the step before the damaged one, said in one stderr line and on the page.
+    assert viewer.step == 10
+    state, _, _ = checkpoints.read_numpy(str(workdir), 10)
+    np.testing.assert_array_equal(np.asarray(viewer.params["params"]["coarse"]["rgb"]["bias"]),
+                                  state["params"]["params"]["coarse"]["rgb"]["bias"])
+    (line,) = _warnings(capsys)
+    assert f"the checkpoint of step 20 in {ckpts} does not read back whole (" in line
+    assert "left in place" in line and "shows the newest step before it that reads back whole" in line
+    assert viewer._step_text.content.startswith("**Checkpoint** step 10 (step 20 does not read back whole: `")
+
+    # A new step that is damaged: the page keeps step 10 and says why; it is read once, not at every poll.
+    shutil.copytree(ckpts / "10", ckpts / "30")
+    _damage(ckpts / "30")
+    assert not viewer.poll() and viewer.step == 10
+    (line,) = _warnings(capsys)
+    assert "the checkpoint of step 30" in line
+    assert viewer._step_text.content.startswith(
+        "**Checkpoint** step 10 (step 30 does not read back whole: `")
+    assert "step 20 does not read back whole" in viewer._step_text.content
+    assert not viewer.poll() and _warnings(capsys) == []
+
+    # A newer step that reads back whole replaces step 10; the damaged ones are no longer mentioned.
+    shutil.copytree(ckpts / "10", ckpts / "40")
+    assert viewer.poll() and viewer.step == 40
+    assert viewer._step_text.content.startswith("**Checkpoint** step 40  \n")
+  finally:
+    viewer.close()
+  # Read-only: the damaged steps are where they were, byte for byte; nothing was set aside or added.
+  assert _files(ckpts / "20") == damaged
+  assert sorted(p.name for p in ckpts.iterdir()) == ["10", "20", "30", "40"]
+  assert sorted(p.name for p in workdir.iterdir()) == sorted(p.name for p in trained_workdir.iterdir())
+
+
 @pytest.fixture(scope="module")
 def trained_workdir(smoke_run, tmp_path_factory):
   """A copy of the session's smoke run (conftest.smoke_run: 20 steps, checkpoints at 10 and 20), which a test
@@ -305,6 +369,18 @@ def test_bad_workdirs_and_a_busy_port_are_one_sentence(trained_workdir, tmp_path
   no_config = tmp_path / "no-config"
   no_config.mkdir()
   _assert_one_sentence(_view(f"--workdir={no_config}", "--port=0"), "no config.json")
+  # Every step damaged: one sentence naming each, and nothing of orbax's abandoned reads after it.
+  damaged = tmp_path / "damaged"
+  shutil.copytree(trained_workdir, damaged)
+  steps = sorted(int(p.name) for p in (damaged / "checkpoints").iterdir())
+  for step in steps:
+    _damage(damaged / "checkpoints" / str(step))
+  result = _view(f"--workdir={damaged}", "--port=0")
+  _assert_one_sentence(result, f"no checkpoint in {damaged / 'checkpoints'} reads back whole",
+                       *(f"step {step}: " for step in steps), "train again")
+  warnings = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: warning:")]
+  assert len(warnings) == len(steps), result.stderr
+  assert "Event loop is closed" not in result.stderr and "Exception ignored" not in result.stderr, result.stderr
   _assert_one_sentence(_view("--workdir=gs://nerfpod-no-such-bucket-for-tests/run", "--port=0"),
                        "could not read gs://nerfpod-no-such-bucket-for-tests/run/config.json")
   with socket.socket() as busy:
