@@ -17,7 +17,7 @@ import os
 
 import jax
 
-from nerfpod import checkpoints, components, evaluate, monitor, orbit, schema, train, workdir_files
+from nerfpod import checkpoints, components, evaluate, monitor, orbit, schema, train, workdir_files, workdir_lock
 from nerfpod.errors import UserError
 
 
@@ -26,6 +26,10 @@ def _prepare(config, workdir: str, trained: bool = False) -> components.Componen
   `trained`: the workdir must hold a checkpoint (evaluation, rendering)."""
   schema.validate(config, jax.device_count())
   workdir_files.check_workdir(workdir, writable=not trained)
+  return _build(config, workdir, trained)
+
+
+def _build(config, workdir: str, trained: bool = False) -> components.Components:
   newest = checkpoints.latest_step(workdir)
   if trained and newest is None:
     raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
@@ -41,22 +45,63 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
   Ctrl-C stopped training: the state was then saved at a step all processes agreed on, and nothing else is
   done (the entry point exits with checkpoint.preempted_exit_code).
   """
-  comps = _prepare(config, workdir)
-  watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size, config)
-  exit_code = 1  # for the W&B run: an exception, unless training stops early (preempted) or ends
+  schema.validate(config, jax.device_count())
+  new_workdir = "://" not in str(workdir) and not os.path.exists(workdir)
+  workdir_files.check_workdir(workdir, writable=True)
+  lock = _hold(workdir)
   try:
-    trained = train.train(comps, workdir, watch)
-    if trained is None:
-      exit_code = config.checkpoint.preempted_exit_code
-      return None
-    state, step = trained
-    result = _evaluate(comps, state.params, workdir, step, writer=watch.writer)
-    if config.orbit.render_after_training:
-      _render_orbit(comps, state.params, workdir, step, writer=watch.writer)
-    exit_code = 0
+    comps = _build(config, workdir)
+  except UserError:
+    lock.release()
+    if new_workdir and jax.process_index() == 0:
+      _remove_if_empty(workdir)  # a data or config mistake leaves no empty folder behind
+    raise
+  try:
+    watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size, config)
+    exit_code = 1  # for the W&B run: an exception, unless training stops early (preempted) or ends
+    try:
+      trained = train.train(comps, workdir, watch)
+      if trained is None:
+        exit_code = config.checkpoint.preempted_exit_code
+        return None
+      state, step = trained
+      result = _evaluate(comps, state.params, workdir, step, writer=watch.writer)
+      if config.orbit.render_after_training:
+        _render_orbit(comps, state.params, workdir, step, writer=watch.writer)
+      exit_code = 0
+    finally:
+      watch.close(exit_code)
   finally:
-    watch.close(exit_code)
+    lock.release()
   return result
+
+
+def _hold(workdir: str) -> workdir_lock.WorkdirLock:
+  """The workdir's lock, taken by process 0 for the whole run; every process raises the refusal."""
+  lock = workdir_lock.WorkdirLock(workdir)
+  refusal = None
+  if jax.process_index() == 0:
+    try:
+      lock.acquire()
+    except UserError as e:
+      refusal = e
+  if jax.process_count() > 1:
+    import numpy as np
+    from jax.experimental import multihost_utils
+    taken = bool(multihost_utils.broadcast_one_to_all(np.int32(refusal is None)))
+    if not taken and refusal is None:
+      refusal = UserError(f"workdir {workdir} is in use by another training run (process 0's message names "
+                          f"it); wait for that run to end or stop it, or pass another --workdir.")
+  if refusal is not None:
+    raise refusal
+  return lock
+
+
+def _remove_if_empty(workdir: str) -> None:
+  try:
+    os.rmdir(workdir)
+  except OSError:  # not empty (or already gone): leave it
+    pass
 
 
 def _evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:

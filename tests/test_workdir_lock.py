@@ -1,0 +1,185 @@
+"""One writer per workdir: the lock refuses a live holder in one sentence, takes over a dead one (a pid gone
+on this host, a heartbeat stopped on another), and a second training run arriving at any moment of a first
+one is refused while the first ends with the uninterrupted run's parameters."""
+import json
+import os
+import random
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import procs
+from nerfpod import checkpoints, workdir_lock
+from nerfpod.errors import UserError
+
+
+@pytest.fixture
+def short_lease(monkeypatch):
+  monkeypatch.setattr(workdir_lock, "HEARTBEAT_SECONDS", 0.1)
+  monkeypatch.setattr(workdir_lock, "LEASE_SECONDS", 1.5)
+
+
+def _write_lock(workdir, **holder):
+  (workdir / workdir_lock.NAME).write_text(json.dumps(holder))
+
+
+def test_a_held_workdir_is_refused_naming_the_holder_and_released_at_the_end(tmp_path):
+  with workdir_lock.WorkdirLock(str(tmp_path)) as lock:
+    holder = json.loads((tmp_path / workdir_lock.NAME).read_text())
+    assert holder["host"] == socket.gethostname() and holder["pid"] == os.getpid()
+    with pytest.raises(UserError) as refused:
+      workdir_lock.WorkdirLock(str(tmp_path)).acquire()
+    message = str(refused.value)
+    assert message.count(". ") == 0 and message.endswith(".")
+    assert f"workdir {tmp_path} is in use by another training run (process {os.getpid()} on host " \
+           f"{socket.gethostname()} since {holder['since']} holds {lock.path})" in message
+  assert not (tmp_path / workdir_lock.NAME).exists()
+  with workdir_lock.WorkdirLock(str(tmp_path)):  # free again
+    pass
+
+
+def test_a_lock_whose_process_is_gone_is_taken_over_at_once(tmp_path):
+  gone = subprocess.Popen([sys.executable, "-c", "pass"])
+  gone.wait()
+  _write_lock(tmp_path, host=socket.gethostname(), pid=gone.pid, process_start="1", since="2026-01-01T00:00:00")
+  started = time.monotonic()
+  with workdir_lock.WorkdirLock(str(tmp_path)):
+    assert json.loads((tmp_path / workdir_lock.NAME).read_text())["pid"] == os.getpid()
+  assert time.monotonic() - started < 1.0
+  # A pid that now belongs to another process (this one) started at another time: the holder is gone too.
+  _write_lock(tmp_path, host=socket.gethostname(), pid=os.getpid(), process_start="-1", since="x")
+  with workdir_lock.WorkdirLock(str(tmp_path)):
+    assert json.loads((tmp_path / workdir_lock.NAME).read_text())["process_start"] != "-1"
+  # A lock file cut off while it was written (empty): its holder cannot be alive on this host... nor named;
+  # it is judged by its heartbeat, like another host's.
+  (tmp_path / workdir_lock.NAME).write_text("")
+  os.utime(tmp_path / workdir_lock.NAME, (0, 0))
+  with workdir_lock.WorkdirLock(str(tmp_path)):
+    pass
+
+
+def test_another_hosts_lock_is_refused_while_it_beats_and_taken_over_once_it_stops(tmp_path, short_lease):
+  _write_lock(tmp_path, host="elsewhere-host", pid=12345, since="2026-01-01T00:00:00")
+  stop = threading.Event()
+
+  def beat():
+    while not stop.wait(0.1):
+      os.utime(tmp_path / workdir_lock.NAME)
+
+  beating = threading.Thread(target=beat)
+  beating.start()
+  try:
+    started = time.monotonic()
+    with pytest.raises(UserError, match="process 12345 on host elsewhere-host since 2026-01-01T00:00:00"):
+      workdir_lock.WorkdirLock(str(tmp_path)).acquire()
+    assert time.monotonic() - started < 1.0  # refused at its first beat, not at the end of a lease
+  finally:
+    stop.set()
+    beating.join()
+  started = time.monotonic()
+  with workdir_lock.WorkdirLock(str(tmp_path)):  # the holder stopped beating: it is taken over after a lease
+    assert json.loads((tmp_path / workdir_lock.NAME).read_text())["pid"] == os.getpid()
+  assert 1.0 < time.monotonic() - started < 3.0
+  # A heartbeat older than a lease is stale at once.
+  _write_lock(tmp_path, host="elsewhere-host", pid=1, since="x")
+  os.utime(tmp_path / workdir_lock.NAME, (time.time() - 60, time.time() - 60))
+  started = time.monotonic()
+  with workdir_lock.WorkdirLock(str(tmp_path)):
+    pass
+  assert time.monotonic() - started < 0.5
+
+
+def test_the_holder_beats_and_release_leaves_another_holders_lock(tmp_path, short_lease):
+  lock = workdir_lock.WorkdirLock(str(tmp_path))
+  lock.acquire()
+  os.utime(lock.path, (0, 0))
+  time.sleep(0.5)
+  assert time.time() - os.stat(lock.path).st_mtime < 1.0  # touched by the heartbeat
+  _write_lock(tmp_path, host="elsewhere-host", pid=1, since="x")  # (someone replaced it by hand)
+  lock.release()
+  assert json.loads((tmp_path / workdir_lock.NAME).read_text())["host"] == "elsewhere-host"
+
+
+# The fault test: a second run of the same command started at random moments of a first one.
+SEED = int(os.environ.get("NERFPOD_TEST_SEED", "20251125"))
+NUM_STEPS = 16
+OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.every_steps": 2,
+             "checkpoint.max_to_keep": 2, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 1,
+             "orbit.num_frames": 2}
+RUN_TIMEOUT = 150
+
+
+@pytest.mark.slow
+def test_a_second_run_at_random_moments_is_refused_and_the_first_ends_as_if_alone(tmp_path):
+  reference = tmp_path / "reference"
+  with procs.Run(reference, OVERRIDES, devices_per_process=2) as run:
+    run.wait_ok(RUN_TIMEOUT)
+  want, _, _ = checkpoints.read_numpy(str(reference))
+
+  rng = random.Random(SEED)
+  workdir = tmp_path / "run"
+  moments = []
+  with procs.Run(workdir, OVERRIDES, devices_per_process=2) as first:
+    for phase in ("training", "evaluation and orbit"):
+      if phase == "training":
+        first.wait_for(lambda: "step " in first.output(0), RUN_TIMEOUT, "a training step")
+      elif phase == "evaluation and orbit":
+        trained = f"step {NUM_STEPS:>6d}/{NUM_STEPS}"
+        while trained not in first.output(0) and first.procs[0].poll() is None:
+          time.sleep(0.05)
+      time.sleep(rng.uniform(0.0, 0.5))
+      started = time.monotonic()
+      second = procs.run_main("--config=configs/default.py:smoke", f"--workdir={workdir}",
+                              *procs.overrides_to_flags(OVERRIDES), devices_per_process=2, timeout=RUN_TIMEOUT)
+      took = time.monotonic() - started
+      if first.procs[0].poll() is not None and second.returncode == 0:
+        moments.append(f"{phase}: after the first ended")  # it came too late to meet the first run
+        continue
+      moments.append(f"{phase}: refused in {took:.1f} s")
+      errors = [line for line in second.stderr.splitlines() if line.startswith("nerfpod: error:")]
+      assert second.returncode == 2 and len(errors) == 1 and "Traceback" not in second.stderr, (
+          f"seed {SEED}, {moments}: {second.stderr[-3000:]}")
+      assert f"is in use by another training run (process {first.procs[0].pid} on host" in errors[0], errors
+    first.wait_ok(RUN_TIMEOUT)
+  print(f"\nsecond writers (seed {SEED}): {moments}")
+  assert any("refused" in m for m in moments), moments
+  got, position, step = checkpoints.read_numpy(str(workdir))
+  assert step == NUM_STEPS and position == {"next_step": NUM_STEPS}
+  assert len(_leaves(got["params"])) == len(_leaves(want["params"]))
+  for a, b in zip(_leaves(got["params"]), _leaves(want["params"])):
+    np.testing.assert_array_equal(a, b)
+  assert not (workdir / workdir_lock.NAME).exists()
+
+  # Two runs started together on a new workdir: one trains, the other is refused.
+  raced = tmp_path / "raced"
+  with procs.Run(raced, OVERRIDES, devices_per_process=2) as one, \
+       procs.Run(raced, OVERRIDES, devices_per_process=2, log_dir=tmp_path / "raced-other") as other:
+    codes = sorted(one.wait(RUN_TIMEOUT) + other.wait(RUN_TIMEOUT))
+    logs = one.output(0) + other.output(0)
+  assert codes == [0, 2] and logs.count("is in use by another training run") == 1, logs[-3000:]
+  got, _, _ = checkpoints.read_numpy(str(raced))
+  for a, b in zip(_leaves(got["params"]), _leaves(want["params"])):
+    np.testing.assert_array_equal(a, b)
+
+  # A first run SIGKILLed leaves its lock behind: the next run takes it over at once and resumes.
+  killed = tmp_path / "killed"
+  with procs.Run(killed, OVERRIDES, devices_per_process=2) as run:
+    run.wait_for(lambda: checkpoints.latest_step(str(killed)) is not None, RUN_TIMEOUT, "a checkpoint")
+    run.kill()
+  assert (killed / workdir_lock.NAME).exists()
+  with procs.Run(killed, OVERRIDES, devices_per_process=2) as run:
+    run.wait_ok(RUN_TIMEOUT)
+  assert "steps 0.." not in run.output(0)  # resumed, not restarted
+  got, _, _ = checkpoints.read_numpy(str(killed))
+  for a, b in zip(_leaves(got["params"]), _leaves(want["params"])):
+    np.testing.assert_array_equal(a, b)
+
+
+def _leaves(tree):
+  import jax
+  return jax.tree.leaves(tree)
