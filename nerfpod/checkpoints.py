@@ -22,6 +22,9 @@ deleted), and the restore falls back to the newest step before it that reads bac
 When to stop for a preemption is nerfpod.preemption's; the workdir's other files are nerfpod.workdir's.
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
+import dataclasses
+import logging
+import os
 import sys
 
 import jax
@@ -59,6 +62,28 @@ def latest_step(workdir: str) -> int | None:
   return steps[-1] if steps else None
 
 
+class _ReadOnlyIsAsked(logging.Filter):
+  """Drops orbax's warnings that a read-only manager is read-only (nerfpod asks for it: evaluation, rendering,
+  the viewer and the exports never write in a workdir); every other orbax message passes."""
+  QUIET = ("Given directory is read only", "CheckpointManagerOptions.read_only=True, setting")
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith(self.QUIET)
+
+
+logging.getLogger("absl").addFilter(_ReadOnlyIsAsked())
+
+
+@dataclasses.dataclass
+class _Pinned:
+  """Orbax's preservation policy for the steps in `steps` (a set the owner changes): kept past max_to_keep."""
+  steps: set
+
+  def should_preserve(self, checkpoints, *, context):
+    del context
+    return [info.step in self.steps for info in checkpoints]
+
+
 class Checkpoints:
   """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position). Use as a
   context manager, or call close()."""
@@ -68,14 +93,17 @@ class Checkpoints:
     workdir, which a training run may be writing at the same time."""
     cm = ocp.checkpoint_managers
     self._closed = False
+    self._pinned = set()
+    # The newest max_to_keep steps, and any step pinned (the last one before a run of skipped steps).
+    keep = None if read_only else cm.AnyPreservationPolicy([cm.LatestN(max_to_keep), _Pinned(self._pinned)])
     options = ocp.CheckpointManagerOptions(
-        max_to_keep=max_to_keep, enable_async_checkpointing=True, create=not read_only, read_only=read_only,
+        preservation_policy=keep, enable_async_checkpointing=True, create=not read_only, read_only=read_only,
         cleanup_tmp_directories=not read_only,  # leftovers of a save cut off by a crash
         todelete_subdir=None if read_only else ROTATED,  # rename first, delete after (the module's docstring)
         # Every `every_steps` steps and at a preemption; explicitly so, as orbax's default policy would
         # also save the first step of every run.
-        save_decision_policy=cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
-                                               cm.PreemptionCheckpointingPolicy()]))
+        save_decision_policy=None if read_only else cm.AnySavePolicy([cm.FixedIntervalPolicy(every_steps),
+                                                                      cm.PreemptionCheckpointingPolicy()]))
     self._directory = checkpoint_dir(workdir)
     self._read_only = read_only
     self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
@@ -99,6 +127,19 @@ class Checkpoints:
   def latest_step(self) -> int | None:
     return self.manager.latest_step()
 
+  def newest_before(self, step: int) -> int | None:
+    """The newest step saved (or being saved) before `step`, None where there is none."""
+    earlier = [s for s in self.manager.all_steps() if s < step]
+    return max(earlier) if earlier else None
+
+  def pin(self, step: int | None) -> None:
+    """Keeps `step` however many newer steps are saved, until unpin(); None: nothing to keep."""
+    if step is not None:
+      self._pinned.add(step)
+
+  def unpin(self) -> None:
+    self._pinned.clear()
+
   def restore(self, abstract_state, step: int | None = None):
     """(state, data position) of `step` (default: the newest that reads back whole), arrays placed as in
     `abstract_state`.
@@ -117,7 +158,7 @@ class Checkpoints:
       except UserError:
         raise
       except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        reason = damage_reason(e)
         damaged.append(f"step {candidate}: {reason}")
         if self._read_only:
           where = "left in place (a training run on this workdir sets it aside)"
@@ -207,6 +248,30 @@ def restore_read_only(workdir: str, checkpoint_config, abstract_state, step: int
   return state
 
 
+def damage_reason(error: BaseException) -> str:
+  """Why a read failed, in one line: the innermost cause's message (orbax wraps tensorstore's error, which
+  names the file and what is wrong with it, in one that names neither)."""
+  while error.__cause__ is not None:
+    error = error.__cause__
+  return " ".join(str(error).split())[:300] or type(error).__name__
+
+
+def quiet_abandoned_reads(hook):
+  """`hook` (sys.unraisablehook), less the reports of the reads orbax abandons when a restore fails (a
+  damaged step): orbax stops at the first failed read and closes its event loop with the other reads still
+  under way, so each of those later reports "Event loop is closed" (from tensorstore's thread) or, at exit,
+  an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened."""
+  def quiet(unraisable):
+    error, trace = unraisable.exc_value, unraisable.exc_traceback
+    closed_loop = (isinstance(error, RuntimeError) and str(error) == "Event loop is closed" and trace is not None
+                   and trace.tb_frame.f_code.co_name == "call_soon_threadsafe")  # called from no Python frame
+    code = getattr(unraisable.object, "cr_code", None)
+    abandoned_read = code is not None and f"{os.sep}orbax{os.sep}" in code.co_filename
+    if not (closed_loop or abandoned_read):
+      hook(unraisable)
+  return quiet
+
+
 def _saved_tree(path):
   """The tree of array metadata (shapes, dtypes) of the pytree item saved at `path`, read without its data."""
   # The handler's own reader: the checkpointer's would also look for step metadata in the item's folder,
@@ -250,7 +315,7 @@ def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:
       try:
         return read_numpy(workdir, candidate)
       except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = " ".join(str(e).split())[:200] or type(e).__name__
+        reason = damage_reason(e)
         print(f"nerfpod: warning: the checkpoint of step {candidate} in {checkpoint_dir(workdir)} does not read "
               f"back whole ({reason}); reading the step before it", file=sys.stderr, flush=True)
     raise UserError(f"no checkpoint in {checkpoint_dir(workdir)} reads back whole.")

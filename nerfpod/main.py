@@ -69,7 +69,9 @@ def main(argv):
     distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
                            heartbeat_timeout_seconds=_HEARTBEAT.value,
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
-    from nerfpod import compilation, modes
+    from nerfpod import checkpoints, compilation, modes
+    # A damaged checkpoint's failed restore leaves orbax's other reads to report themselves at exit.
+    sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
     compilation.tune_host(config)  # process-wide (glibc's malloc on a CPU): here, where the process starts
     result = {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
               "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)

@@ -112,6 +112,12 @@ def _evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
     writer.add_table(f"eval/{result['split']}/views", columns,
                      [[view.get(key) for key in columns] for view in result["views"]], step)
     writer.flush()
+  broken = [view for view in result["views"] if view["psnr"] is None]
+  if broken:  # a diverged model renders NaN: not a result to exit 0 with (nor to render an orbit of)
+    raise UserError(f"the evaluation of step {step} is not finite: {len(broken)} of {len(result['views'])} held-out "
+                    f"views rendered non-finite values ({broken[0].get('reason', 'psnr not finite')}), so the model "
+                    f"diverged; {workdir}/eval/metrics.json holds nulls for them; train again in a new --workdir "
+                    f"with a lower train.lr_init or a train.grad_clip > 0.")
   return result
 
 

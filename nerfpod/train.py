@@ -13,28 +13,63 @@ from nerfpod.errors import UserError
 
 
 class SkipCount:
-  """Steps skipped for a non-finite loss or gradient: the total (logged as train/skipped) and the current run
-  of them in a row, which stops training at `limit` with one sentence (the state, and so every checkpoint,
-  holds the last good parameters)."""
+  """Steps skipped for a non-finite loss or gradient: the total (logged as train/skipped) and the current
+  streak of them in a row. A streak stops training with one sentence at `limit` steps, and so does a run that
+  ends inside one (`check_ended`). While a streak lasts, the newest checkpoint saved before its first step is
+  pinned (kept past checkpoint.max_to_keep) and named in that sentence: the steps that follow hold no update
+  and may hold parameters that had already grown useless before the first non-finite value. The streak is
+  part of the data position saved with each checkpoint (`position`), so a resumed run continues it."""
 
-  def __init__(self, limit: int):
-    self.limit, self.total, self.in_row = limit, 0, 0
+  def __init__(self, limit: int, ckpt, position: dict | None = None):
+    position = position or {}
+    self.limit, self.ckpt = limit, ckpt
+    self.total = int(position.get("skipped", 0))
+    self.in_row = int(position.get("skipped_in_row", 0))
+    self.first = position.get("streak_from")  # the streak's first skipped step
+    self.before = position.get("checkpoint_before_streak")  # the newest checkpoint saved before it
+    if self.in_row:
+      ckpt.pin(self.before)
 
-  def record(self, step: int, skipped, newest_checkpoint) -> None:
-    """`newest_checkpoint()`: the newest saved step, named when training stops."""
+  def record(self, step: int, skipped) -> None:
+    """Whether step `step` (counted from 1) was skipped."""
     if not int(jax.device_get(skipped)):
-      self.in_row = 0
+      if self.in_row:
+        self.ckpt.unpin()
+      self.in_row, self.first, self.before = 0, None, None
       return
     self.total += 1
     self.in_row += 1
-    if self.in_row == 1 and jax.process_index() == 0:
-      print(f"nerfpod: warning: step {step} had a non-finite loss or gradient; skipped its update",
-            file=sys.stderr, flush=True)
+    if self.in_row == 1:
+      self.first, self.before = step, self.ckpt.newest_before(step)
+      self.ckpt.pin(self.before)
+      if jax.process_index() == 0:
+        print(f"nerfpod: warning: step {step} had a non-finite loss or gradient; skipped its update",
+              file=sys.stderr, flush=True)
     if self.in_row >= self.limit:
       raise UserError(f"training diverged: the last {self.in_row} steps (to step {step}) all had a non-finite "
-                      f"loss or gradient and were skipped (train.max_nonfinite_steps={self.limit}); no "
-                      f"non-finite value was saved, the newest checkpoint is step {newest_checkpoint()}; train "
-                      f"again in a new --workdir with a lower train.lr_init or a train.grad_clip > 0.")
+                      f"loss or gradient and were skipped (train.max_nonfinite_steps={self.limit}); "
+                      f"{self._advice()}")
+
+  def check_ended(self, step: int) -> None:
+    """Refuses a run whose last step `step` lies inside a streak of skipped steps."""
+    if self.in_row:
+      raise UserError(f"training diverged: it ended at step {step} inside a run of {self.in_row} skipped steps "
+                      f"(from step {self.first}, each with a non-finite loss or gradient); {self._advice()}")
+
+  def _advice(self) -> str:
+    where = (f"the newest checkpoint before it is step {self.before}" if self.before is not None else
+             "no checkpoint was saved before it")
+    return (f"no non-finite value was saved, and {where}; train again in a new --workdir with a lower "
+            f"train.lr_init or a train.grad_clip > 0.")
+
+  def position(self, next_step: int) -> dict:
+    """The data position saved with a checkpoint: the next step, and the skip counts where there are any."""
+    position = {"next_step": next_step}
+    if self.total:
+      position["skipped"] = self.total
+    if self.in_row:
+      position.update(skipped_in_row=self.in_row, streak_from=self.first, checkpoint_before_streak=self.before)
+    return position
 
   def with_total(self, metrics: dict) -> dict:
     """The fetched step metrics with 'skipped' (that step's flag) replaced by the total so far."""
@@ -55,13 +90,14 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   try:
     # The step compiles while the state is restored or initialised (not when training is already done).
     compiling = train_step.start_compiling(comps) if (ckpt.latest_step() or 0) < tc.num_steps else None
-    start_step = 0
+    start_step, position = 0, None
     if ckpt.latest_step() is not None:
       state, position = ckpt.restore(comps.state_shapes)
       start_step = int(position["next_step"])
       logging.info("resumed from step %d", start_step)
     else:
       state = comps.init_state()
+    skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
     if jax.process_index() == 0:
       write_config(workdir, json.loads(config.to_json_best_effort()))
       write_scene(workdir, comps.scene.description())
@@ -80,14 +116,13 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     preview = comps.scene.split(config.eval.split)
 
     pending = None  # metrics of a log step, fetched only after the next step is dispatched
-    skips = SkipCount(tc.max_nonfinite_steps)
     unchecked = None  # (step, whether it was skipped) of the previous step, read after this one is dispatched
     for step in range(start_step, tc.num_steps):
       local = next(batches)
       assert int(local.pop("step")) == step, "data pipeline out of step with training"
       state, metrics = step_fn(state, distributed.to_global(comps.mesh, local), key)
       if unchecked is not None:
-        skips.record(*unchecked, ckpt.latest_step)
+        skips.record(*unchecked)
       unchecked = (step + 1, metrics["skipped"])
       if pending is not None:
         monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
@@ -96,7 +131,12 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
       if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
         pending = (done, metrics)
       preempted = watch.reached(done)
-      ckpt.save(done, state, {"next_step": done}, force=preempted)  # every checkpoint.every_steps, and when preempted
+      # Every checkpoint.every_steps, and when preempted. The position saved counts this step's skip, so its
+      # flag is read now (it is read after the next step is dispatched otherwise).
+      if (preempted or done % config.checkpoint.every_steps == 0) and unchecked is not None:
+        skips.record(*unchecked)
+        unchecked = None
+      ckpt.save(done, state, skips.position(done), force=preempted)
       if preempted:
         if pending is not None:
           monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])),
@@ -112,12 +152,13 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
         monitor.images(done, {"preview/rgb": out["rgb"],
                               "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})
     if unchecked is not None:
-      skips.record(*unchecked, ckpt.latest_step)
+      skips.record(*unchecked)
     if pending is not None:
       monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
     final_step = int(jax.device_get(state.step))
     if ckpt.latest_step() != final_step:
-      ckpt.save(final_step, state, {"next_step": final_step}, force=True)
+      ckpt.save(final_step, state, skips.position(final_step), force=True)
+    skips.check_ended(final_step)
   finally:
     ckpt.close()  # also on an exception: waits for a save under way
     watch.close()  # gives SIGTERM and SIGINT back

@@ -178,7 +178,7 @@ class Viewer:
       except UserError:
         raise
       except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = _reason(e)
+        reason = checkpoints.damage_reason(e)
       if step not in checkpoints.finished_steps(self.workdir):
         continue
       self.damaged[step] = reason
@@ -197,7 +197,7 @@ class Viewer:
     try:
       newest = self._restore_newest(checkpoints.finished_steps(self.workdir), above=self.step)
     except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
-      reason = _reason(e)
+      reason = checkpoints.damage_reason(e)
       if reason != self._poll_error:
         print(f"nerfpod: view: could not read the newest checkpoint ({reason}); still showing step {self.step}, "
               f"trying again", file=sys.stderr, flush=True)
@@ -440,30 +440,6 @@ class Viewer:
     self.server.stop()
 
 
-def _reason(error: BaseException) -> str:
-  """Why a read failed, in one line: the innermost cause's message (orbax wraps tensorstore's error, which
-  names the file and what is wrong with it, in one that names neither)."""
-  while error.__cause__ is not None:
-    error = error.__cause__
-  return " ".join(str(error).split())[:300] or type(error).__name__
-
-
-def _quiet_abandoned_reads(hook):
-  """`hook` (sys.unraisablehook), less the reports of the reads orbax abandons when a restore fails (a
-  damaged step): orbax stops at the first failed read and closes its event loop with the other reads still
-  under way, so each of those later reports "Event loop is closed" (from tensorstore's thread) or, at exit,
-  an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened."""
-  def quiet(unraisable):
-    error, trace = unraisable.exc_value, unraisable.exc_traceback
-    closed_loop = (isinstance(error, RuntimeError) and str(error) == "Event loop is closed" and trace is not None
-                   and trace.tb_frame.f_code.co_name == "call_soon_threadsafe")  # called from no Python frame
-    code = getattr(unraisable.object, "cr_code", None)
-    abandoned_read = code is not None and f"{os.sep}orbax{os.sep}" in code.co_filename
-    if not (closed_loop or abandoned_read):
-      hook(unraisable)
-  return quiet
-
-
 def _thumbnail(image_HxWx3) -> np.ndarray:
   """A small uint8 copy of a training image for its frustum (every other pixel until it fits)."""
   image = np.asarray(image_HxWx3)
@@ -499,7 +475,7 @@ def run(argv=None):
   started = time.perf_counter()
   args = _parse(sys.argv[1:] if argv is None else argv)
   logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore: keep the console readable
-  sys.unraisablehook = _quiet_abandoned_reads(sys.unraisablehook)
+  sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
   try:
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)

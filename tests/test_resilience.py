@@ -5,6 +5,7 @@ Ctrl-C is a preemption, and the gradient mean gives the same bits on any spread 
 import json
 import os
 import pathlib
+import re
 import signal
 
 import jax
@@ -147,14 +148,65 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
   after = jax.tree.leaves(jax.device_get(state.params))
   assert any(not np.array_equal(a, b) for a, b in zip(after, jax.tree.leaves(before)))
 
-  skips = train.SkipCount(limit=3)
-  for step, flag in [(1, 1), (2, 1), (3, 0), (4, 1), (5, 1)]:
-    skips.record(step, jnp.asarray(flag), lambda: 0)
-  assert skips.total == 4 and skips.in_row == 2
+  class Saved:  # the checkpoints a run has saved: steps 2 and 4
+    pinned = set()
+    def newest_before(self, step):
+      return max([s for s in (2, 4) if s < step], default=None)
+    def pin(self, step):
+      self.pinned.add(step)
+    def unpin(self):
+      self.pinned.clear()
+
+  saved = Saved()
+  skips = train.SkipCount(3, saved)
+  for step, flag in [(1, 1), (2, 1), (3, 0)]:
+    skips.record(step, jnp.asarray(flag))
+  assert saved.pinned == set() and skips.in_row == 0  # a streak that ended unpins
+  for step, flag in [(4, 1), (5, 1)]:
+    skips.record(step, jnp.asarray(flag))
+  assert skips.total == 4 and skips.in_row == 2 and saved.pinned == {2}  # saved before step 4, the first skip
+  assert skips.position(6) == {"next_step": 6, "skipped": 4, "skipped_in_row": 2, "streak_from": 4,
+                               "checkpoint_before_streak": 2}
+  resumed = train.SkipCount(3, Saved(), skips.position(6))  # a resumed run goes on with the streak
+  assert (resumed.total, resumed.in_row, resumed.first, resumed.before) == (4, 2, 4, 2)
+  with pytest.raises(UserError, match=r"training diverged: it ended at step 5 inside a run of 2 skipped steps "
+                                      r"\(from step 4,.*the newest checkpoint before it is step 2.*lower "
+                                      r"train.lr_init"):
+    skips.check_ended(5)
   with pytest.raises(UserError, match=r"training diverged: the last 3 steps \(to step 6\).*newest checkpoint "
-                                      r"is step 4.*lower train.lr_init"):
-    skips.record(6, jnp.asarray(1), lambda: 4)
+                                      r"before it is step 2.*lower train.lr_init"):
+    skips.record(6, jnp.asarray(1))
   assert skips.with_total({"loss": 1.0, "skipped": 1}) == {"loss": 1.0, "skipped": 5}
+  fresh = train.SkipCount(3, Saved())
+  fresh.record(1, jnp.asarray(1))
+  with pytest.raises(UserError, match="no checkpoint was saved before it"):
+    fresh.check_ended(1)
+  assert train.SkipCount(3, Saved()).position(7) == {"next_step": 7}  # no skips: the position as ever
+
+
+def test_a_short_run_that_diverges_exits_non_zero_naming_the_checkpoint_before_it(tmp_path):
+  """train.lr_init=1e30 on the 20-step smoke job: the parameters grow huge, then every step is skipped; fewer
+  than train.max_nonfinite_steps in a row, but the run ends inside the streak, so it is refused (exit 2), the
+  checkpoint before the streak is named and kept past max_to_keep, and rerunning the command refuses again."""
+  from procs import run_main
+  workdir = tmp_path / "run"
+  flags = ("--config=configs/default.py:smoke", f"--workdir={workdir}", "--config.train.lr_init=1e30",
+           "--config.checkpoint.every_steps=1", "--config.checkpoint.max_to_keep=2",
+           "--config.orbit.render_after_training=false")
+  result = run_main(*flags)
+  errors = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: error:")]
+  assert result.returncode == 2 and len(errors) == 1 and "Traceback" not in result.stderr, result.stderr[-3000:]
+  match = re.search(r"it ended at step 20 inside a run of (\d+) skipped steps \(from step (\d+),.*the newest "
+                    r"checkpoint before it is step (\d+);", errors[0])
+  assert match, errors[0]
+  in_row, first, before = map(int, match.groups())
+  assert in_row == 20 - first + 1 and before == first - 1 and in_row < 20
+  assert checkpoints.finished_steps(str(workdir)) == [before, 19, 20]  # kept beyond the newest 2
+  state, position, _ = checkpoints.read_numpy(str(workdir), before)
+  assert position == {"next_step": before}
+  assert not (workdir / "eval").exists()  # nothing evaluated, no orbit
+  again = run_main(*flags)
+  assert again.returncode == 2 and f"inside a run of {in_row} skipped steps" in again.stderr, again.stderr[-2000:]
 
 
 def test_metrics_json_holds_null_with_a_reason_never_a_bare_nan(tmp_path):
@@ -245,3 +297,17 @@ def test_ordered_mean_is_the_mean_in_index_order_and_the_same_on_every_device(de
     np.testing.assert_array_max_ulp(np.asarray(mean)[0], expected, maxulp=1)
   else:
     np.testing.assert_array_equal(np.asarray(mean)[0], expected)
+
+
+def test_a_non_finite_evaluation_is_refused_after_metrics_json_is_written(monkeypatch, tmp_path):
+  """A model whose renderings hold NaN does not exit 0 (by --mode=train or --mode=eval): metrics.json keeps the
+  nulls with their reasons, and the run stops before the orbit with one sentence."""
+  views = [{"index": 0, "psnr": 20.0, "ssim": 0.5, "lpips": None},
+           {"index": 3, "psnr": None, "ssim": None, "lpips": None, "reason": "psnr and ssim not finite (psnr=nan)"}]
+  monkeypatch.setattr(evaluate, "evaluate", lambda *a, **k: {"split": "test", "views": views, "mean": {}})
+  with pytest.raises(UserError, match=r"the evaluation of step 7 is not finite: 1 of 2 held-out views rendered "
+                                      r"non-finite values \(psnr and ssim not finite \(psnr=nan\)\), so the model "
+                                      r"diverged; .*eval/metrics.json holds nulls"):
+    modes._evaluate(None, None, str(tmp_path), 7)
+  views[1] = dict(views[0], index=3)
+  assert modes._evaluate(None, None, str(tmp_path), 7)["views"] == views

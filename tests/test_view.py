@@ -143,7 +143,7 @@ def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_pl
                                                                                      capsys, monkeypatch):
   from nerfpod import checkpoints, view
   # What `nerfpod view` does (view.run): orbax's reads abandoned by a failed restore report nothing.
-  monkeypatch.setattr(sys, "unraisablehook", view._quiet_abandoned_reads(sys.unraisablehook))
+  monkeypatch.setattr(sys, "unraisablehook", checkpoints.quiet_abandoned_reads(sys.unraisablehook))
   workdir = tmp_path / "run"
   shutil.copytree(trained_workdir, workdir)
   ckpts = workdir / "checkpoints"
