@@ -23,6 +23,7 @@ When to stop for a preemption is nerfpod.preemption's; the workdir's other files
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
 import dataclasses
+import errno
 import logging
 import os
 import sys
@@ -71,7 +72,47 @@ class _ReadOnlyIsAsked(logging.Filter):
     return not str(record.msg).startswith(self.QUIET)
 
 
+def disk_full(error: BaseException | None) -> bool:
+  """Whether `error`, or an error it was raised from, says the disk (or the user's quota) is full."""
+  seen = set()
+  while error is not None and id(error) not in seen:
+    seen.add(id(error))
+    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+      return True
+    if any(text in str(error) for text in ("No space left on device", "os_error_code='28'",
+                                           "Disk quota exceeded")):
+      return True
+    error = error.__cause__ or error.__context__
+  return False
+
+
+class _DiskFullIsReported(logging.Filter):
+  """Drops orbax's error logs (each with its traceback, up to 24 of them) of a save that failed on a full disk:
+  the run stops on it with one sentence (nerfpod.modes)."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    if record.levelno < logging.ERROR:
+      return True
+    return not (disk_full(record.exc_info[1] if record.exc_info else None)
+                or any(text in record.getMessage() for text in ("No space left on device", "os_error_code='28'")))
+
+
 logging.getLogger("absl").addFilter(_ReadOnlyIsAsked())
+logging.getLogger("absl").addFilter(_DiskFullIsReported())
+
+
+def remove_cut_off_saves(workdir: str) -> list[str]:
+  """Removes the temporary folders of saves that did not finish (process 0, with no save under way: a run
+  that stops on a full disk), so that the space they hold is free; returns their names."""
+  directory = checkpoint_dir(workdir)
+  if jax.process_index() != 0 or not directory.exists():
+    return []
+  removed = []
+  for path in directory.iterdir():
+    if path.name.endswith(".orbax-checkpoint-tmp") or path.name == ROTATED:
+      path.rmtree()
+      removed.append(path.name)
+  return removed
 
 
 @dataclasses.dataclass

@@ -12,6 +12,8 @@ What a run shows goes through one monitor.Writer (process 0): TensorBoard, and W
 config.monitor.wandb asks. Evaluation and the orbit write to it themselves; this module adds what they
 return: the metrics of every view (a table) and the orbit's videos.
 """
+import contextlib
+import glob
 import json
 import os
 
@@ -57,23 +59,51 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
       _remove_if_empty(workdir)  # a data or config mistake leaves no empty folder behind
     raise
   try:
-    watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size, config)
-    exit_code = 1  # for the W&B run: an exception, unless training stops early (preempted) or ends
-    try:
-      trained = train.train(comps, workdir, watch)
-      if trained is None:
-        exit_code = config.checkpoint.preempted_exit_code
-        return None
-      state, step = trained
-      result = _evaluate(comps, state.params, workdir, step, writer=watch.writer)
-      if config.orbit.render_after_training:
-        _render_orbit(comps, state.params, workdir, step, writer=watch.writer)
-      exit_code = 0
-    finally:
-      watch.close(exit_code)
+    with _disk_full_is_one_sentence(workdir, training=True):
+      watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size, config)
+      exit_code = 1  # for the W&B run: an exception, unless training stops early (preempted) or ends
+      try:
+        trained = train.train(comps, workdir, watch)
+        if trained is None:
+          exit_code = config.checkpoint.preempted_exit_code
+          return None
+        state, step = trained
+        result = _evaluate(comps, state.params, workdir, step, writer=watch.writer)
+        if config.orbit.render_after_training:
+          _render_orbit(comps, state.params, workdir, step, writer=watch.writer)
+        exit_code = 0
+      finally:
+        watch.close(exit_code)
   finally:
     lock.release()
   return result
+
+
+@contextlib.contextmanager
+def _disk_full_is_one_sentence(workdir: str, training: bool):
+  """Turns a full disk (whichever write hit it: a checkpoint, config.json, events, metrics, the archive) into
+  one sentence naming the workdir and its newest complete checkpoint, after removing what the failed writes
+  left half done (cut-off saves, empty event files), so that a rerun after freeing space resumes cleanly."""
+  try:
+    yield
+  except Exception as e:  # noqa: BLE001 (orbax, tensorstore, tensorboardX and Python raise it differently)
+    if not checkpoints.disk_full(e):
+      raise
+    if jax.process_index() == 0 and "://" not in str(workdir):
+      try:
+        checkpoints.remove_cut_off_saves(workdir)
+        for events in glob.glob(os.path.join(glob.escape(str(workdir)), "events.out.tfevents.*")):
+          if os.path.getsize(events) == 0:  # its header could not even be written
+            os.remove(events)
+      except OSError:
+        pass
+    newest = checkpoints.latest_step(workdir)
+    safe = (f"the newest complete checkpoint, step {newest}, is safe" if newest is not None else
+            "no checkpoint had been saved yet")
+    then = ("rerun the same command, which resumes from it" if training and newest is not None else
+            "run the same command again")
+    raise UserError(f"the disk holding workdir {workdir} is full (No space left on device); {safe}; free "
+                    f"space there (or pass a --workdir on a larger disk) and {then}.") from None
 
 
 def _hold(workdir: str) -> workdir_lock.WorkdirLock:
@@ -148,15 +178,16 @@ def _from_newest_checkpoint(config, workdir: str, work):
   """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint; the writer goes on
   with the run's TensorBoard events and its W&B run."""
   comps, params, step = restore_trained(config, workdir)
-  writer = monitor.summary_writer(workdir, config)
-  exit_code = 1
-  try:
-    result = work(comps, params, workdir, step, writer=writer)
-    exit_code = 0
-    return result
-  finally:
-    if writer is not None:
-      writer.close(exit_code)
+  with _disk_full_is_one_sentence(workdir, training=False):
+    writer = monitor.summary_writer(workdir, config)
+    exit_code = 1
+    try:
+      result = work(comps, params, workdir, step, writer=writer)
+      exit_code = 0
+      return result
+    finally:
+      if writer is not None:
+        writer.close(exit_code)
 
 
 def evaluate_workdir(config, workdir: str) -> dict:

@@ -92,8 +92,16 @@ def write_json(path, value, sort_keys: bool = False) -> None:
   path.parent.mkdir(parents=True, exist_ok=True)
   tmp = path.parent / f"{path.name}.tmp"
   # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
-  tmp.write_text(json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False))
-  tmp.replace(path)
+  text = json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False)
+  try:
+    tmp.write_text(text)
+    tmp.replace(path)
+  except BaseException:  # a full disk, an interruption: no half-written PATH.tmp is left behind
+    try:
+      tmp.unlink(missing_ok=True)
+    except OSError:
+      pass
+    raise
 
 
 def write_config(workdir: str, config_json: dict) -> None:

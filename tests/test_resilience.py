@@ -311,3 +311,58 @@ def test_a_non_finite_evaluation_is_refused_after_metrics_json_is_written(monkey
     modes._evaluate(None, None, str(tmp_path), 7)
   views[1] = dict(views[0], index=3)
   assert modes._evaluate(None, None, str(tmp_path), 7)["views"] == views
+
+
+def _tmpfs(path, size: str):
+  """Mounts a RAM disk of `size` at `path` (root only, where the machine allows mounts), else skips."""
+  import subprocess
+  path.mkdir(exist_ok=True)
+  done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True,
+                        text=True)
+  if done.returncode != 0:
+    pytest.skip(f"cannot mount a small tmpfs to fill up here ({done.stderr.strip() or 'mount failed'}); the "
+                f"full-disk test needs root in a machine that allows mounts")
+
+
+@pytest.mark.slow
+def test_a_full_disk_is_one_sentence_naming_the_safe_checkpoint_and_a_rerun_with_space_resumes(tmp_path):
+  """The smoke job on a 900 KiB RAM disk (room for one checkpoint of ~540 KiB, not two): it stops at its second
+  save with one sentence naming the step that is safe, leaves no cut-off save, no lock and no empty events
+  file; once the disk is larger the same command resumes and ends with the parameters of the run that never
+  hit the disk's end. A disk full from the start is the same sentence, without a checkpoint to name."""
+  import subprocess
+  from procs import run_main
+  flags = ("--config=configs/default.py:smoke", "--config.checkpoint.every_steps=4",
+           "--config.orbit.render_after_training=false")
+  reference = run_main(*flags, f"--workdir={tmp_path / 'reference'}")
+  assert reference.returncode == 0, reference.stderr[-3000:]
+  disk = tmp_path / "disk"
+  _tmpfs(disk, "900k")
+  try:
+    workdir = disk / "run"
+    full = run_main(*flags, f"--workdir={workdir}")
+    errors = [line for line in full.stderr.splitlines() if line.startswith("nerfpod: error:")]
+    assert full.returncode == 2 and len(errors) == 1, full.stderr[-3000:]
+    assert "Traceback" not in full.stderr and "RESOURCE_EXHAUSTED" not in full.stderr, full.stderr[-3000:]
+    assert errors[0] == (f"nerfpod: error: the disk holding workdir {workdir} is full (No space left on device); "
+                         f"the newest complete checkpoint, step 4, is safe; free space there (or pass a --workdir "
+                         f"on a larger disk) and rerun the same command, which resumes from it.")
+    assert sorted(p.name for p in (workdir / "checkpoints").iterdir()) == ["4"]  # no cut-off save left
+    assert not (workdir / "lock.json").exists() and not (workdir / "config.json.tmp").exists()
+    assert all(p.stat().st_size > 0 for p in workdir.glob("events.out.tfevents.*"))
+    subprocess.run(["mount", "-o", "remount,size=64m", str(disk)], check=True)
+    resumed = run_main(*flags, f"--workdir={workdir}")
+    assert resumed.returncode == 0 and "steps 4..20" in resumed.stdout, resumed.stderr[-3000:]
+    want, _, _ = checkpoints.read_numpy(str(tmp_path / "reference"))
+    got, position, step = checkpoints.read_numpy(str(workdir))
+    assert step == 20 and position == {"next_step": 20}
+    jax.tree.map(np.testing.assert_array_equal, got["params"], want["params"])
+    subprocess.run(["umount", str(disk)], check=True)
+    _tmpfs(disk, "8k")  # full from the start: config.json fits, nothing more
+    at_start = run_main(*flags, f"--workdir={disk / 'new'}")
+    assert at_start.returncode == 2 and "Traceback" not in at_start.stderr, at_start.stderr[-3000:]
+    assert "is full (No space left on device); no checkpoint had been saved yet; free space there (or pass a " \
+           "--workdir on a larger disk) and run the same command again." in at_start.stderr
+    assert not list((disk / "new").glob("*.tmp")) and not list((disk / "new").glob("events.out.tfevents.*"))
+  finally:
+    subprocess.run(["umount", str(disk)], capture_output=True)
