@@ -4,6 +4,7 @@ one is refused while the first ends with the uninterrupted run's parameters."""
 import json
 import os
 import random
+import signal
 import socket
 import subprocess
 import sys
@@ -128,18 +129,19 @@ def test_a_second_run_at_random_moments_is_refused_and_the_first_ends_as_if_alon
     for phase in ("training", "evaluation and orbit"):
       if phase == "training":
         first.wait_for(lambda: "step " in first.output(0), RUN_TIMEOUT, "a training step")
-      elif phase == "evaluation and orbit":
-        trained = f"step {NUM_STEPS:>6d}/{NUM_STEPS}"
-        while trained not in first.output(0) and first.procs[0].poll() is None:
-          time.sleep(0.05)
-      time.sleep(rng.uniform(0.0, 0.5))
-      started = time.monotonic()
-      second = procs.run_main("--config=configs/default.py:smoke", f"--workdir={workdir}",
-                              *procs.overrides_to_flags(OVERRIDES), devices_per_process=2, timeout=RUN_TIMEOUT)
-      took = time.monotonic() - started
-      if first.procs[0].poll() is not None and second.returncode == 0:
-        moments.append(f"{phase}: after the first ended")  # it came too late to meet the first run
-        continue
+      else:
+        first.wait_for(lambda: f"step {NUM_STEPS:>6d}/{NUM_STEPS}" in first.output(0), RUN_TIMEOUT, "the end of training")
+      time.sleep(rng.uniform(0.0, 0.3))
+      # The first run is paused (SIGSTOP) where it is while the second starts, so that the second meets it
+      # in this phase however slowly the second starts on a loaded machine; a paused holder is alive.
+      first.kill(sig=signal.SIGSTOP)
+      try:
+        started = time.monotonic()
+        second = procs.run_main("--config=configs/default.py:smoke", f"--workdir={workdir}",
+                                *procs.overrides_to_flags(OVERRIDES), devices_per_process=2, timeout=RUN_TIMEOUT)
+        took = time.monotonic() - started
+      finally:
+        first.kill(sig=signal.SIGCONT)
       moments.append(f"{phase}: refused in {took:.1f} s")
       errors = [line for line in second.stderr.splitlines() if line.startswith("nerfpod: error:")]
       assert second.returncode == 2 and len(errors) == 1 and "Traceback" not in second.stderr, (
@@ -147,7 +149,6 @@ def test_a_second_run_at_random_moments_is_refused_and_the_first_ends_as_if_alon
       assert f"is in use by another training run (process {first.procs[0].pid} on host" in errors[0], errors
     first.wait_ok(RUN_TIMEOUT)
   print(f"\nsecond writers (seed {SEED}): {moments}")
-  assert any("refused" in m for m in moments), moments
   got, position, step = checkpoints.read_numpy(str(workdir))
   assert step == NUM_STEPS and position == {"next_step": NUM_STEPS}
   assert len(_leaves(got["params"])) == len(_leaves(want["params"]))
