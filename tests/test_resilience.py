@@ -184,6 +184,7 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
   assert train.SkipCount(3, Saved()).position(7) == {"next_step": 7}  # no skips: the position as ever
 
 
+@pytest.mark.slow
 def test_a_short_run_that_diverges_exits_non_zero_naming_the_checkpoint_before_it(tmp_path):
   """train.lr_init=1e30 on the 20-step smoke job: the parameters grow huge, then every step is skipped; fewer
   than train.max_nonfinite_steps in a row, but the run ends inside the streak, so it is refused (exit 2), the
