@@ -102,6 +102,8 @@ FORMATS = {"blender": ("transform_matrix", "transforms_train.json", "./train/02"
 def test_every_loader_refuses_a_pose_that_is_not_rigid_naming_the_frame_and_the_file(tmp_path, kind, bad):
   if kind == "llff" and bad == "last row":
     pytest.skip("poses_bounds.npy stores 3x4 poses: there is no last row to be wrong")
+  if kind in SCALE_TAKEN and bad == "scaled":
+    pytest.skip("a uniformly scaled transform_matrix is taken, its axes as unit vectors (test below)")
   change, expected = BAD_POSES[bad]
   poses = _poses(4)
   poses[2] = change(poses[2].copy())
@@ -113,6 +115,26 @@ def test_every_loader_refuses_a_pose_that_is_not_rigid_naming_the_frame_and_the_
   assert f"{tmp_path / file}: the {what} of frame {frame!r} is not a rigid camera-to-world transform" in message
   assert expected in message and message.endswith("; fix or remove that frame.")
   assert "\n" not in message and message.rstrip(".").count(". ") == 0
+
+
+SCALE_TAKEN = ("blender", "nerfstudio")  # the formats whose transform_matrix some tools write with a scale
+
+
+@pytest.mark.parametrize("kind", SCALE_TAKEN)
+def test_a_uniformly_scaled_transform_matrix_loads_as_its_unit_axes_with_a_note(tmp_path, kind, capsys):
+  poses = _poses(4)
+  scaled = poses.copy()
+  scaled[2, :3, :3] *= 1.5
+  (tmp_path / "unit").mkdir()
+  (tmp_path / "scaled").mkdir()
+  want = scenes.load(as_is(kind, _write(kind, tmp_path / "unit", poses)))
+  capsys.readouterr()
+  got = scenes.load(as_is(kind, _write(kind, tmp_path / "scaled", scaled)))
+  note = capsys.readouterr().err
+  assert "the transform_matrix of 1 frame(s) has its rotation scaled by 1.5..1.5; their axes are used as unit " \
+         "vectors (positions unchanged)" in note, note
+  for name in want.splits:
+    np.testing.assert_allclose(got.split(name).poses, want.split(name).poses, atol=1e-6)
 
 
 def test_colmap_poses_are_checked_too_and_every_bad_frame_is_counted():

@@ -9,6 +9,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import json
+import sys
 
 import numpy as np
 
@@ -240,6 +241,25 @@ def capture_scene(name: str, kind: str, read, cams: Cameras, names, framing, whe
 # every ray of the frame empty. The real captures of the tests' shared data (lego, tiny, fox, horns, cup)
 # are within 1.3e-6 (float32 rounding); 1e-3 also admits matrices written with 4 decimals.
 RIGID_TOLERANCE = 1e-3
+
+
+def unscaled(poses, where: str, what: str = "transform_matrix") -> np.ndarray:
+  """`poses` (N, 3 or 4, 4) with every rotation scaled uniformly by s (R^T R = s^2 I: some tools write a
+  scene scale into camera-to-world matrices; other NeRF codes take only the axes' directions from them)
+  divided by s, with one line saying so; other poses unchanged, left to check_poses."""
+  poses = np.array(poses, np.float64)
+  rotation = poses[:, :3, :3]
+  gram = np.einsum("nki,nkj->nij", rotation, rotation)
+  scale = np.sqrt(np.trace(gram, axis1=1, axis2=2) / 3)
+  with np.errstate(divide="ignore", invalid="ignore"):
+    uniform = (np.abs(gram / scale[:, None, None] ** 2 - np.eye(3)).max(axis=(1, 2)) <= RIGID_TOLERANCE)
+  scaled = np.flatnonzero(np.isfinite(scale) & (scale > 1e-6) & uniform & (np.abs(scale - 1) > RIGID_TOLERANCE))
+  if scaled.size:
+    poses[scaled, :3, :3] /= scale[scaled, None, None]
+    print(f"nerfpod: note: {where}: the {what} of {scaled.size} frame(s) has its rotation scaled by "
+          f"{scale[scaled].min():.6g}..{scale[scaled].max():.6g}; their axes are used as unit vectors "
+          f"(positions unchanged)", file=sys.stderr, flush=True)
+  return poses
 
 
 def check_poses(poses, names, where: str, what: str = "pose") -> None:

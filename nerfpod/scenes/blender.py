@@ -6,7 +6,7 @@ from PIL import Image
 
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, Intrinsics
-from nerfpod.scenes.base import Scene, Split, check_poses, check_split, read_json, to_uint8
+from nerfpod.scenes.base import Scene, Split, check_poses, check_split, read_json, to_uint8, unscaled
 from nerfpod.scenes.capture import READ_THREADS, image_size
 
 SPLITS = ("train", "val", "test")
@@ -70,7 +70,7 @@ def load_split(root: str, split: str, downscale: int = 1) -> Split:
     names.append(name)
     files.append(file)
     poses.append(pose)
-  poses = np.stack(poses)
+  poses = unscaled(np.stack(poses), path)
   check_poses(poses, names, path, "transform_matrix")  # before spending time on the images
   sizes = [_image_size(file, name, downscale) for file, name in zip(files, names)]
   w, h = sizes[0]

@@ -17,7 +17,7 @@ import numpy as np
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, DISTORTION_PARAMS
 from nerfpod.scenes import capture
-from nerfpod.scenes.base import Scene, capture_scene, check_poses, read_json
+from nerfpod.scenes.base import Scene, capture_scene, check_poses, read_json, unscaled
 
 TRANSFORMS = "transforms.json"
 PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -94,7 +94,7 @@ def load(path: str, data_config) -> Scene:
     if pose.shape not in ((4, 4), (3, 4)):
       raise UserError(f"{path}: frame {name!r} has a transform_matrix of shape {pose.shape}, expected 4x4.")
     poses.append(pose if pose.shape == (4, 4) else np.concatenate([pose, [[0.0, 0.0, 0.0, 1.0]]]))
-  poses = np.stack(poses)
+  poses = unscaled(np.stack(poses), path)
   check_poses(poses, names, path, "transform_matrix")  # before spending time on the images
   poses[:, 3] = [0.0, 0.0, 0.0, 1.0]  # exactly (check_poses allows round-off)
   widths, heights = capture.image_sizes([p for p, _ in located], names, [f for _, f in located])
