@@ -86,6 +86,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.image_every = 500       # steps between rendered held-out views in TensorBoard; 0: never
   c.train.max_nonfinite_steps = 20  # stop (exit 2) after this many steps in a row with a non-finite loss or
                                     # gradient; each such step is skipped, its update never reaches the state
+  c.train.profile_steps = ()      # (first, last): a jax.profiler trace of these steps into the workdir
+                                  # (TensorBoard's profile tab, xprof); (): none
 
   c.compile = ml_collections.ConfigDict()
   c.compile.cpu_ynnpack = False   # CPU: let XLA hand dots to YNNPACK (its default); off, the steps ran

@@ -36,6 +36,7 @@ ADDED_FIELDS = {
     "monitor.wandb.mode": "disabled", "monitor.wandb.project": "",         # TensorBoard only
     "monitor.wandb.entity": "", "monitor.wandb.name": "", "monitor.wandb.tags": [],
     "eval.lpips_net": "none",                                              # PSNR and SSIM only
+    "train.profile_steps": [],                                             # no profile
 }
 
 
@@ -137,6 +138,13 @@ def integers(low: int = 0) -> Field:
                f"a tuple of integers >= {low}", (low,), ((low - 1,),))
 
 
+def step_range() -> Field:
+  """() (off) or (first, last): steps counted from 1, first <= last."""
+  return Field(lambda v: isinstance(v, (tuple, list)) and (len(v) == 0 or (
+      len(v) == 2 and all(_is_int(i) and i >= 1 for i in v) and v[0] <= v[1])),
+               "() or (first, last): two steps >= 1 with first <= last", (100, 110), ((0, 3), (5, 2), (1, 2, 3)))
+
+
 FIELDS: dict[str, Field] = {
     "data.kind": choice(*scenes.KINDS),
     "data.path": text(),
@@ -196,6 +204,7 @@ FIELDS: dict[str, Field] = {
     "train.log_every": integer(1, example=100),
     "train.image_every": integer(0, example=500),
     "train.max_nonfinite_steps": integer(1, example=20),
+    "train.profile_steps": step_range(),
 
     "compile.cpu_ynnpack": boolean(),
     "compile.cpu_memory_gib": number(above=0.0, example=3.0),

@@ -5,7 +5,7 @@ import sys
 import jax
 from absl import logging
 
-from nerfpod import checkpoints, components, distributed, preemption, render, video
+from nerfpod import checkpoints, components, distributed, preemption, profiling, render, video
 from nerfpod import step as train_step
 from nerfpod.workdir_files import write_config, write_scene
 from nerfpod.components import TrainState
@@ -87,6 +87,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   tc = config.train
   ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
   watch = preemption.Watch(ckpt.latest_step() or 0)
+  profile = profiling.StepProfile(workdir, tc.profile_steps)
   try:
     # The step compiles while the state is restored or initialised (not when training is already done).
     compiling = train_step.start_compiling(comps) if (ckpt.latest_step() or 0) < tc.num_steps else None
@@ -120,7 +121,9 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     for step in range(start_step, tc.num_steps):
       local = next(batches)
       assert int(local.pop("step")) == step, "data pipeline out of step with training"
+      profile.starting(step + 1)
       state, metrics = step_fn(state, distributed.to_global(comps.mesh, local), key)
+      profile.finished(step + 1, state)
       if unchecked is not None:
         skips.record(*unchecked)
       unchecked = (step + 1, metrics["skipped"])
@@ -160,6 +163,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
       ckpt.save(final_step, state, skips.position(final_step), force=True)
     skips.check_ended(final_step)
   finally:
+    profile.close()
     ckpt.close()  # also on an exception: waits for a save under way
     watch.close()  # gives SIGTERM and SIGINT back
   return state, final_step
