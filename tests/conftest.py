@@ -73,3 +73,17 @@ def smoke_run(tmp_path_factory):
     patch.setattr(monitor, "Monitor", Recording)
     metrics = modes.train_and_evaluate(smoke_config(**SMOKE_RUN_OVERRIDES), str(workdir))
   return types.SimpleNamespace(workdir=workdir, losses=losses, metrics=metrics)
+
+
+# The longest test files, with their seconds in a whole run on the 2-core machine (docs/results.md): run first,
+# so that with `-n 2` (pytest-xdist, whole files per worker in this order: --dist loadfile
+# --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order of
+# tests does not change what they check.
+LONGEST_FILES = {"test_multiprocess": 130, "test_prepare": 110, "test_chaos": 90, "test_export": 65,
+                 "test_step": 60, "test_resilience": 55, "test_wandb": 50, "test_view": 45, "test_pod_sweep": 35,
+                 "test_workdir_lock": 35, "test_benchmark": 35, "test_aot": 30, "test_real_configs": 25,
+                 "test_captures": 25, "test_layout": 20, "test_whole_slice": 18}
+
+
+def pytest_collection_modifyitems(config, items):
+  items.sort(key=lambda item: -LONGEST_FILES.get(item.path.stem, 0))  # stable: within a file, as written
