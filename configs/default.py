@@ -24,6 +24,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.data.center = "auto"          # captures' origin: 'focus' (what cameras look at), 'poses' (their mean), 'none'
   c.data.scale = 0.0              # captures' scale factor; 0: LLFF near bound at 1/0.75, else farthest camera at 1
   c.data.space = "auto"           # 'object', 'forward_facing' (LLFF's default), 'unbounded' (COLMAP/nerfstudio's)
+  c.data.shards = 1               # training frames split into this many shards (frame i -> i mod shards); each
+  #                                 host reads only its own: a multiple of every host count the run may use
+  c.data.host_memory_gib = 0.0    # images a host may hold (its shards + held-out), GiB; 0: half its memory
 
   c.model = ml_collections.ConfigDict()
   c.model.field = "hashgrid"      # 'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)

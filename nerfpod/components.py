@@ -11,6 +11,8 @@ Randomness is a function of (seed, what): the parameters and the rays draw from 
 into the seed; the train step folds in the step on top.
 """
 import dataclasses
+import os
+import sys
 from typing import Any
 
 import flax
@@ -137,7 +139,7 @@ class Components(Program):
     tc = self.config.train
     dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
                                distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
-                               max(tc.num_steps, 1))
+                               max(tc.num_steps, 1), self.config.data.shards)
     return data.iterator(dataset, start_step)
 
 
@@ -193,10 +195,36 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
                  compilation.compiler_options(config, backend))
 
 
+# The share of a host's physical memory its images may take where data.host_memory_gib is 0: the rest is for
+# the runtime, the compiled programs, the pipeline's batches (and, on a CPU, the simulated devices).
+HOST_MEMORY_SHARE = 0.5
+
+
+def host_memory_budget_bytes(config) -> int:
+  """The bytes this host's images (its training shards and the held-out splits) may take:
+  data.host_memory_gib, or HOST_MEMORY_SHARE of the host's physical memory where that is 0."""
+  if config.data.host_memory_gib > 0:
+    return int(config.data.host_memory_gib * 2**30)
+  return int(HOST_MEMORY_SHARE * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def host_shards(config) -> scenes.Shards:
+  """The training frames this host reads (data.shards over the hosts of the run) and its memory budget;
+  a shard count the host count does not divide is refused."""
+  held, host, hosts = distributed.local_shards(config.data.shards)
+  return scenes.Shards(config.data.shards, held, host, hosts, host_memory_budget_bytes(config))
+
+
 def build(config, mesh: Mesh | None = None) -> Components:
   """The pieces every mode needs (`mesh`: default, every device of every host): the scene (a missing
-  held-out split or a bad camera path file fails now, not after training), its Program and renderer."""
-  scene = scenes.load(config.data)
+  held-out split or a bad camera path file fails now, not after training; each host reads the training
+  frames of its data.shards only, and says so in one line), its Program and renderer."""
+  shards = host_shards(config)
+  scene = scenes.load(config.data, shards)
+  train = scene.split("train")
+  held_bytes = train.pixels.nbytes + (0 if train.alphas is None else train.alphas.nbytes)
+  print(f"host {shards.host} holds {len(train.held_frames)} of {len(train)} training images "
+        f"({held_bytes / 2**20:.1f} MiB)", file=sys.stderr, flush=True)  # stdout may be a tool's output
   scene.split(config.eval.split)
   if config.orbit.path == "file":
     camera_path.read(config.orbit.path_file)

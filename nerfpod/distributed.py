@@ -138,6 +138,22 @@ def local_slice(global_size: int, mesh: Mesh | None = None) -> slice:
   return slice(index * per_process, (index + 1) * per_process)
 
 
+def local_shards(num_shards: int, mesh: Mesh | None = None) -> tuple[tuple[int, ...], int, int]:
+  """(the data.shards this process holds, its index, the process count) over `mesh` (default: all devices of
+  all hosts): process p of P holds shards [p S/P, (p+1) S/P), whose sub-batches are its local_slice rows.
+  Refuses a shard count the process count does not divide."""
+  devices = jax.devices() if mesh is None else list(mesh.devices.flat)
+  processes = sorted({d.process_index for d in devices})
+  if num_shards % len(processes):
+    multiple = -(-num_shards // len(processes)) * len(processes)
+    raise UserError(f"data.shards={num_shards} does not split over the {len(processes)} hosts of this run; make "
+                    f"it a multiple of the host count (e.g. --config.data.shards={multiple}), and of every host "
+                    f"count the run may be resumed on.")
+  per_process = num_shards // len(processes)
+  index = processes.index(jax.process_index())
+  return tuple(range(index * per_process, (index + 1) * per_process)), index, len(processes)
+
+
 def to_global(mesh: Mesh, local_tree):
   """Host-local batch slices (leading axis) -> global arrays sharded over the mesh's data axis."""
   sharding = batch_sharding(mesh)

@@ -37,6 +37,7 @@ ADDED_FIELDS = {
     "monitor.wandb.entity": "", "monitor.wandb.name": "", "monitor.wandb.tags": [],
     "eval.lpips_net": "none",                                              # PSNR and SSIM only
     "train.profile_steps": [],                                             # no profile
+    "data.shards": 1, "data.host_memory_gib": 0.0,                         # every host held every frame
 }
 
 
@@ -156,6 +157,8 @@ FIELDS: dict[str, Field] = {
     "data.center": choice("auto", "focus", "poses", "none"),
     "data.scale": number(0.0),
     "data.space": choice("auto", *scenes.SPACES),
+    "data.shards": integer(1, example=4),
+    "data.host_memory_gib": number(0.0, example=64.0),
 
     "model.field": choice("mlp", "hashgrid"),
     "model.use_viewdirs": boolean(),
@@ -251,6 +254,13 @@ def _rules(c: dict) -> list[str]:
   if c["data.kind"] == "tiny" and c["data.downscale"] != 1:
     out.append(f"data.downscale={c['data.downscale']} is not supported for the 100x100 Tiny NeRF data: "
                f"leave it at 1 (--config.data.downscale=1).")
+  if c["train.batch_size"] % c["data.shards"]:
+    out.append(f"train.batch_size={c['train.batch_size']} does not split into data.shards={c['data.shards']} "
+               f"equal sub-batches; make the batch a multiple of the shard count (e.g. --config.train.batch_size="
+               f"{max(1, c['train.batch_size'] // c['data.shards']) * c['data.shards']}).")
+  if c["data.shards"] > 1 and c["eval.split"] == "train":
+    out.append(f"eval.split=train cannot be evaluated with data.shards={c['data.shards']}: each host holds only "
+               f"its shard of the training images; evaluate a held-out split (--config.eval.split=test).")
   if c["render.num_importance"] > 0 and c["render.num_samples"] < 3:
     out.append(f"render.num_samples={c['render.num_samples']} is too few for hierarchical sampling "
                f"(render.num_importance={c['render.num_importance']}): the fine samples are drawn from the "

@@ -19,7 +19,8 @@ from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
-                     "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "monitor.")
+                     "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "monitor.",
+                     "data.host_memory_gib")
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:

@@ -1,15 +1,17 @@
 """Scene loaders. `load(config.data)` returns a Scene whatever the format."""
+import dataclasses
 import os
 
 from absl import logging
 
 from nerfpod.errors import UserError
-from nerfpod.scenes.base import SPACES, Scene, Split
+from nerfpod.scenes.base import SPACES, Scene, Shards, Split
 
-__all__ = ["CAPTURE_KINDS", "KINDS", "SPACES", "Scene", "Split", "detect", "load"]
+__all__ = ["CAPTURE_KINDS", "KINDS", "SPACES", "Scene", "Shards", "Split", "detect", "load"]
 
 CAPTURE_KINDS = ("llff", "colmap", "nerfstudio")  # real captures: normalised poses, data.orient/center/scale
 KINDS = ("procedural", "tiny", "blender") + CAPTURE_KINDS + ("auto",)
+IN_MEMORY_KINDS = ("procedural", "tiny")  # made whole in memory: cut to a host's shard after loading
 
 
 def detect(path: str) -> str:
@@ -60,10 +62,28 @@ HAS_ALPHA = {"procedural": True, "tiny": False, "blender": True, "llff": False, 
              "nerfstudio": False}
 
 
-def load(data_config) -> Scene:
+def load(data_config, shards: Shards | None = None) -> Scene:
   """The scene that `config.data` names: kind 'procedural', 'tiny' (npz), 'blender' (a scene folder), a real
   capture ('llff', 'colmap', 'nerfstudio'), or 'auto' (detected from data.path, and printed).
-  The config's fields were checked by nerfpod.schema; what is checked here is the data."""
+  The config's fields were checked by nerfpod.schema; what is checked here is the data.
+
+  `shards`: the training frames this host holds (data.shards) and its memory budget, checked before any
+  image is read; files are read for those frames only. The scenes made in memory (procedural, tiny) are
+  made whole, then checked and cut to the shard. None: every frame, unchecked."""
+  scene = _load(data_config, shards)
+  if shards is None or scene.kind not in IN_MEMORY_KINDS:
+    return scene
+  train = scene.split("train")  # made in memory: check and cut it now
+  frame_bytes = train.cameras.num_pixels * (3 + (train.alphas is not None))
+  heldout = {id(v): v for k, v in scene.splits.items() if k != "train"}.values()
+  shards.check(frame_bytes, sum(v.pixels.nbytes + (0 if v.alphas is None else v.alphas.nbytes) for v in heldout),
+               scene.name)
+  if shards.count == 1:
+    return scene
+  return dataclasses.replace(scene, splits={**scene.splits, "train": train.keep(shards.frames(len(train)))})
+
+
+def _load(data_config, shards: Shards | None) -> Scene:
   kind = data_config.kind
   if kind not in KINDS:
     raise UserError(f"unknown data.kind {kind!r}; use one of {', '.join(KINDS)}.")
@@ -83,14 +103,14 @@ def load(data_config) -> Scene:
     return tiny.load(path)
   if kind == "blender":
     from nerfpod.scenes import blender
-    return blender.load(path, data_config.downscale)
+    return blender.load(path, data_config.downscale, shards=shards)
   if not os.path.exists(path):
     raise UserError(f"data.path {path!r} not found; set --config.data.path to the {kind} capture's folder.")
   if kind == "llff":
     from nerfpod.scenes import llff
-    return llff.load(path, data_config)
+    return llff.load(path, data_config, shards)
   if kind == "colmap":
     from nerfpod.scenes import colmap
-    return colmap.load(path, data_config)
+    return colmap.load(path, data_config, shards)
   from nerfpod.scenes import nerfstudio
-  return nerfstudio.load(path, data_config)
+  return nerfstudio.load(path, data_config, shards)

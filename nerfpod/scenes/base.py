@@ -4,6 +4,11 @@ Images are kept as uint8, a quarter of float32's memory (a real capture's hundre
 would not as floats), in one flat (P, 3) buffer of every frame's pixels, row-major, frame after frame: frames
 of a split may differ in size. Colours become float32 in [0, 1] per batch (`to_float`), and per image for
 evaluation (`Split.image`).
+
+A training split may hold the pixels of some of its frames only (`Split.held`, data.shards > 1: each host
+reads the frames of its shards, `Shards`): it still has every frame's pose, camera and name (what orbits,
+bounds and the NDC camera are computed from, the same on every host), and a frame it does not hold has an
+empty slot in the pixel buffer.
 """
 import concurrent.futures
 import dataclasses
@@ -38,6 +43,7 @@ class Split:
   names: tuple[str, ...]  # where each frame came from (file path or index), for messages and metrics
   alphas: np.ndarray | None = None  # (P,) uint8 coverage, where the data have it (RGBA)
   bounds: np.ndarray | None = None  # (N, 2) float32 near/far scene depth per frame, where the format has it
+  held: np.ndarray | None = None  # (K,) int64 sorted indices of the frames whose pixels are held; None: all
 
   @classmethod
   def from_images(cls, images, poses, cameras: Cameras | Intrinsics, names, alphas=None, bounds=None) -> "Split":
@@ -55,12 +61,14 @@ class Split:
 
   @classmethod
   def from_frames(cls, read, poses, cameras: Cameras, names, with_alpha: bool = False, bounds=None,
-                  threads: int = 1) -> "Split":
+                  threads: int = 1, frames=None) -> "Split":
     """A split whose frames are read one at a time straight into its pixel buffer, allocated once at its final
     size from the cameras' sizes: `read(i)` gives frame i's (rgb (H_i, W_i, 3), alpha (H_i, W_i) or None),
     uint8 or float in [0, 1], which is copied into its slot and dropped. So loading holds the final buffer
     plus one decoded image per thread, never a second copy of the frames. `threads` > 1 reads frames in
-    parallel threads (image decoding releases the GIL); the first bad frame in frame order is the error."""
+    parallel threads (image decoding releases the GIL); the first bad frame in frame order is the error.
+    `frames` (sorted indices): read only those frames (`held`); the others keep their poses and cameras and
+    take no memory."""
     names = tuple(names)
     if len(cameras) != len(names):
       raise UserError(f"{len(cameras)} cameras and {len(names)} names do not match.")
@@ -68,7 +76,8 @@ class Split:
     if empty.size:
       raise UserError(f"frame {names[empty[0]]} has an empty image ({cameras.width[empty[0]]}x"
                       f"{cameras.height[empty[0]]} pixels); fix its size or remove the frame.")
-    offsets = np.concatenate([[0], np.cumsum(cameras.num_pixels)]).astype(np.int64)
+    held = None if frames is None or len(frames) == len(names) else np.asarray(frames, np.int64)
+    offsets = _offsets(cameras.num_pixels, held)
     pixels = np.empty((int(offsets[-1]), 3), np.uint8)
     alphas = np.empty((int(offsets[-1]),), np.uint8) if with_alpha else None
 
@@ -89,26 +98,40 @@ class Split:
       if with_alpha:
         alphas[offsets[i]:offsets[i + 1]] = slot(alpha, i, 1)[:, 0]
 
-    if threads > 1 and len(names) > 1:
-      pool = concurrent.futures.ThreadPoolExecutor(min(threads, len(names)))
+    to_read = range(len(names)) if held is None else held.tolist()
+    if threads > 1 and len(to_read) > 1:
+      pool = concurrent.futures.ThreadPoolExecutor(min(threads, len(to_read)))
       try:
-        for _ in pool.map(put, range(len(names))):
+        for _ in pool.map(put, to_read):
           pass
       finally:
         pool.shutdown(cancel_futures=True)  # after a bad frame, read no more
     else:
-      for i in range(len(names)):
+      for i in to_read:
         put(i)
     return cls(pixels, np.asarray(poses, np.float32), cameras, names, alphas,
-               None if bounds is None else np.asarray(bounds, np.float32))
+               None if bounds is None else np.asarray(bounds, np.float32), held)
 
   def __len__(self) -> int:
     return len(self.poses)
 
   @functools.cached_property
   def offsets(self) -> np.ndarray:
-    """(N + 1,) int64: frame i's pixels are pixels[offsets[i]:offsets[i + 1]]."""
-    return np.concatenate([[0], np.cumsum(self.cameras.num_pixels)]).astype(np.int64)
+    """(N + 1,) int64: frame i's pixels are pixels[offsets[i]:offsets[i + 1]] (empty for a frame not held)."""
+    return _offsets(self.cameras.num_pixels, self.held)
+
+  @property
+  def held_frames(self) -> np.ndarray:
+    """The indices of the frames whose pixels this split holds (all of them unless `held` says otherwise)."""
+    return np.arange(len(self), dtype=np.int64) if self.held is None else self.held
+
+  def keep(self, frames) -> "Split":
+    """This split with the pixels of `frames` (sorted indices) only: what a loader that generates its frames
+    in memory gives for a shard (the others' poses and cameras kept)."""
+    frames = np.asarray(frames, np.int64)
+    take = lambda buf: None if buf is None else (np.concatenate(
+        [buf[self.offsets[i]:self.offsets[i + 1]] for i in frames]) if len(frames) else buf[:0])
+    return dataclasses.replace(self, pixels=take(self.pixels), alphas=take(self.alphas), held=frames)
 
   @property
   def num_pixels(self) -> int:
@@ -121,6 +144,7 @@ class Split:
     return self.cameras[0]
 
   def image_uint8(self, index: int) -> np.ndarray:
+    self._check_held(index)
     h, w = int(self.cameras.height[index]), int(self.cameras.width[index])
     return self.pixels[self.offsets[index]:self.offsets[index + 1]].reshape(h, w, 3)
 
@@ -132,8 +156,14 @@ class Split:
     """Frame `index`'s alpha, (H, W) float32 in [0, 1], or None where the data have none."""
     if self.alphas is None:
       return None
+    self._check_held(index)
     h, w = int(self.cameras.height[index]), int(self.cameras.width[index])
     return to_float(self.alphas[self.offsets[index]:self.offsets[index + 1]].reshape(h, w))
+
+  def _check_held(self, index: int) -> None:
+    if self.held is not None and not np.isin(index, self.held):
+      raise UserError(f"frame {self.names[index]} is in another host's shard of the training images "
+                      f"(data.shards); read the split on one host (data.shards=1) to see every frame.")
 
   @property
   def images(self) -> "FloatImages":
@@ -146,9 +176,18 @@ class Split:
     indices = np.asarray(indices, np.int64)
     take = lambda buf: None if buf is None else np.concatenate(
         [buf[self.offsets[i]:self.offsets[i + 1]] for i in indices]) if len(indices) else buf[:0]
+    held = None if self.held is None else np.flatnonzero(np.isin(indices, self.held)).astype(np.int64)
     return Split(take(self.pixels), self.poses[indices], self.cameras.select(indices),
                  tuple(self.names[i] for i in indices), take(self.alphas),
-                 None if self.bounds is None else self.bounds[indices])
+                 None if self.bounds is None else self.bounds[indices], held)
+
+
+def _offsets(num_pixels: np.ndarray, held: np.ndarray | None) -> np.ndarray:
+  """(N + 1,) int64 pixel offsets of frames of `num_pixels` pixels each, frames not `held` taking none."""
+  sizes = np.asarray(num_pixels, np.int64)
+  if held is not None:
+    sizes = np.where(np.isin(np.arange(len(sizes)), held), sizes, 0)
+  return np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
 
 class FloatImages:
@@ -215,21 +254,97 @@ class Scene:
             "far": float(self.far), "capture_to_scene": np.asarray(self.transform, np.float64).tolist()}
 
 
-def capture_scene(name: str, kind: str, read, cams: Cameras, names, framing, where: str, threads: int) -> Scene:
+MIB = 2**20
+
+
+@dataclasses.dataclass(frozen=True)
+class Shards:
+  """Which training frames a host reads (data.shards): the training frames make `count` fixed shards, frame
+  i in shard i mod `count`, and this host, `host` of `hosts`, holds the shards `held`. Every shard gets the
+  frames of the whole capture's path (every count-th one), so each sub-batch sees the whole scene, and shard
+  sizes differ by at most one frame. `budget_bytes`: the host memory its images may take (None: unchecked).
+  Held-out splits are not sharded: every host reads them."""
+  count: int = 1
+  held: tuple[int, ...] = (0,)
+  host: int = 0
+  hosts: int = 1
+  budget_bytes: int | None = None
+
+  def frames(self, num_frames: int) -> np.ndarray:
+    """The sorted indices of this host's training frames among `num_frames`."""
+    return frames_of(num_frames, self.count, self.held)
+
+  def check(self, frame_bytes, heldout_bytes: int, where: str) -> None:
+    """Refuses, before any image is read, a host whose training frames (`frame_bytes`: each training frame's
+    bytes) and held-out images would not fit its budget, naming a host count that would."""
+    frame_bytes = np.asarray(frame_bytes, np.int64)
+    n = len(frame_bytes)
+    if self.count > n:
+      raise UserError(f"data.shards={self.count} is more than the {n} training images of {where}, so a shard "
+                      f"would be empty; use at most {n} shards (and a multiple of the {self.hosts} host(s)).")
+    if self.budget_bytes is None:
+      return
+    held = int(frame_bytes[self.frames(n)].sum())
+    if held + heldout_bytes <= self.budget_bytes:
+      return
+    fix = _hosts_that_fit(frame_bytes, heldout_bytes, self.budget_bytes, self.count, self.hosts)
+    raise UserError(f"host {self.host} would hold {len(self.frames(n))} of {n} training images "
+                    f"({held / MIB:.1f} MiB) and {heldout_bytes / MIB:.1f} MiB of held-out images, more than its "
+                    f"memory budget of {self.budget_bytes / MIB:.1f} MiB (data.host_memory_gib); {fix}.")
+
+
+def frames_of(num_frames: int, count: int, shards) -> np.ndarray:
+  """The sorted indices of the frames of `shards` (frame i in shard i mod `count`) among `num_frames`."""
+  return np.flatnonzero(np.isin(np.arange(num_frames) % count, np.asarray(shards, np.int64))).astype(np.int64)
+
+
+def _largest_host_bytes(frame_bytes: np.ndarray, count: int, hosts: int) -> int:
+  """The training bytes of the fullest host of `hosts`, each holding count / hosts consecutive shards."""
+  per_shard = np.bincount(np.arange(len(frame_bytes)) % count, weights=frame_bytes, minlength=count)
+  return int(per_shard.reshape(hosts, count // hosts).sum(axis=1).max())
+
+
+def _hosts_that_fit(frame_bytes: np.ndarray, heldout_bytes: int, budget: int, count: int, hosts: int) -> str:
+  """What to do about a shard that does not fit: the fewest hosts (and shard count, a multiple of them)
+  whose largest share fits `budget`, or a smaller capture where even one frame per host would not."""
+  n = len(frame_bytes)
+  room = budget - heldout_bytes
+  if room < frame_bytes.max():
+    return ("not even one image per host would fit beside the held-out images: raise data.downscale or "
+            "data.host_memory_gib")
+  # More shards over the same hosts would not help: a host holds 1 / hosts of the frames whatever the count.
+  start = max(hosts + 1, int(frame_bytes.sum() // room))
+  for wanted in range(start, min(n, start + 4096) + 1):
+    shards = count if count % wanted == 0 else wanted * -(-count // wanted)
+    if shards <= n and _largest_host_bytes(frame_bytes, shards, wanted) <= room:
+      keep = f"data.shards={count} stays" if shards == count else f"data.shards={shards}, a multiple of {wanted}"
+      return (f"run on {wanted} hosts ({keep}; each then holds about 1/{wanted} of the images), or raise "
+              f"data.downscale or data.host_memory_gib")
+  return "raise data.downscale or data.host_memory_gib: no host count up to one image per host fits"
+
+
+def capture_scene(name: str, kind: str, read, cams: Cameras, names, framing, where: str, threads: int,
+                  shards: Shards | None = None) -> Scene:
   """A real capture's Scene from its frames and their framing (nerfpod.scenes.capture.frame): one split per
   list of frame indices, each read straight into its own buffer (`read(i)`: frame i's (H_i, W_i, 3) uint8
   image; `cams` already the images' sizes); black background (captures are opaque). Frames no split lists
-  are not read."""
+  are not read, nor training frames outside this host's `shards` (checked against its budget first)."""
+  train = tuple(int(i) for i in framing.splits["train"])
+  if shards is not None:
+    heldout = {tuple(int(i) for i in v) for k, v in framing.splits.items() if k != "train"}
+    heldout_bytes = sum(int(cams.num_pixels[list(key)].sum()) * 3 for key in heldout)
+    shards.check(cams.num_pixels[list(train)] * 3, heldout_bytes, where)
   selected: dict[tuple, Split] = {}  # val and test are often the same frames: one copy
   splits = {}
   for split, indices in framing.splits.items():
     key = tuple(int(i) for i in indices)
-    if key not in selected:
-      selected[key] = check_split(Split.from_frames(
+    frames = shards.frames(len(key)) if shards is not None and split == "train" else None
+    if (key, split == "train") not in selected:
+      selected[key, split == "train"] = check_split(Split.from_frames(
           lambda j, key=key: (read(key[j]), None), framing.poses[list(key)], cams.select(list(key)),
           [names[i] for i in key], bounds=None if framing.bounds is None else framing.bounds[list(key)],
-          threads=threads), where)
-    splits[split] = selected[key]
+          threads=threads, frames=frames), where)
+    splits[split] = selected[key, split == "train"]
   return Scene(name, splits, near=framing.near, far=framing.far, background=(0.0, 0.0, 0.0), space=framing.space,
                transform=framing.transform, kind=kind)
 

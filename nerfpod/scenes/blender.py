@@ -6,7 +6,7 @@ from PIL import Image
 
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, Intrinsics
-from nerfpod.scenes.base import Scene, Split, check_poses, check_split, read_json, to_uint8, unscaled
+from nerfpod.scenes.base import Scene, Shards, Split, check_poses, check_split, read_json, to_uint8, unscaled
 from nerfpod.scenes.capture import READ_THREADS, image_size
 
 SPLITS = ("train", "val", "test")
@@ -48,6 +48,32 @@ def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
 
 
 def load_split(root: str, split: str, downscale: int = 1) -> Split:
+  """Every frame of one split, read."""
+  return _listed(root, split, downscale).read()
+
+
+class _Listed:
+  """A split's frames as its transforms file lists them, sizes from the images' headers, nothing decoded."""
+
+  def __init__(self, path, names, files, poses, intr, downscale):
+    self.path, self.names, self.files, self.poses, self.intr = path, names, files, poses, intr
+    self.downscale = downscale
+
+  def frame_bytes(self) -> np.ndarray:
+    """Each frame's bytes once read: RGB and alpha, one byte each."""
+    return np.full(len(self.names), self.intr.width * self.intr.height * 4, np.int64)
+
+  def read(self, frames=None) -> Split:
+    """The split with the images of `frames` (sorted indices; default all) read."""
+    def read(i):
+      rgba = _read_image(self.files[i], self.names[i], self.downscale)
+      return rgba[..., :3], rgba[..., 3]
+    return check_split(Split.from_frames(read, self.poses.astype(np.float32),
+                                         Cameras.repeat(self.intr, len(self.names)), self.names, with_alpha=True,
+                                         threads=READ_THREADS, frames=frames), self.path)
+
+
+def _listed(root: str, split: str, downscale: int = 1) -> _Listed:
   path = os.path.join(root, f"transforms_{split}.json")
   meta = _read_json(path)
   frames = meta["frames"]
@@ -84,23 +110,25 @@ def load_split(root: str, split: str, downscale: int = 1) -> Split:
     raise UserError(f"{path}: camera_angle_x is not a number.") from e
   focal = 0.5 * w / np.tan(0.5 * angle)
   intr = Intrinsics.from_focal(w, h, focal)
-
-  def read(i):
-    rgba = _read_image(files[i], names[i], downscale)
-    return rgba[..., :3], rgba[..., 3]
-  return check_split(Split.from_frames(read, poses.astype(np.float32), Cameras.repeat(intr, len(names)), names,
-                                       with_alpha=True, threads=READ_THREADS), path)
+  return _Listed(path, names, files, poses, intr, downscale)
 
 
-def load(root: str, downscale: int = 1, splits=SPLITS) -> Scene:
-  """Every split whose transforms file exists; train must exist."""
+def load(root: str, downscale: int = 1, splits=SPLITS, shards: Shards | None = None) -> Scene:
+  """Every split whose transforms file exists; train must exist. With `shards`, only this host's training
+  frames are read, after checking that they and the held-out splits fit its budget."""
   if not os.path.isdir(root):
     raise UserError(f"Blender scene folder {root!r} not found; set --config.data.path to a folder holding "
                     f"transforms_train.json.")
   if not os.path.isfile(os.path.join(root, "transforms_train.json")):
     raise UserError(f"{root} has no transforms_train.json; set --config.data.path to a NeRF synthetic scene "
                     f"folder.")
-  loaded = {s: load_split(root, s, int(downscale)) for s in splits
+  listed = {s: _listed(root, s, int(downscale)) for s in splits
             if os.path.isfile(os.path.join(root, f"transforms_{s}.json"))}
+  frames = None
+  if shards is not None and "train" in listed:
+    heldout = sum(int(v.frame_bytes().sum()) for k, v in listed.items() if k != "train")
+    shards.check(listed["train"].frame_bytes(), heldout, listed["train"].path)
+    frames = shards.frames(len(listed["train"].names))
+  loaded = {s: v.read(frames if s == "train" else None) for s, v in listed.items()}
   name = os.path.basename(os.path.normpath(root))
   return Scene(name, loaded, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="blender")

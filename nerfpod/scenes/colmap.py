@@ -102,7 +102,7 @@ def _depth_bounds(rec, image, w2c_3x4: np.ndarray) -> np.ndarray | None:
   return np.percentile(depth, [0.1, 99.9])
 
 
-def load(root: str, data_config) -> Scene:
+def load(root: str, data_config, shards=None) -> Scene:
   folder = model_folder(root)
   broken = incomplete_model(root)
   if broken is not None:
@@ -145,4 +145,4 @@ def load(root: str, data_config) -> Scene:
   framing = capture.frame(poses, bounds, names, data_config, "colmap", folder, default_space="unbounded")
   read = lambda i: capture.read_image(paths[i], names[i], shrink)
   return capture_scene(os.path.basename(os.path.normpath(root)), "colmap", read, cams, names, framing, folder,
-                       capture.READ_THREADS)
+                       capture.READ_THREADS, shards)

@@ -36,7 +36,7 @@ def read_poses_bounds(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   return poses, raw[:, :, 4], arr[:, 15:17]
 
 
-def load(root: str, data_config) -> Scene:
+def load(root: str, data_config, shards=None) -> Scene:
   path = os.path.join(root, POSES_FILE)
   if not os.path.isfile(path):
     raise UserError(f"{root} has no {POSES_FILE}; set --config.data.path to an LLFF scene folder (with "
@@ -68,4 +68,4 @@ def load(root: str, data_config) -> Scene:
   framing = capture.frame(poses, bounds, names, data_config, "llff", path, default_space="forward_facing")
   read = lambda i: capture.read_image(paths[i], names[i], shrink)
   return capture_scene(os.path.basename(os.path.normpath(root)), "llff", read, cams, names, framing, path,
-                       capture.READ_THREADS)
+                       capture.READ_THREADS, shards)

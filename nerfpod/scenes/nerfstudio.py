@@ -62,7 +62,7 @@ def _read_meta(path: str) -> dict:
   return meta
 
 
-def load(path: str, data_config) -> Scene:
+def load(path: str, data_config, shards=None) -> Scene:
   """`path`: a folder holding transforms.json, or the JSON file itself."""
   if os.path.isdir(path):
     path = os.path.join(path, TRANSFORMS)
@@ -144,4 +144,4 @@ def load(path: str, data_config) -> Scene:
   framing = capture.frame(poses, None, names, data_config, "nerfstudio", path, default_space="unbounded",
                           split_lists=split_lists)
   read = lambda i: capture.read_image(located[i][0], names[i], located[i][1])
-  return capture_scene(name, "nerfstudio", read, cams, names, framing, path, capture.READ_THREADS)
+  return capture_scene(name, "nerfstudio", read, cams, names, framing, path, capture.READ_THREADS, shards)
