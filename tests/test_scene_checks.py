@@ -184,12 +184,20 @@ def _broken_colmap(root, with_llff):
     write_llff(root, poses, 10.0, _images(3), _names(3))
 
 
-def test_auto_skips_an_incomplete_colmap_model_saying_which_file_it_lacks(tmp_path, caplog):
+def test_auto_skips_an_incomplete_colmap_model_saying_which_file_it_lacks(tmp_path):
   _broken_colmap(tmp_path, with_llff=True)
   missing = tmp_path / "sparse" / "0" / "images.bin"
-  with caplog.at_level(logging.WARNING):
+  # Read off absl's logger itself: an earlier test that ran an absl app may have stopped it propagating to
+  # the root logger, where pytest's caplog listens.
+  records = []
+  handler = logging.Handler(logging.WARNING)
+  handler.emit = records.append
+  logging.getLogger("absl").addHandler(handler)
+  try:
     assert scenes.detect(str(tmp_path)) == "llff"
-  warning = " ".join(r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+  finally:
+    logging.getLogger("absl").removeHandler(handler)
+  warning = " ".join(r.getMessage() for r in records if r.levelno == logging.WARNING)
   assert f"found a COLMAP model in {tmp_path / 'sparse' / '0'} but {missing} is missing" in warning
   assert "using poses_bounds.npy (llff) instead" in warning
   with pytest.raises(UserError) as err:  # data.kind=colmap insists, and names the file
