@@ -474,7 +474,7 @@ def run(argv=None):
   sentence and exit code 2."""
   started = time.perf_counter()
   args = _parse(sys.argv[1:] if argv is None else argv)
-  logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore: keep the console readable
+  logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
   sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
   try:
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,

@@ -187,16 +187,19 @@ def _broken_colmap(root, with_llff):
 def test_auto_skips_an_incomplete_colmap_model_saying_which_file_it_lacks(tmp_path):
   _broken_colmap(tmp_path, with_llff=True)
   missing = tmp_path / "sparse" / "0" / "images.bin"
-  # Read off absl's logger itself: an earlier test that ran an absl app may have stopped it propagating to
-  # the root logger, where pytest's caplog listens.
+  # Read off absl's logger itself, at WARNING whatever an earlier test in this process set it to.
   records = []
   handler = logging.Handler(logging.WARNING)
   handler.emit = records.append
-  logging.getLogger("absl").addHandler(handler)
+  absl_logger = logging.getLogger("absl")
+  level = absl_logger.level
+  absl_logger.addHandler(handler)
+  absl_logger.setLevel(logging.WARNING)
   try:
     assert scenes.detect(str(tmp_path)) == "llff"
   finally:
-    logging.getLogger("absl").removeHandler(handler)
+    absl_logger.removeHandler(handler)
+    absl_logger.setLevel(level)
   warning = " ".join(r.getMessage() for r in records if r.levelno == logging.WARNING)
   assert f"found a COLMAP model in {tmp_path / 'sparse' / '0'} but {missing} is missing" in warning
   assert "using poses_bounds.npy (llff) instead" in warning

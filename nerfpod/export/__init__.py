@@ -80,6 +80,8 @@ def run(argv=None) -> None:
           f"(nerfpod export --help says what each writes).", file=sys.stderr, flush=True)
     sys.exit(2)
   args = parse_args(argv)
+  from absl import logging
+  logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
   try:
     files = export(args)
   except UserError as e:

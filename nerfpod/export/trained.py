@@ -15,7 +15,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from absl import logging
 from etils import epath
 from jax.sharding import PartitionSpec as P
 
@@ -84,7 +83,6 @@ def restore(workdir: str) -> Trained:
   workdir = str(workdir)
   config = read_config(workdir)
   compilation.tune_host(config)
-  logging.set_verbosity(logging.ERROR)  # orbax warns at every read-only restore
   comps = components.build(config)
   state = checkpoints.restore_read_only(workdir, config.checkpoint, comps.state_shapes)
   step = int(jax.device_get(state.step))
