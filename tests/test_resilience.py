@@ -367,3 +367,16 @@ def test_a_full_disk_is_one_sentence_naming_the_safe_checkpoint_and_a_rerun_with
     assert not list((disk / "new").glob("*.tmp")) and not list((disk / "new").glob("events.out.tfevents.*"))
   finally:
     subprocess.run(["umount", str(disk)], capture_output=True)
+
+
+def test_a_data_mistake_leaves_no_new_workdir_and_no_lock_behind(tmp_path):
+  workdir = tmp_path / "new-run"
+  config = smoke_config(**{"data.kind": "blender", "data.path": str(tmp_path / "no-such-scene")})
+  with pytest.raises(UserError, match="no-such-scene"):
+    modes.train_and_evaluate(config, str(workdir))
+  assert not workdir.exists()  # made for the run, removed again as it stayed empty
+  existing = tmp_path / "existing"
+  existing.mkdir()
+  with pytest.raises(UserError, match="no-such-scene"):
+    modes.train_and_evaluate(config, str(existing))
+  assert existing.is_dir() and list(existing.iterdir()) == []  # a folder the user made stays; no lock.json
