@@ -361,6 +361,21 @@ def _token_from_user(user: tuple[str, dict], lock: str) -> dict:
                   f"again, or pass a local --workdir.")
 
 
+class _UnsupportedCredentials(UserError):
+  """Credentials that Cloud Storage itself takes but this lock's small client cannot use (a service account's
+  key file, which needs RSA signing): the run goes on without a lock, saying so (as before there was one)."""
+
+
+def _service_account_key() -> str | None:
+  """GOOGLE_APPLICATION_CREDENTIALS where it names a service account's key file."""
+  path = os.environ.get("GOOGLE_APPLICATION_CREDENTIALS")
+  try:
+    with open(path) as f:
+      return path if json.load(f).get("type") == "service_account" else None
+  except (OSError, ValueError, TypeError, AttributeError):
+    return None
+
+
 def _token_from_metadata_server(lock: str) -> dict:
   host = os.environ.get("GCE_METADATA_HOST") or "metadata.google.internal"
   request = urllib.request.Request(
@@ -373,6 +388,12 @@ def _token_from_metadata_server(lock: str) -> dict:
     why = f"HTTP {status}: {_message(answer)}"
   except (OSError, ValueError) as e:
     why = _why(e) if isinstance(e, OSError) else "not a token"
+  key = _service_account_key()
+  if key is not None:
+    raise _UnsupportedCredentials(f"no lock on {lock}: the service account key file {key} "
+                                  f"(GOOGLE_APPLICATION_CREDENTIALS) is not one the lock can use, and there is no "
+                                  f"metadata server ({why}); make sure one training run at a time writes this "
+                                  f"workdir (or use `gcloud auth application-default login`)")
   raise UserError(f"could not take the lock {lock}: there are no credentials for Cloud Storage (no "
                   f"application-default credentials of a user, and the metadata server of a GCE or TPU VM at "
                   f"{host} gave no token: {why}); run `gcloud auth application-default login`, run on a VM with a "
@@ -428,7 +449,12 @@ class WorkdirLock:
     me = {"host": socket.gethostname(), "pid": os.getpid(), "process_start": _process_start(os.getpid()),
           "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
     for _ in range(10):  # each pass either takes the lock, refuses, or clears a stale one
-      if self._store.create(me):
+      try:
+        created = self._store.create(me)
+      except _UnsupportedCredentials as e:
+        print(f"nerfpod: warning: {e}", file=sys.stderr, flush=True)
+        return
+      if created:
         self._held = True
         self._thread = threading.Thread(target=self._beat, name="nerfpod-workdir-lock", daemon=True)
         self._thread.start()

@@ -361,3 +361,22 @@ def test_cloud_storage_is_asked_with_the_vms_or_the_users_token(monkeypatch, tmp
         f"login` again, or pass a local --workdir.")
   finally:
     fake.close()
+
+
+def test_a_service_account_key_file_without_a_metadata_server_trains_without_a_lock_saying_so(monkeypatch, tmp_path,
+                                                                                             capsys):
+  """Cloud Storage takes a service account's key file (orbax and tensorstore do), which this lock's client
+  cannot sign with: the run is not refused for it (it trained on such a workdir before the lock existed), it
+  goes on without a lock and says so."""
+  port = _closed_port()
+  key = tmp_path / "key.json"
+  key.write_text('{"type": "service_account", "client_email": "a@b.iam.gserviceaccount.com"}')
+  monkeypatch.setenv("GOOGLE_APPLICATION_CREDENTIALS", str(key))
+  monkeypatch.setenv("GCE_METADATA_HOST", f"127.0.0.1:{port}")
+  lock = workdir_lock.WorkdirLock(WORKDIR)
+  lock.acquire()
+  lock.release()
+  err = capsys.readouterr().err
+  assert err.count("\n") == 1 and err.startswith(f"nerfpod: warning: no lock on {PATH}: the service account key "
+                                                 f"file {key} (GOOGLE_APPLICATION_CREDENTIALS) is not one the lock "
+                                                 f"can use"), err
