@@ -222,3 +222,24 @@ def test_a_run_whose_shard_would_not_fit_exits_2_with_one_sentence(tmp_path):
   errors = [l for l in done.stderr.splitlines() if l.startswith("nerfpod: error:")]
   assert done.returncode == 2 and len(errors) == 1 and "Traceback" not in done.stderr, done.stderr
   assert "more than its memory budget" in errors[0] and "run on" in errors[0]
+
+
+def test_a_capture_loader_reads_only_the_frames_of_the_hosts_shards(tmp_path, monkeypatch):
+  from nerfpod.scenes import capture
+  (tmp_path / "images").mkdir()
+  frames = []
+  for i in range(10):  # frames 0 and 8 are held out (data.llffhold=8): training frames 1-7 and 9
+    Image.fromarray(np.full((6, 8, 3), 10 * i, np.uint8)).save(tmp_path / "images" / f"{i:02d}.png")
+    frames.append({"file_path": f"images/{i:02d}.png",
+                   "transform_matrix": cameras.spherical_pose(36.0 * i, -30.0, 4.0).tolist()})
+  (tmp_path / "transforms.json").write_text(json.dumps(
+      {"fl_x": 8.0, "fl_y": 8.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames}))
+  read = []
+  original = capture.read_image
+  monkeypatch.setattr(capture, "read_image", lambda path, *a: read.append(path[-6:-4]) or original(path, *a))
+  config = smoke_config(**{"data.kind": "nerfstudio", "data.path": str(tmp_path), "data.shards": 2})
+  scene = scenes.load(config.data, Shards(2, (1,), 1, 2, 2**20))
+  train = scene.split("train")
+  assert sorted(read) == ["00", "02", "04", "06", "08", "09"]  # held-out 0, 8; shard 1 of 1-7, 9: 2, 4, 6, 9
+  assert train.held.tolist() == [1, 3, 5, 7] and len(train) == 8 and train.image_uint8(7)[0, 0, 0] == 90
+  assert scene.split("val") is scene.split("test")

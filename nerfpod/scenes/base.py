@@ -339,12 +339,15 @@ def capture_scene(name: str, kind: str, read, cams: Cameras, names, framing, whe
   for split, indices in framing.splits.items():
     key = tuple(int(i) for i in indices)
     frames = shards.frames(len(key)) if shards is not None and split == "train" else None
-    if (key, split == "train") not in selected:
-      selected[key, split == "train"] = check_split(Split.from_frames(
+    if frames is not None and len(frames) == len(key):
+      frames = None  # every frame: one shard, or one host holding them all
+    part = None if frames is None else tuple(frames.tolist())
+    if (key, part) not in selected:
+      selected[key, part] = check_split(Split.from_frames(
           lambda j, key=key: (read(key[j]), None), framing.poses[list(key)], cams.select(list(key)),
           [names[i] for i in key], bounds=None if framing.bounds is None else framing.bounds[list(key)],
           threads=threads, frames=frames), where)
-    splits[split] = selected[key, split == "train"]
+    splits[split] = selected[key, part]
   return Scene(name, splits, near=framing.near, far=framing.far, background=(0.0, 0.0, 0.0), space=framing.space,
                transform=framing.transform, kind=kind)
 
