@@ -141,16 +141,19 @@ def local_slice(global_size: int, mesh: Mesh | None = None) -> slice:
 def local_shards(num_shards: int, mesh: Mesh | None = None) -> tuple[tuple[int, ...], int, int]:
   """(the data.shards this process holds, its index, the process count) over `mesh` (default: all devices of
   all hosts): process p of P holds shards [p S/P, (p+1) S/P), whose sub-batches are its local_slice rows.
-  Refuses a shard count the process count does not divide."""
+  One shard (the default) is every frame, held by every process, each taking its rows of the one draw.
+  Refuses a shard count above 1 that the process count does not divide."""
   devices = jax.devices() if mesh is None else list(mesh.devices.flat)
   processes = sorted({d.process_index for d in devices})
+  index = processes.index(jax.process_index())
+  if num_shards == 1:
+    return (0,), index, len(processes)
   if num_shards % len(processes):
     multiple = -(-num_shards // len(processes)) * len(processes)
     raise UserError(f"data.shards={num_shards} does not split over the {len(processes)} hosts of this run; make "
                     f"it a multiple of the host count (e.g. --config.data.shards={multiple}), and of every host "
                     f"count the run may be resumed on.")
   per_process = num_shards // len(processes)
-  index = processes.index(jax.process_index())
   return tuple(range(index * per_process, (index + 1) * per_process)), index, len(processes)
 
 

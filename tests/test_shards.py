@@ -117,6 +117,8 @@ def test_a_shard_that_would_not_fit_is_refused_before_reading_naming_the_hosts_t
   assert message.count(". ") == 0 and message.endswith(".")
   assert "host 0 would hold 4 of 8 training images" in message and "memory budget" in message
   assert "run on 4 hosts (data.shards=4, a multiple of 4;" in message
+  with pytest.raises(UserError, match=r"run on these 2 hosts \(data.shards=2, a multiple of 2;"):
+    blender.load(str(tmp_path), shards=Shards(1, (0,), 0, 2, budget + 2 * frame))  # one shard, held by both
   with pytest.raises(UserError, match="not even one image per host would fit"):
     blender.load(str(tmp_path), shards=Shards(2, (0,), 0, 2, 2 * frame))
 
@@ -139,6 +141,7 @@ def test_a_shard_count_the_hosts_do_not_divide_is_refused_in_one_sentence():
                           "host count (e.g. --config.data.shards=6), and of every host count the run may be "
                           "resumed on.")
   assert distributed.local_shards(6, mesh) == ((0, 1), 0, 3)
+  assert distributed.local_shards(1, mesh) == ((0,), 0, 3)  # one shard: every host holds every frame
   with pytest.raises(UserError, match="data.shards=12 is more than the 10 training images"):
     Shards(12, (0,)).check(np.ones(10), 0, "scene")
 

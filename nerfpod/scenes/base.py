@@ -312,13 +312,15 @@ def _hosts_that_fit(frame_bytes: np.ndarray, heldout_bytes: int, budget: int, co
   if room < frame_bytes.max():
     return ("not even one image per host would fit beside the held-out images: raise data.downscale or "
             "data.host_memory_gib")
-  # More shards over the same hosts would not help: a host holds 1 / hosts of the frames whatever the count.
-  start = max(hosts + 1, int(frame_bytes.sum() // room))
+  # With shards a host holds 1 / hosts of the frames whatever their count: only more hosts help. With one
+  # shard every host holds every frame: shards over the same hosts may be enough.
+  start = max(hosts if count == 1 and hosts > 1 else hosts + 1, int(frame_bytes.sum() // room))
   for wanted in range(start, min(n, start + 4096) + 1):
-    shards = count if count % wanted == 0 else wanted * -(-count // wanted)
+    shards = count if count % wanted == 0 and count > 1 else wanted * -(-count // wanted)
     if shards <= n and _largest_host_bytes(frame_bytes, shards, wanted) <= room:
       keep = f"data.shards={count} stays" if shards == count else f"data.shards={shards}, a multiple of {wanted}"
-      return (f"run on {wanted} hosts ({keep}; each then holds about 1/{wanted} of the images), or raise "
+      where = f"on {wanted} hosts" if wanted > hosts else f"on these {hosts} hosts"
+      return (f"run {where} ({keep}; each then holds about 1/{wanted} of the images), or raise "
               f"data.downscale or data.host_memory_gib")
   return "raise data.downscale or data.host_memory_gib: no host count up to one image per host fits"
 
