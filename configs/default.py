@@ -170,6 +170,7 @@ def shrink_for_smoke(c: ml_collections.ConfigDict) -> None:
   c.checkpoint.every_steps = 10
   c.eval.max_views = 2
   c.eval.chunk = 1024
+  c.eval.lpips_net = "none"  # PSNR and SSIM only: LPIPS's network costs each short run more than its steps
   c.orbit.num_frames = 4
   c.orbit.width = 16
   c.orbit.height = 16

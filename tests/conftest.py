@@ -50,6 +50,9 @@ def load_config(name: str, arg: str | None = None):
 # The smoke job's settings for the shared run below: logging every step, no preview images and no orbit
 # change nothing that training or evaluation compute, only what is written and shown.
 SMOKE_RUN_OVERRIDES = {"train.log_every": 1, "train.image_every": 0, "orbit.render_after_training": False}
+# The shared run also measures LPIPS (the smoke config leaves it out), so that evaluation's LPIPS is tested
+# on a real run's checkpoint (tests/test_evaluate.py).
+SMOKE_RUN_EVAL = {"eval.lpips_net": "alex"}
 
 
 @pytest.fixture(scope="session")
@@ -71,13 +74,13 @@ def smoke_run(tmp_path_factory):
   workdir = tmp_path_factory.mktemp("smoke_run")
   with pytest.MonkeyPatch.context() as patch:
     patch.setattr(monitor, "Monitor", Recording)
-    metrics = modes.train_and_evaluate(smoke_config(**SMOKE_RUN_OVERRIDES), str(workdir))
+    metrics = modes.train_and_evaluate(smoke_config(**SMOKE_RUN_OVERRIDES, **SMOKE_RUN_EVAL), str(workdir))
   return types.SimpleNamespace(workdir=workdir, losses=losses, metrics=metrics)
 
 
 # The longest test files, with their seconds in a whole run on the 2-core machine (docs/results.md): run first,
-# so that with `-n 2` (pytest-xdist, whole files per worker in this order: --dist loadfile
-# --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order of
+# so that with `-n 2` (pytest-xdist, whole files per worker in this order: --dist loadgroup with a group per
+# file, --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order of
 # tests does not change what they check.
 LONGEST_FILES = {"test_multiprocess": 130, "test_prepare": 110, "test_chaos": 90, "test_export": 65,
                  "test_step": 60, "test_resilience": 55, "test_wandb": 50, "test_view": 45, "test_pod_sweep": 35,
@@ -85,5 +88,12 @@ LONGEST_FILES = {"test_multiprocess": 130, "test_prepare": 110, "test_chaos": 90
                  "test_captures": 25, "test_layout": 20, "test_whole_slice": 18}
 
 
+# The files that read the session's smoke run (smoke_run above) go to one worker, which trains it once.
+SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view")
+
+
 def pytest_collection_modifyitems(config, items):
   items.sort(key=lambda item: -LONGEST_FILES.get(item.path.stem, 0))  # stable: within a file, as written
+  for item in items:  # with -n 2 (--dist=loadgroup): whole files per worker, the smoke run's users together
+    stem = item.path.stem
+    item.add_marker(pytest.mark.xdist_group("smoke_run" if stem in SMOKE_RUN_FILES else stem))

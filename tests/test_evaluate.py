@@ -5,11 +5,12 @@ import json
 import numpy as np
 import pytest
 
-from conftest import SMOKE_RUN_OVERRIDES, smoke_config
+from conftest import SMOKE_RUN_EVAL, SMOKE_RUN_OVERRIDES, smoke_config
 from nerfpod import evaluate, lpips, metrics, modes, render
 from nerfpod.errors import UserError
 
-OVERRIDES = SMOKE_RUN_OVERRIDES  # the session's smoke run (conftest.smoke_run): 20 steps, eval.max_views=2
+OVERRIDES = dict(SMOKE_RUN_OVERRIDES, **SMOKE_RUN_EVAL)  # the session's smoke run (conftest.smoke_run): 20 steps,
+                                                          # eval.max_views=2, LPIPS (AlexNet)
 STEP = 20
 LPIPS = 0.5026521682739258  # eval/metrics.json's mean LPIPS (AlexNet) of that run, as recorded 2026-11-25
 
