@@ -332,13 +332,31 @@ def _user_credentials() -> tuple[str, dict] | None:
   path = os.environ.get("GOOGLE_APPLICATION_CREDENTIALS") or os.path.join(
       os.environ.get("CLOUDSDK_CONFIG") or os.path.join(os.path.expanduser("~"), ".config", "gcloud"),
       "application_default_credentials.json")
+  credentials = _json_file(path)
+  return (path, credentials) if credentials is not None and credentials.get("type") == "authorized_user" else None
+
+
+def _json_file(path: str | None) -> dict | None:
+  """The JSON object a credentials file holds, None where there is no such file or object."""
   try:
     with open(path) as f:
-      credentials = json.load(f)
-  except (OSError, ValueError):
+      value = json.load(f)
+  except (OSError, ValueError, TypeError):
     return None
-  return (path, credentials) if isinstance(credentials, dict) and credentials.get("type") == "authorized_user" \
-      else None
+  return value if isinstance(value, dict) else None
+
+
+def _token(opener, request) -> tuple[dict | None, str]:
+  """The access token an endpoint answers `request` with, or None and why there is none."""
+  try:
+    status, _, answer = _send(opener, request)
+    if status == 200:
+      return json.loads(answer), ""
+    return None, f"HTTP {status}: {_message(answer)}"
+  except OSError as e:
+    return None, _why(e)
+  except ValueError:
+    return None, "not a token"
 
 
 def _token_from_user(user: tuple[str, dict], lock: str) -> dict:
@@ -349,13 +367,9 @@ def _token_from_user(user: tuple[str, dict], lock: str) -> dict:
   url = credentials.get("token_uri") or "https://oauth2.googleapis.com/token"
   request = urllib.request.Request(url, data=form, method="POST",
                                    headers={"Content-Type": "application/x-www-form-urlencoded"})
-  try:
-    status, _, answer = _send(_PROXIED, request)
-    if status == 200:
-      return json.loads(answer)
-    why = f"HTTP {status}: {_message(answer)}"
-  except (OSError, ValueError) as e:
-    why = _why(e) if isinstance(e, OSError) else "not a token"
+  token, why = _token(_PROXIED, request)
+  if token is not None:
+    return token
   raise UserError(f"could not take the lock {lock}: the application-default credentials in {path} could not be "
                   f"turned into an access token at {url} ({why}); run `gcloud auth application-default login` "
                   f"again, or pass a local --workdir.")
@@ -369,11 +383,8 @@ class _UnsupportedCredentials(UserError):
 def _service_account_key() -> str | None:
   """GOOGLE_APPLICATION_CREDENTIALS where it names a service account's key file."""
   path = os.environ.get("GOOGLE_APPLICATION_CREDENTIALS")
-  try:
-    with open(path) as f:
-      return path if json.load(f).get("type") == "service_account" else None
-  except (OSError, ValueError, TypeError, AttributeError):
-    return None
+  key = _json_file(path)
+  return path if key is not None and key.get("type") == "service_account" else None
 
 
 def _token_from_metadata_server(lock: str) -> dict:
@@ -381,13 +392,9 @@ def _token_from_metadata_server(lock: str) -> dict:
   request = urllib.request.Request(
       f"http://{host}/computeMetadata/v1/instance/service-accounts/default/token",
       headers={"Metadata-Flavor": "Google"})
-  try:
-    status, _, answer = _send(_DIRECT, request)
-    if status == 200:
-      return json.loads(answer)
-    why = f"HTTP {status}: {_message(answer)}"
-  except (OSError, ValueError) as e:
-    why = _why(e) if isinstance(e, OSError) else "not a token"
+  token, why = _token(_DIRECT, request)
+  if token is not None:
+    return token
   key = _service_account_key()
   if key is not None:
     raise _UnsupportedCredentials(f"no lock on {lock}: the service account key file {key} "
