@@ -72,6 +72,11 @@ class _ReadOnlyIsAsked(logging.Filter):
     return not str(record.msg).startswith(self.QUIET)
 
 
+# How a full disk reads in the errors and logs of Python, tensorstore (its status carries errno 28, ENOSPC)
+# and a quota.
+DISK_FULL_TEXTS = ("No space left on device", "os_error_code='28'", "Disk quota exceeded")
+
+
 def disk_full(error: BaseException | None) -> bool:
   """Whether `error`, or an error it was raised from, says the disk (or the user's quota) is full."""
   seen = set()
@@ -79,8 +84,7 @@ def disk_full(error: BaseException | None) -> bool:
     seen.add(id(error))
     if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
       return True
-    if any(text in str(error) for text in ("No space left on device", "os_error_code='28'",
-                                           "Disk quota exceeded")):
+    if any(text in str(error) for text in DISK_FULL_TEXTS):
       return True
     error = error.__cause__ or error.__context__
   return False
@@ -94,7 +98,7 @@ class _DiskFullIsReported(logging.Filter):
     if record.levelno < logging.ERROR:
       return True
     return not (disk_full(record.exc_info[1] if record.exc_info else None)
-                or any(text in record.getMessage() for text in ("No space left on device", "os_error_code='28'")))
+                or any(text in record.getMessage() for text in DISK_FULL_TEXTS))
 
 
 logging.getLogger("absl").addFilter(_ReadOnlyIsAsked())
