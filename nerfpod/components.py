@@ -222,9 +222,8 @@ def build(config, mesh: Mesh | None = None) -> Components:
   shards = host_shards(config)
   scene = scenes.load(config.data, shards)
   train = scene.split("train")
-  held_bytes = train.pixels.nbytes + (0 if train.alphas is None else train.alphas.nbytes)
   print(f"host {shards.host} holds {len(train.held_frames)} of {len(train)} training images "
-        f"({held_bytes / 2**20:.1f} MiB)", file=sys.stderr, flush=True)  # stdout may be a tool's output
+        f"({train.nbytes / 2**20:.1f} MiB)", file=sys.stderr, flush=True)  # stdout may be a tool's output
   scene.split(config.eval.split)
   if config.orbit.path == "file":
     camera_path.read(config.orbit.path_file)

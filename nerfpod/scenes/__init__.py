@@ -76,8 +76,7 @@ def load(data_config, shards: Shards | None = None) -> Scene:
   train = scene.split("train")  # made in memory: check and cut it now
   frame_bytes = train.cameras.num_pixels * (3 + (train.alphas is not None))
   heldout = {id(v): v for k, v in scene.splits.items() if k != "train"}.values()
-  shards.check(frame_bytes, sum(v.pixels.nbytes + (0 if v.alphas is None else v.alphas.nbytes) for v in heldout),
-               scene.name)
+  shards.check(frame_bytes, sum(v.nbytes for v in heldout), scene.name)
   if shards.count == 1:
     return scene
   return dataclasses.replace(scene, splits={**scene.splits, "train": train.keep(shards.frames(len(train)))})

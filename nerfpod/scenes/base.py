@@ -138,6 +138,11 @@ class Split:
     return int(self.offsets[-1])
 
   @property
+  def nbytes(self) -> int:
+    """The bytes of the images this split holds (uint8 RGB, and alpha where there is one)."""
+    return self.pixels.nbytes + (0 if self.alphas is None else self.alphas.nbytes)
+
+  @property
   def intrinsics(self) -> Intrinsics:
     """The first frame's camera: the reference for sizes and field of view (e.g. the orbit's). Per-frame
     cameras are `cameras[i]`."""
