@@ -105,6 +105,11 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
                                   # scatter) or 'auto' (matmul on TPU, gather elsewhere; docs/pod-compile.md)
   c.compile.matmul_max_rows = 30000  # 'matmul' applies to dense levels of at most this many rows
 
+  c.mesh = ml_collections.ConfigDict()
+  c.mesh.slices = 0               # TPU slices joined by the data-centre network (DCN) the mesh spans; 0: as
+                                  # many as the devices report (1 on CPU; a count > 1 there simulates slices,
+                                  # docs/scale.md#multi-slice)
+
   c.checkpoint = ml_collections.ConfigDict()
   c.checkpoint.every_steps = 500  # steps between (asynchronous) checkpoints; one is always saved at the end
   c.checkpoint.max_to_keep = 3    # newest checkpoints kept on disk

@@ -115,7 +115,7 @@ class Program:
   far: float
   background: tuple
   state_shapes: TrainState  # jax.ShapeDtypeStruct leaves, replicated over `mesh`: what a restore fills
-  batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over the data axis
+  batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over every mesh axis
   compiler_options: dict    # XLA options of the step and the renderer (compilation.compiler_options)
 
   def make_renderer(self, mesh: Mesh | None = None):
@@ -158,7 +158,8 @@ def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
 
 def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool) -> dict:
   """The global batch of data.LocalRayBatch's fields (less its host-side step) as ShapeDtypeStructs laid
-  over `mesh`'s data axis: each host's rows on its own devices, as distributed.to_global makes them."""
+  over every device of `mesh` (its data axis, and its slice axis across slices): each host's rows on its own
+  devices, as distributed.to_global makes them."""
   sharding = distributed.batch_sharding(mesh)
   shapes = {"origins": ((batch_size, 3), jnp.float32), "directions": ((batch_size, 3), jnp.float32),
             "rgb": ((batch_size, 3), jnp.float32), "ray_ids": ((batch_size,), jnp.int32)}
@@ -216,9 +217,10 @@ def host_shards(config) -> scenes.Shards:
 
 
 def build(config, mesh: Mesh | None = None) -> Components:
-  """The pieces every mode needs (`mesh`: default, every device of every host): the scene (a missing
-  held-out split or a bad camera path file fails now, not after training; each host reads the training
-  frames of its data.shards only, and says so in one line), its Program and renderer."""
+  """The pieces every mode needs (`mesh`: default, every device of every host in config.mesh.slices
+  slices, distributed.make_mesh): the scene (a missing held-out split or a bad camera path file fails now,
+  not after training; each host reads the training frames of its data.shards only, and says so in one
+  line), its Program and renderer."""
   shards = host_shards(config)
   scene = scenes.load(config.data, shards)
   train = scene.split("train")
@@ -227,6 +229,8 @@ def build(config, mesh: Mesh | None = None) -> Components:
   scene.split(config.eval.split)
   if config.orbit.path == "file":
     camera_path.read(config.orbit.path_file)
-  program = build_program(config, distributed.make_mesh() if mesh is None else mesh, scene=scene)
+  if mesh is None:
+    mesh = distributed.make_mesh(num_slices=config.mesh.slices or None)
+  program = build_program(config, mesh, scene=scene)
   fields = {f.name: getattr(program, f.name) for f in dataclasses.fields(Program)}
   return Components(**fields, scene=scene, renderer=program.make_renderer())

@@ -9,6 +9,7 @@ from jax.sharding import AxisType, Mesh, NamedSharding, PartitionSpec as P
 from nerfpod.errors import UserError
 
 DATA_AXIS = "data"
+SLICE_AXIS = "slice"  # multi-slice runs only: the mesh's major axis, one entry per slice (make_mesh)
 
 
 def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
@@ -102,23 +103,59 @@ def _on_cloud_tpu_vm() -> bool:
   return bool(getattr(cloud_tpu_init, "running_in_cloud_tpu_vm", False))
 
 
-def make_mesh(devices=None) -> Mesh:
-  """A 1-D mesh over every device of every host (or over `devices`, e.g. a TPU topology's for an
-  ahead-of-time compile); batches are split along its one axis.
+def make_mesh(devices=None, num_slices: int | None = None) -> Mesh:
+  """The run's mesh over every device of every host (or over `devices`, e.g. a TPU topology's for an
+  ahead-of-time compile); batches are split over all of its devices.
 
-  Devices are ordered host by host (process index, then device id): each host's devices then hold one
-  contiguous block of the global batch, the rows local_slice gives it. (jax.make_mesh orders a TPU pod's
-  chips along the torus instead, which interleaves hosts, e.g. 0,0,1,1,1,1,0,2,... on a v5e 4x4, and the
-  rows a host loads would not be the rows its chips hold. The step's only collective, the all-reduce over
-  every chip, does not depend on the order.)
+  One slice (the usual case): a 1-D mesh, its one axis DATA_AXIS. Several slices (TPU multi-slice, chips of
+  several slices joined by the data-centre network, DCN): a 2-D mesh (SLICE_AXIS, DATA_AXIS) of shape
+  (slices, devices per slice), the slice axis major, as jax.experimental.mesh_utils.create_hybrid_device_mesh
+  lays a DCN axis out. `num_slices`: the slice count (the config's mesh.slices); None (or 0) takes what the
+  devices report (TPU devices carry `slice_index`; CPU devices none: one slice). On a CPU, a count above 1
+  simulates slices: the devices in order are cut into that many equal blocks.
+
+  Devices are ordered slice by slice, then host by host (process index, then device id): each host's devices
+  then hold one contiguous block of the global batch, the rows local_slice gives it, also across slices (the
+  batch is split over the flattened (slice, device) index). (jax.make_mesh and create_hybrid_device_mesh order
+  a slice's chips along the torus instead, which interleaves hosts, e.g. 0,0,1,1,1,1,0,2,... on a v5e 4x4, and
+  the rows a host loads would not be the rows its chips hold. The step's gradient mean, over every chip, does
+  not depend on the order.)
   """
-  devices = jax.devices() if devices is None else devices
-  ordered = sorted(devices, key=lambda d: (d.process_index, d.id))
-  return Mesh(np.array(ordered), (DATA_AXIS,), axis_types=(AxisType.Explicit,))  # as jax.make_mesh's
+  devices = list(jax.devices() if devices is None else devices)
+  reported = sorted({getattr(d, "slice_index", 0) for d in devices})
+  slices = num_slices or len(reported)
+  if slices < 1:
+    raise UserError(f"mesh.slices={slices} must be 0 (the slices the devices report) or a positive count.")
+  if len(reported) > 1 and slices != len(reported):
+    raise UserError(f"mesh.slices={slices} but the {len(devices)} devices are in {len(reported)} slices; leave "
+                    f"--config.mesh.slices=0 to take the slices the devices report.")
+  if len(devices) % slices:
+    raise UserError(f"{len(devices)} devices do not split into mesh.slices={slices} slices of equal size; make "
+                    f"mesh.slices a divisor of the device count (or 0 for the slices the devices report).")
+  ordered = sorted(devices, key=lambda d: (getattr(d, "slice_index", 0), d.process_index, d.id))
+  if slices == 1:  # exactly today's single-slice mesh
+    return Mesh(np.array(ordered), (DATA_AXIS,), axis_types=(AxisType.Explicit,))  # as jax.make_mesh's
+  return Mesh(np.array(ordered).reshape(slices, len(devices) // slices), (SLICE_AXIS, DATA_AXIS),
+              axis_types=(AxisType.Explicit, AxisType.Explicit))
+
+
+def batch_axes(mesh: Mesh):
+  """The mesh axes a batch is split over (all of them): DATA_AXIS on one slice, (SLICE_AXIS, DATA_AXIS) on
+  several; what shard_map's specs, the gradient mean and axis_index take."""
+  return mesh.axis_names[0] if len(mesh.axis_names) == 1 else tuple(mesh.axis_names)
+
+
+def batch_spec(mesh: Mesh) -> P:
+  """The PartitionSpec of a batch's leading axis split over every device of `mesh`."""
+  return P(batch_axes(mesh))
+
+
+def num_slices(mesh: Mesh) -> int:
+  return mesh.shape.get(SLICE_AXIS, 1)
 
 
 def batch_sharding(mesh: Mesh) -> NamedSharding:
-  return NamedSharding(mesh, P(DATA_AXIS))
+  return NamedSharding(mesh, batch_spec(mesh))
 
 
 def replicated(mesh: Mesh) -> NamedSharding:
@@ -171,10 +208,10 @@ def to_host(tree):
   return multihost_utils.process_allgather(tree, tiled=True)
 
 
-def ordered_mean(tree, axis_name: str, axis_size: int):
+def ordered_mean(tree, axis_name, axis_size):
   """The mean of `tree` over the devices of `axis_name`, inside shard_map, summed in an order that depends on
-  the devices' indices only, not on how they are spread over processes: the same bits on 1 process x 8
-  devices as on 2 x 4 or 8 x 1.
+  the devices' indices only, not on how they are spread over processes or slices: the same bits on 1 process
+  x 8 devices as on 2 x 4 or 8 x 1, and on 2 slices x 4 devices as on 1 x 8.
 
   (jax.lax.pmean leaves the order to the collective's implementation, which differs between devices of one
   process and devices of several; with Adam's tiny epsilon those round-off differences grow into visibly
@@ -184,24 +221,39 @@ def ordered_mean(tree, axis_name: str, axis_size: int):
   tree of additions. Otherwise: every device gathers all N values and adds them in index order. Either
   way the result is then made formally device-invariant by a psum in which every device but the first
   contributes exact zeros (x + 0 = x exactly, in any order).
+
+  Several axes (`axis_name` a tuple of names, major first, `axis_size` the tuple of their sizes; a
+  multi-slice mesh's (SLICE_AXIS, DATA_AXIS)): the devices are indexed by the flattened index
+  i = slice * D + device, as the batch is split. With D and the slice count S powers of two, the low log2(D)
+  bits of i are the device within its slice and the high bits the slice, so the butterfly's rounds over the
+  flattened index are exactly a within-slice stage (rounds over DATA_AXIS, partners in the same slice: ICI)
+  followed by a cross-slice stage (rounds over SLICE_AXIS, partners at the same place in other slices: DCN).
+  Each round adds the same partial sums as the 1-D butterfly over S x D devices: 2 slices x 4 devices give
+  the bits of 1 x 8. Otherwise the gather over all axes is in the flattened order, the same sum again.
   """
   import jax.numpy as jnp
-  if axis_size == 1:
-    return jax.lax.pmean(tree, axis_name)  # no sum at all; pmean only marks the value device-invariant
-  index = jax.lax.axis_index(axis_name)
+  names = tuple(axis_name) if isinstance(axis_name, (tuple, list)) else (axis_name,)
+  sizes = tuple(axis_size) if isinstance(axis_size, (tuple, list)) else (axis_size,)
+  total_size = int(np.prod(sizes))
+  axes = names if len(names) > 1 else names[0]
+  if total_size == 1:
+    return jax.lax.pmean(tree, axes)  # no sum at all; pmean only marks the value device-invariant
+  index = jax.lax.axis_index(axes)
 
   def mean(x):
-    if axis_size & (axis_size - 1) == 0:
-      total, bit = x, 1
-      while bit < axis_size:
-        total = total + jax.lax.ppermute(total, axis_name, [(i, i ^ bit) for i in range(axis_size)])
-        bit <<= 1
+    if total_size & (total_size - 1) == 0:
+      total = x
+      for name, size in reversed(tuple(zip(names, sizes))):  # the minor axis first: the low bits of i
+        bit = 1
+        while bit < size:
+          total = total + jax.lax.ppermute(total, name, [(i, i ^ bit) for i in range(size)])
+          bit <<= 1
     else:
-      gathered = jax.lax.all_gather(x, axis_name)
+      gathered = jax.lax.all_gather(x, axes)
       total = gathered[0]
-      for i in range(1, axis_size):
+      for i in range(1, total_size):
         total = total + gathered[i]
-    total = total / axis_size
-    return jax.lax.psum(jnp.where(index == 0, total, jnp.zeros_like(total)), axis_name)
+    total = total / total_size
+    return jax.lax.psum(jnp.where(index == 0, total, jnp.zeros_like(total)), axes)
 
   return jax.tree.map(mean, tree)

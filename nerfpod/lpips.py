@@ -159,7 +159,7 @@ class Evaluator:
     self.params = jax.tree.map(
         lambda x: jax.make_array_from_callback(x.shape, replicated, lambda index: x[index]), params)
     model = LPIPS(net)
-    axis = distributed.DATA_AXIS
+    axis = distributed.batch_axes(mesh)  # every axis of the mesh (slices too)
     self._fn = jax.jit(jax.shard_map(model.apply, mesh=mesh, in_specs=(P(), P(axis), P(axis)), out_specs=P(axis)))
 
   def distances(self, images0, images1) -> np.ndarray:

@@ -18,7 +18,7 @@ def make_renderer(model, mesh, near: float, far: float, background, compiler_opt
   def local(params, origins, directions):
     out = model.apply(params, origins, directions, near, far, jnp.asarray(background))[-1]
     return {k: out[k] for k in compositing.OUTPUTS}
-  axis = distributed.DATA_AXIS
+  axis = distributed.batch_axes(mesh)  # every axis: DATA_AXIS, or (SLICE_AXIS, DATA_AXIS) across slices
   return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(P(), P(axis), P(axis)), out_specs=P(axis)),
                  compiler_options=compiler_options)
 

@@ -38,6 +38,7 @@ ADDED_FIELDS = {
     "eval.lpips_net": "none",                                              # PSNR and SSIM only
     "train.profile_steps": [],                                             # no profile
     "data.shards": 1, "data.host_memory_gib": 0.0,                         # every host held every frame
+    "mesh.slices": 0,                                                      # the slices the devices report
 }
 
 
@@ -216,6 +217,8 @@ FIELDS: dict[str, Field] = {
     "compile.hashgrid_lookup": choice("auto", "gather", "matmul"),
     "compile.matmul_max_rows": integer(0, example=30000),
 
+    "mesh.slices": integer(0, example=2),
+
     "checkpoint.every_steps": integer(1, example=500),
     "checkpoint.max_to_keep": integer(1, example=3),
     "checkpoint.preempted_exit_code": integer(3, 125, example=75),
@@ -306,7 +309,12 @@ def _rules(c: dict) -> list[str]:
 
 def device_rules(c: dict, device_count: int) -> list[str]:
   """Mistakes that depend on the number of devices the run has."""
-  batch, micro = c["train.batch_size"], c["train.microbatches"]
+  batch, micro, slices = c["train.batch_size"], c["train.microbatches"], c.get("mesh.slices", 0)
+  if slices and device_count % slices:
+    divisors = [d for d in range(1, device_count + 1) if device_count % d == 0]
+    shown = ", ".join(map(str, divisors[:8])) + (", ..." if len(divisors) > 8 else "")
+    return [f"mesh.slices={slices} does not divide the {device_count} devices into slices of equal size; make it "
+            f"a divisor of {device_count} (one of {shown}) or 0 for the slices the devices report."]
   if batch % device_count:
     return [f"train.batch_size={batch} does not split over {device_count} devices; make it a multiple of "
             f"{device_count} (e.g. --config.train.batch_size={max(1, batch // device_count) * device_count})."]

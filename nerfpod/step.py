@@ -50,7 +50,11 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   weights; both are also returned as metrics.
   """
   background = jnp.asarray(background, jnp.float32)
-  num_devices = mesh.shape[distributed.DATA_AXIS]
+  # Every axis of the mesh: DATA_AXIS on one slice; (SLICE_AXIS, DATA_AXIS) on several, where the mean runs
+  # within each slice (ICI) and then across the slices (DCN): see distributed.ordered_mean, and for the
+  # all-reduce, docs/scale.md#multi-slice.
+  axes = distributed.batch_axes(mesh)
+  axis_sizes = tuple(mesh.shape[name] for name in mesh.axis_names)
 
   def loss_fn(params, batch, key):
     # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
@@ -95,13 +99,12 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # Differentiate w.r.t. a device-varying view of the replicated parameters: each device then gets the
     # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
-    params = jax.lax.pcast(state.params, distributed.DATA_AXIS, to="varying")
+    params = jax.lax.pcast(state.params, axes, to="varying")
     (loss, (mses, extra)), grads = accumulate(params, batch, key)
     if ordered_mean:
-      grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), distributed.DATA_AXIS,
-                                                          num_devices)
+      grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), mesh.axis_names, axis_sizes)
     else:
-      grads, loss, mses, extra = jax.lax.pmean((grads, loss, mses, extra), distributed.DATA_AXIS)
+      grads, loss, mses, extra = jax.lax.pmean((grads, loss, mses, extra), axes)
     updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
     params = optax.apply_updates(state.params, updates)
     # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
@@ -114,7 +117,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                "skipped": 1 - finite.astype(jnp.int32), **extra}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
-  step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), P(distributed.DATA_AXIS), P()),
+  step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), distributed.batch_spec(mesh), P()),
                        out_specs=(P(), P()))
   return jax.jit(step, donate_argnums=0, compiler_options=compiler_options)
 

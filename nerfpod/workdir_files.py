@@ -19,7 +19,7 @@ from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
-                     "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "monitor.",
+                     "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "mesh.", "monitor.",
                      "data.host_memory_gib")
 
 
@@ -83,7 +83,7 @@ def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> N
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
                     f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
                     f"logging cadence, train.max_nonfinite_steps, train.profile_steps, checkpoint.*, eval.*, orbit.*, "
-                    f"compile.* and "
+                    f"compile.*, mesh.* and "
                     f"monitor.* may change on resuming).")
 
 

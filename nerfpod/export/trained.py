@@ -197,7 +197,7 @@ class FieldQuery:
       normals = -gradient / jnp.maximum(jnp.linalg.norm(gradient, axis=-1, keepdims=True), 1e-12)
       return apply(params, points, viewdirs)[0], sigma, normals
 
-    axis = distributed.DATA_AXIS
+    axis = distributed.batch_axes(self.mesh)  # every axis of the mesh (slices too)
     program = lambda fn, outputs: jax.jit(jax.shard_map(fn, mesh=self.mesh, in_specs=(P(), P(axis), P(axis)),
                                                         out_specs=(P(axis),) * outputs))
     self._density = program(lambda params, points, viewdirs: (apply(params, points, viewdirs)[1],), 1)
