@@ -66,6 +66,8 @@ def _one_sentence(out: subprocess.CompletedProcess, code: int = 2) -> str:
                                                          "does not exist"),
     (["--topology=v5e-8", "--json=tests"], "--json=tests is a folder; name a file"),
     (["--config=configs/default.py:smoke"], "flag --topology=None: Flag --topology must have a value"),
+    (["--topology=v5e-8", "--slices=0"], "--slices=0 must be 1 (one slice) or more"),
+    (["--topology=v5e-8", "--slices=two"], "flag --slices=two: invalid literal"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_bad_arguments_are_one_sentence_and_exit_2(args, message):
   if not any(a.startswith("--config=") for a in args) and "--config=configs/default.py:smoke" not in args:
@@ -80,7 +82,7 @@ def test_a_compiler_refusal_is_one_sentence_naming_the_program_the_pod_and_xlas_
   script = (
       "import sys, jax\n"
       "from nerfpod.pod import aot, chips\n"
-      "def refuse(config, pod, what):\n"
+      "def refuse(config, pod, what, slices=1):\n"
       "  def compile_fn():\n"
       "    raise jax.errors.JaxRuntimeError('INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count\\n"
       "   == target.Topology()->LogicalDeviceCount() should include all slice devices\\nmore detail')\n"
@@ -195,3 +197,57 @@ def test_named_pods_have_the_chips_and_hosts_of_their_accelerator_type(name, num
   assert (pod.num_chips, pod.num_hosts, pod.generation) == (num_chips, hosts, kind)
   assert pod.chip.hbm_bytes >= 16 * 2**30 and pod.chip.source.startswith("https://cloud.google.com/tpu/docs/")
   assert chips.lookup("v5e-17") is None
+
+
+@needs_libtpu
+def test_two_slices_compile_as_one_program_with_the_cross_slice_reduction_over_dcn_as_its_own_collective():
+  """Multi-slice (the quick loop's small case): 2 slices of v5e-4 (8 chips on 2 hosts), the smoke step; the
+  gradient mean runs within each slice over ICI and across the slices over DCN, reported with its bytes and
+  costed at v5e's published DCN bandwidth."""
+  out = _aot("--config=configs/default.py:smoke", "--topology=v5e-4", "--slices=2", "--what=step", "--json=-")
+  assert out.returncode == 0, out.stderr
+  report = json.loads(out.stdout)
+  assert (report["slices"], report["chips"], report["hosts"]) == (2, 8, 2)
+  assert report["mesh"] == {"slice": 2, "data": 4} and report["host_rows_contiguous"]
+  assert report["chip"]["dcn_bytes_per_s"] == pytest.approx(6.4e12 / 8 / 256)
+  step = report["step"]
+  dcn = [c for c in step["collectives"] if c["network"] == "dcn"]
+  assert dcn and all(c["op"] == "all-reduce" and c["group"] == 2 and c["bytes"] > 0 for c in dcn)
+  # Each chip sends its share of the gradients across the slices, not all of them: at most the gradients.
+  across = sum(c["bytes"] * c["count"] for c in dcn)
+  assert 0 < across <= report["param_bytes"] + 4096
+  within = [c for c in step["collectives"] if c["network"] == "ici"]
+  assert within and all(c["group"] == 4 for c in within)  # within a slice: its 4 chips
+  assert step["unexpected_collectives"] == []
+  assert step["seconds_split"]["dcn"] == pytest.approx(
+      sum(2 * (2 - 1) / 2 * c["bytes"] * c["count"] for c in dcn) / report["chip"]["dcn_bytes_per_s"])
+  assert 0 < step["seconds_split"]["dcn"] < step["seconds_split"]["collectives"] < step["seconds"]
+  assert "2 slices of v5litepod-4 joined by DCN (v5e:2x2, 8 chips of TPU v5 lite on 2 hosts)" in out.stderr
+  assert "per chip across 2 slices (DCN)" in out.stderr and "DCN between slices: 3.12 GB/s per chip" in out.stderr
+
+
+@needs_libtpu
+def test_a_config_whose_slices_are_not_the_topologys_is_one_sentence():
+  line = _one_sentence(_aot("--config=configs/default.py:smoke", "--topology=v5e-4", "--slices=2",
+                            "--config.mesh.slices=4", "--what=step"))
+  assert "mesh.slices=4 but the 8 devices are in 2 slices" in line
+
+
+@pytest.mark.slow
+@needs_libtpu
+def test_two_slices_of_v5e_256_compile_every_program_of_the_default_config(tmp_path):
+  """The issue's check: --topology=v5e-256 --slices=2 with the default config (512 chips on 128 hosts)
+  compiles the step and both renderers over every chip of both slices, exit 0, and reports the DCN
+  collective (about 100 s on a 2-core CPU)."""
+  report_path = tmp_path / "report.json"
+  out = _aot("--config=configs/default.py", "--topology=v5e-256", "--slices=2", f"--json={report_path}", timeout=900)
+  assert out.returncode == 0, out.stderr
+  report = json.loads(report_path.read_text())
+  assert (report["slices"], report["chips"], report["hosts"]) == (2, 512, 128)
+  for name in ("step", "eval", "orbit"):
+    assert report[name]["fits_hbm"] and report[name]["seconds"] > 0
+    assert report[name]["rays_per_s_per_chip"] == pytest.approx(report[name]["rays_per_s"] / 512)
+  dcn = [c for c in report["step"]["collectives"] if c["network"] == "dcn"]
+  assert dcn and report["step"]["seconds_split"]["dcn"] > 0
+  assert report["step"]["unexpected_collectives"] == []
+  assert "per chip across 2 slices (DCN)" in out.stdout

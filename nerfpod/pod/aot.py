@@ -40,6 +40,8 @@ _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. con
                                           lock_config=True)
 _TOPOLOGY = flags.DEFINE_string("topology", None, "The pod: an accelerator type, e.g. v4-32, v5e-64 (= "
                                 "v5litepod-64), v5p-128, v6e-64; several, comma-separated.")
+_SLICES = flags.DEFINE_integer("slices", 1, "Multi-slice: this many slices of the --topology pod, joined by the "
+                                "data-centre network (DCN), e.g. --topology=v5e-256 --slices=2 (512 chips).")
 _WHAT = flags.DEFINE_list("what", ["step", "eval", "orbit"], "What to compile: step, eval, orbit.")
 _JSON = flags.DEFINE_string("json", None, "Also write the report as JSON to this file ('-': stdout only).")
 
@@ -72,16 +74,32 @@ def resolve_pods(names: str) -> list[chips.Pod]:
   return out
 
 
-def topology_devices(pod: chips.Pod):
-  """The pod's TPU devices (every host's), from libtpu's description of the topology."""
+def check_slices(slices: int) -> None:
+  if slices < 1:
+    raise UserError(f"--slices={slices} must be 1 (one slice) or more (multi-slice: slices joined by the "
+                    f"data-centre network), e.g. --slices=2.")
+
+
+def pod_label(pod: chips.Pod, slices: int = 1) -> str:
+  """The pod as reports name it: v5litepod-64, or 2 x v5litepod-256 for two slices."""
+  return pod.name if slices == 1 else f"{slices} x {pod.name}"
+
+
+def topology_devices(pod: chips.Pod, slices: int = 1):
+  """The TPU devices (every host's) of `slices` slices of the pod, from libtpu's description of the topology:
+  with several, each device carries its slice_index, as on a multi-slice run."""
+  check_slices(slices)
   try:
     from jax.experimental import topologies
     return topologies.get_topology_desc(platform="tpu", topology_name=pod.topology_name,
                                         chip_config_name=pod.chip_config,
-                                        chips_per_host_bounds=pod.chips_per_host, num_slices=1).devices
-  except Exception as e:  # no libtpu, or one that does not know the generation
-    raise UserError(f"cannot describe the {pod.name} topology on this machine ({str(e).splitlines()[0][:200]}); "
-                    f"install the TPU compiler with pip install -c constraints.txt -e '.[tpu]'.") from None
+                                        chips_per_host_bounds=pod.chips_per_host, num_slices=slices).devices
+  except Exception as e:  # no libtpu, or one that does not know the generation (or the slices)
+    what = f"the {pod.name} topology" if slices == 1 else f"{slices} slices of the {pod.name} topology"
+    fix = ("install the TPU compiler with pip install -c constraints.txt -e '.[tpu]'" if slices == 1 else
+           "compile one slice (--slices=1), or install the TPU compiler matched to JAX with pip install -c "
+           "constraints.txt -e '.[tpu]'")
+    raise UserError(f"cannot describe {what} on this machine ({str(e).splitlines()[0][:200]}); {fix}.") from None
 
 
 def _memory(compiled) -> dict:
@@ -103,13 +121,14 @@ def _xla_cost(compiled) -> dict:
           "optimal_seconds": optimal if optimal > 0 else None}
 
 
-def _roofline(compiled, pod: chips.Pod, num_devices: int):
+def _roofline(compiled, pod: chips.Pod, num_devices: int, slices: int = 1):
   from nerfpod.pod import hlo_cost
-  return hlo_cost.HloProgram(compiled.as_text(), pod.chip, num_devices).cost()
+  return hlo_cost.HloProgram(compiled.as_text(), pod.chip, num_devices, slices).cost()
 
 
-def _program_report(compiled, pod: chips.Pod, num_devices: int, rays: int, seconds_to_compile: float) -> dict:
-  cost = _roofline(compiled, pod, num_devices)
+def _program_report(compiled, pod: chips.Pod, num_devices: int, rays: int, seconds_to_compile: float,
+                    slices: int = 1) -> dict:
+  cost = _roofline(compiled, pod, num_devices, slices)
   memory = _memory(compiled)
   seconds = cost.seconds
   return {
@@ -119,7 +138,8 @@ def _program_report(compiled, pod: chips.Pod, num_devices: int, rays: int, secon
       "flops_per_chip": cost.flops, "bytes_per_chip": cost.bytes,
       "seconds": seconds,
       "seconds_split": {"matmul_bound": cost.compute_seconds, "memory_bound": cost.memory_seconds,
-                        "gather_scatter": cost.gather_scatter_seconds, "collectives": cost.collective_seconds},
+                        "gather_scatter": cost.gather_scatter_seconds, "collectives": cost.collective_seconds,
+                        "dcn": cost.dcn_seconds},
       "bf16_peak_share": (cost.flops / seconds / pod.chip.bf16_flops) if seconds > 0 else 0.0,
       "rays": rays, "rays_per_s": rays / seconds if seconds > 0 else None,
       "rays_per_s_per_chip": rays / seconds / num_devices if seconds > 0 else None,
@@ -157,10 +177,10 @@ PROGRAMS = {"step": "the train step", "eval": "the evaluation renderer", "orbit"
 class CompileError(Exception):
   """XLA refused to compile one of the programs for the pod (not for want of memory: that is a report)."""
 
-  def __init__(self, program: str, pod: chips.Pod, reason: str):
+  def __init__(self, program: str, pod: chips.Pod, reason: str, slices: int = 1):
     self.program, self.pod, self.reason = program, pod, reason
-    super().__init__(f"{PROGRAMS[program]} does not compile for {pod.name} ({pod.num_chips} chips on "
-                     f"{pod.num_hosts} hosts): {reason}")
+    super().__init__(f"{PROGRAMS[program]} does not compile for {pod_label(pod, slices)} ({pod.num_chips * slices} "
+                     f"chips on {pod.num_hosts * slices} hosts): {reason}")
 
 
 def _reason(error: Exception) -> str:
@@ -174,9 +194,9 @@ def _reason(error: Exception) -> str:
   return text if len(text) <= 400 else text[:397] + "..."
 
 
-def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: int) -> dict:
+def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: int, slices: int = 1) -> dict:
   """compile_fn() and its report; a program too large for the chip is a report too (fits_hbm false), not a
-  crash; any other refusal is a CompileError naming the program, the pod and XLA's reason."""
+  crash; any other refusal is a CompileError naming the program, the pod (its slices) and XLA's reason."""
   import jax
   start = time.perf_counter()
   try:
@@ -186,51 +206,72 @@ def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: i
   except jax.errors.JaxRuntimeError as e:
     report = _out_of_memory_report(e, pod, rays, time.perf_counter() - start)
     if report is None:
-      raise CompileError(program, pod, _reason(e)) from None
+      raise CompileError(program, pod, _reason(e), slices) from None
     return report
   except Exception as e:  # noqa: BLE001 (lowering or compiling failed in another way: still one sentence)
-    raise CompileError(program, pod, _reason(e)) from None
-  return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start)
+    raise CompileError(program, pod, _reason(e), slices) from None
+  return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start, slices)
 
 
 def _merge_collectives(collectives: list) -> list:
   merged = {}
   for c in collectives:
-    key = (c["op"], c["bytes"], c["group"])
+    key = (c.get("network", "ici"), c["op"], c["bytes"], c["group"])
     merged[key] = merged.get(key, 0) + c["count"]
-  return [{"op": op, "bytes": size, "group": group, "count": count}
-          for (op, size, group), count in sorted(merged.items())]
+  return [{"op": op, "bytes": size, "group": group, "network": network, "count": count}
+          for (network, op, size, group), count in sorted(merged.items())]
 
 
-def check_collectives(step: dict, state_bytes: int) -> list[str]:
-  """What in the step's collectives is not a data-parallel step's: anything but all-reduces, or
-  all-reduces beyond the gradients plus a few scalars."""
-  problems = [f"{c['op']} of {c['bytes']} bytes" for c in step["collectives"] if c["op"] != "all-reduce"]
-  reduced = sum(c["bytes"] * c["count"] for c in step["collectives"] if c["op"] == "all-reduce")
-  if reduced > state_bytes + 4096:
+def check_collectives(step: dict, state_bytes: int, slices: int = 1) -> list[str]:
+  """What in the step's collectives is not a data-parallel step's: on one slice, anything but all-reduces,
+  or all-reduces beyond the gradients plus a few scalars. Across slices the TPU compiler splits the
+  gradients' all-reduce in three: within each slice (ICI: an all-reduce or reduce-scatter), across the slices
+  (DCN: an all-reduce of each chip's share, or of a small gradient whole), and an all-gather of the shares
+  within each slice; anything else, more than the (padded) gradients on either network, or no cross-slice
+  reduction at all, is reported."""
+  ici = [c for c in step["collectives"] if c.get("network", "ici") == "ici"]
+  dcn = [c for c in step["collectives"] if c.get("network") == "dcn"]
+  within = ("all-reduce",) if slices == 1 else ("all-reduce", "reduce-scatter", "all-gather")
+  problems = [f"{c['op']} of {c['bytes']} bytes" for c in ici if c["op"] not in within]
+  problems += [f"{c['op']} of {c['bytes']} bytes across slices" for c in dcn if c["op"] != "all-reduce"]
+  reduced = sum(c["bytes"] * c["count"] for c in ici if c["op"] in ("all-reduce", "reduce-scatter"))
+  # Across slices the compiler pads each gradient to whole shares of the slice's chips before the reduction
+  # (1.9% more bytes for the default config on 2 x v5e-256): a 5% allowance for that padding.
+  allowance = 4096 if slices == 1 else 4096 + state_bytes // 20
+  if reduced > state_bytes + allowance:
     problems.append(f"all-reduces of {reduced} bytes, more than the gradients' {state_bytes}")
+  across = sum(c["bytes"] * c["count"] for c in dcn if c["op"] == "all-reduce")
+  if across > state_bytes + allowance:
+    problems.append(f"all-reduces across slices of {across} bytes, more than the gradients' {state_bytes}")
+  if slices > 1 and not dcn:
+    problems.append(f"no reduction across the {slices} slices")
   return problems
 
 
-def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit")) -> dict:
-  """Compiles `config`'s programs for `pod` and reports on them (see the module's docstring)."""
+def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: int = 1) -> dict:
+  """Compiles `config`'s programs for `slices` slices of `pod` (multi-slice where more than one: every
+  program spans every chip of every slice) and reports on them (see the module's docstring)."""
   import jax
   import numpy as np
   from nerfpod import compilation, components, distributed, step
 
-  schema.validate(config, pod.num_chips)  # e.g. a batch that does not split over the pod's chips
-  devices = topology_devices(pod)
-  mesh = distributed.make_mesh(devices)
+  check_slices(slices)
+  num_chips = pod.num_chips * slices
+  schema.validate(config, num_chips)  # e.g. a batch that does not split over the pod's chips
+  devices = topology_devices(pod, slices)
+  mesh = distributed.make_mesh(devices, num_slices=config.mesh.slices or None)
   program = components.build_program(config, mesh, backend="tpu")
   tc = config.train
   hosts = sorted({d.process_index for d in devices})
   order = [d.process_index for d in mesh.devices.flat]
   report = {
-      "pod": pod.name, "topology": pod.topology_name, "chips": pod.num_chips, "hosts": len(hosts),
+      "pod": pod.name, "topology": pod.topology_name, "slices": slices, "chips": num_chips, "hosts": len(hosts),
+      "mesh": dict(mesh.shape),
       "chip": {"kind": pod.chip.name, "bf16_flops": pod.chip.bf16_flops, "hbm_bytes": pod.chip.hbm_bytes,
                "hbm_bytes_per_s": pod.chip.hbm_bytes_per_s,
-               "allreduce_bytes_per_s": pod.chip.allreduce_bytes_per_s, "source": pod.chip.source},
-      "batch": tc.batch_size, "rays_per_chip": tc.batch_size // pod.num_chips, "microbatches": tc.microbatches,
+               "allreduce_bytes_per_s": pod.chip.allreduce_bytes_per_s, "source": pod.chip.source,
+               "dcn_bytes_per_s": pod.chip.dcn_bytes_per_s},
+      "batch": tc.batch_size, "rays_per_chip": tc.batch_size // num_chips, "microbatches": tc.microbatches,
       "compute_dtype": config.model.compute_dtype,
       "hashgrid_matmul_max_rows": program.model.grid_matmul_max_rows,
       # Each host's chips hold one contiguous block of the batch: the rows distributed.local_slice loads.
@@ -248,27 +289,27 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit")) -> dict:
     def compile_step():
       fitted["microbatches"], compiled, _ = step.compile_fitted(program, key, budget, backend="tpu")
       return compiled
-    report["step"] = _compile("step", compile_step, pod, pod.num_chips, tc.batch_size)
+    report["step"] = _compile("step", compile_step, pod, num_chips, tc.batch_size, slices)
     # Where XLA refused the step as too large: train.microbatches as configured (0: refused while fitting).
     report["microbatches"] = fitted.get("microbatches", tc.microbatches)
     step_report = report["step"]
-    step_report["unexpected_collectives"] = check_collectives(step_report, state_bytes)
+    step_report["unexpected_collectives"] = check_collectives(step_report, state_bytes, slices)
     step_report["run_seconds"] = (step_report["seconds"] * tc.num_steps if step_report["seconds"] is not None
                                   else None)
   params = program.state_shapes.params
   if "eval" in what:
-    chunk = max(pod.num_chips, config.eval.chunk - config.eval.chunk % pod.num_chips)
+    chunk = max(num_chips, config.eval.chunk - config.eval.chunk % num_chips)
     rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
     report["eval"] = _compile("eval", lambda: program.make_renderer().lower(params, rays, rays).compile(), pod,
-                              pod.num_chips, chunk)
+                              num_chips, chunk, slices)
   if "orbit" in what:
     # The orbit's call: every host feeds orbit.chunk rays (rounded to its chips) of its own frame, on its
     # own chips, into the one renderer over the whole pod (nerfpod.orbit).
-    per_host = pod.num_chips // len(hosts)
+    per_host = num_chips // len(hosts)
     chunk = max(per_host, config.orbit.chunk - config.orbit.chunk % per_host) * len(hosts)
     orbit_rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
     report["orbit"] = _compile("orbit", lambda: program.make_renderer().lower(params, orbit_rays, orbit_rays)
-                               .compile(), pod, pod.num_chips, chunk)
+                               .compile(), pod, num_chips, chunk, slices)
   return report
 
 
@@ -292,7 +333,9 @@ def duration(seconds: float) -> str:
 
 def format_report(report: dict) -> str:
   """The report as a readable table."""
-  lines = [f"{report['pod']} ({report['topology']}, {report['chips']} chips of {report['chip']['kind']} on "
+  slices = report.get("slices", 1)
+  where = report["pod"] if slices == 1 else f"{slices} slices of {report['pod']} joined by DCN"
+  lines = [f"{where} ({report['topology']}, {report['chips']} chips of {report['chip']['kind']} on "
            f"{report['hosts']} hosts): batch {report['batch']} rays, {report['rays_per_chip']} per chip, "
            f"{report['microbatches']} micro-batch(es), {report['compute_dtype']} matmuls, hash-grid matmul "
            f"lookup up to {report['hashgrid_matmul_max_rows']} rows",
@@ -320,12 +363,26 @@ def format_report(report: dict) -> str:
     lines.append(f"  step time: {duration(split['matmul_bound'])} matmul-bound ops, "
                  f"{duration(split['memory_bound'])} memory-bound (of which gathers/scatters "
                  f"{duration(split['gather_scatter'])}), "
-                 f"{duration(split['collectives'])} collectives; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
+                 f"{duration(split['collectives'])} collectives"
+                 + (f" (of which across slices over DCN {duration(split.get('dcn', 0.0))})" if slices > 1 else "")
+                 + f"; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
     for c in s["collectives"]:
-      lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips, x{c['count']:g}")
-    verdict = "; ".join(s["unexpected_collectives"]) or "the gradient all-reduce and scalars only"
+      if c.get("network") == "dcn":
+        lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} per chip across {c['group']} slices (DCN), "
+                     f"x{c['count']:g}")
+      else:
+        lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips, x{c['count']:g}")
+    verdict = "; ".join(s["unexpected_collectives"]) or (
+        "the gradient all-reduce and scalars only" if slices == 1 else
+        "the gradient all-reduce (within each slice, then across the slices over DCN) and scalars only")
     lines.append(f"  step collectives: {verdict}")
     lines.append(f"  {report['num_steps']} steps (train.num_steps): {duration(s['run_seconds'])} estimated")
+  if slices > 1:
+    dcn = report["chip"].get("dcn_bytes_per_s")
+    lines.append(f"  DCN between slices: {dcn / 1e9:.3g} GB/s per chip ({report['chip']['source']}: data-centre "
+                 f"network bandwidth per pod over its chips)" if dcn else
+                 f"  DCN between slices: no published bandwidth for {report['chip']['kind']}; the time across "
+                 f"slices is left out of the estimates")
   lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip "
                f"{_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
                f"compiled program on the chip's published peaks: nerfpod.pod.hlo_cost), not measurements")
@@ -388,8 +445,9 @@ def main(argv):
     _check_json_path(_JSON.value)
     config = _load_config()
     reports = []
+    check_slices(_SLICES.value)
     for pod in chosen:
-      report = compile_pod(config, pod, tuple(what))
+      report = compile_pod(config, pod, tuple(what), _SLICES.value)
       print(format_report(report), file=tables, flush=True)
       reports.append(report)
     text = json.dumps(reports if len(reports) > 1 else reports[0], indent=2)

@@ -10,6 +10,11 @@ none, it is half the chip's bidirectional ICI bandwidth (1200 GB/s), the same ra
 "95 GiB" for the same kind of figure; XLA's own compiler reports 15.75 GiB usable of a v5e's 16 GiB);
 bandwidths are 10^9 bytes/s.
 
+Between slices (multi-slice: slices joined by the data-centre network, DCN), the per-chip DCN bandwidth is
+a pod's published "Data center network bandwidth per Pod" divided by its chips: v5e 6.4 Tbps over 256 chips
+(https://cloud.google.com/tpu/docs/v5e; the same page gives each host 2 x 100 Gbps NICs, the same 25 Gbps,
+3.125 GB/s, per chip). The other generations' pages give no such figure: their DCN time is left out (None).
+
 Names are the Cloud TPU accelerator types (`gcloud ... --accelerator-type`): v4 and v5p count
 TensorCores (two per chip, one JAX device per chip in megacore mode), v5e (`v5litepod-N`, also `v5e-N`)
 and v6e count chips. Multi-host pods have 4 chips per host, as their TPU VMs do.
@@ -30,11 +35,13 @@ class Chip:
   hbm_bytes_per_s: float
   allreduce_bytes_per_s: float  # per chip (see the module's docstring)
   source: str
+  dcn_bytes_per_s: float | None = None  # per chip, between slices; None where Google publishes no figure
 
 
 CHIPS = {
     "v4": Chip("TPU v4", 275e12, 32 * GiB, 1200 * GB, 1.1e15 / 4096, "https://cloud.google.com/tpu/docs/v4"),
-    "v5e": Chip("TPU v5 lite", 197e12, 16 * GiB, 819 * GB, 51.2e12 / 256, "https://cloud.google.com/tpu/docs/v5e"),
+    "v5e": Chip("TPU v5 lite", 197e12, 16 * GiB, 819 * GB, 51.2e12 / 256, "https://cloud.google.com/tpu/docs/v5e",
+                6.4e12 / 8 / 256),
     "v5p": Chip("TPU v5", 459e12, 95 * GiB, 2765 * GB, 1200 * GB / 2, "https://cloud.google.com/tpu/docs/v5p"),
     "v6e": Chip("TPU v6 lite", 918e12, 32 * GiB, 1638 * GB, 102.4e12 / 256, "https://cloud.google.com/tpu/docs/v6e"),
 }

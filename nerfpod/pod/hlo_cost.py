@@ -7,7 +7,12 @@ instruction itself:
 
 - time = max(FLOPs / matmul peak, bytes / HBM bandwidth) per instruction (a roofline per op: each op is
   bound by the one it needs more of), summed over the program; collectives at the chip's all-reduce
-  bandwidth instead;
+  bandwidth instead (over ICI, within a slice);
+- multi-slice programs: the TPU compiler writes a reduction across slices as a host transfer to the
+  megascale runtime (a `send` whose frontend attributes name `_xla_megascale_transfer_type`, with its
+  `recv` and `-done`s), after a reduction within each slice; that `send` is the DCN collective: its bytes
+  are its operand's, each chip's share, reduced over the slices as a ring all-reduce at the chip's share of
+  the data-centre network (chips.Chip.dcn_bytes_per_s; its time is left out where no figure is published);
 - FLOPs are the matmuls' (`dot` and `convolution`: 2 per multiply-add), at the chip's bf16 peak; a float32
   dot at HIGHEST precision is counted as the 6 bf16 passes it takes (HIGH: 3). Elementwise work runs on the
   vector unit, whose peak Google does not publish: it is costed by its memory traffic only;
@@ -35,6 +40,8 @@ _DTYPE_BYTES = {"pred": 1, "s8": 1, "u8": 1, "s16": 2, "u16": 2, "f16": 2, "bf16
                 "s4": 1, "u4": 1, "token": 0}
 _ARRAY = re.compile(r"([a-z][a-z0-9]*)\[([0-9,]*)\](\{[^}]*\})?")
 _LINE = re.compile(r"^\s*(ROOT\s+)?%?([\w.\-]+)\s*=\s*(.+?)\s+([a-z][\w\-]*)\((.*)$")
+# A host transfer to the megascale runtime: the cross-slice (DCN) part of a multi-slice collective.
+_MEGASCALE = re.compile(r'_xla_megascale_transfer_type="?(\w+)')
 _FREE = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all", "partition-id",
          "replica-id", "iota", "copy-done", "all-reduce-done", "all-gather-done", "collective-permute-done",
          "async-done", "async-update", "send-done", "recv-done", "opt-barrier"}
@@ -159,11 +166,12 @@ class Cost:
   memory_seconds: float = 0.0    # the ops whose memory term was the larger
   collective_seconds: float = 0.0
   gather_scatter_seconds: float = 0.0
-  collectives: list = dataclasses.field(default_factory=list)  # {"op", "bytes", "group", "count"}
+  dcn_seconds: float = 0.0        # of collective_seconds: the cross-slice (DCN) collectives'
+  collectives: list = dataclasses.field(default_factory=list)  # {"op", "bytes", "group", "network", "count"}
 
   def add(self, other: "Cost", times: float = 1.0) -> None:
     for f in ("flops", "bytes", "seconds", "compute_seconds", "memory_seconds", "collective_seconds",
-              "gather_scatter_seconds"):
+              "gather_scatter_seconds", "dcn_seconds"):
       setattr(self, f, getattr(self, f) + times * getattr(other, f))
     for c in other.collectives:
       self.collectives.append(dict(c, count=c["count"] * times))
@@ -172,11 +180,12 @@ class Cost:
 class HloProgram:
   """A compiled program's optimised HLO module, costed on a chip: `HloProgram(compiled.as_text(), chip,
   num_devices).cost()`. The chip's peaks are its published figures (chips.Chip: bf16_flops,
-  hbm_bytes_per_s, allreduce_bytes_per_s); `num_devices` is the collectives' group where the HLO names none."""
+  hbm_bytes_per_s, allreduce_bytes_per_s, dcn_bytes_per_s); `num_devices` is the collectives' group where
+  the HLO names none; `num_slices` the slices a DCN collective reduces over."""
 
-  def __init__(self, hlo_text: str, chip: Chip, num_devices: int):
+  def __init__(self, hlo_text: str, chip: Chip, num_devices: int, num_slices: int = 1):
     self.computations, self.entry = parse_module(hlo_text)
-    self.chip, self.num_devices = chip, num_devices
+    self.chip, self.num_devices, self.num_slices = chip, num_devices, num_slices
     self._shapes = {c: {i.name: i for i in instrs} for c, instrs in self.computations.items()}
 
   def cost(self) -> Cost:
@@ -211,6 +220,12 @@ class HloProgram:
       branches = re.findall(r"%([\w.\-]+)", instr.attr("branch_computations") or "")
       costs = [self._computation(b) for b in branches] or [Cost()]
       return max(costs, key=lambda c: c.seconds)
+    if op in ("send", "recv", "send-done", "recv-done") and "is_host_transfer=true" in instr.attributes:
+      megascale = _MEGASCALE.search(instr.attributes)
+      if op == "send" and megascale:
+        return self._dcn_collective(computation, instr, megascale.group(1))
+      if megascale or "xla_megascale_runtime" in instr.attributes:
+        return Cost()  # the same transfer's other half: counted at its send
     base = op.removesuffix("-start")
     if base in COLLECTIVES:
       return self._collective(computation, instr, base)
@@ -233,7 +248,20 @@ class HloProgram:
     factor = (2.0 if base == "all-reduce" else 1.0) * (group - 1) / max(group, 1)
     seconds = factor * size / self.chip.allreduce_bytes_per_s
     return Cost(seconds=seconds, collective_seconds=seconds,
-                collectives=[{"op": base, "bytes": size, "group": group, "count": 1}])
+                collectives=[{"op": base, "bytes": size, "group": group, "network": "ici", "count": 1}])
+
+  def _dcn_collective(self, computation: str, instr: Instruction, transfer: str) -> Cost:
+    """The cross-slice part of a collective: each chip's share (the send's operand) over the slices."""
+    operand = self._operand(computation, instr.operands[0]) if instr.operands else None
+    size = sum(a.payload_bytes for a in operand.shape) if operand else 0
+    op = {"ALL_REDUCE": "all-reduce", "ALL_GATHER": "all-gather", "REDUCE_SCATTER": "reduce-scatter",
+          "ALL_TO_ALL": "all-to-all"}.get(transfer, transfer.lower().replace("_", "-"))
+    group = self.num_slices
+    factor = (2.0 if op == "all-reduce" else 1.0) * (group - 1) / max(group, 1)
+    bandwidth = self.chip.dcn_bytes_per_s
+    seconds = factor * size / bandwidth if bandwidth else 0.0
+    return Cost(seconds=seconds, collective_seconds=seconds, dcn_seconds=seconds,
+                collectives=[{"op": op, "bytes": size, "group": group, "network": "dcn", "count": 1}])
 
   def _flops_and_bytes(self, computation: str, instr: Instruction) -> tuple[float, float, bool]:
     """(matmul FLOPs, HBM bytes, whether it gathers or scatters) of one top-level op or fusion."""
