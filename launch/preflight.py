@@ -25,9 +25,9 @@ def config_args(forwarded: list[str]) -> list[str]:
   return [a for a in forwarded if a.startswith("--config")]
 
 
-def command(forwarded: list[str], accelerator_type: str, json_path: str) -> list[str]:
+def command(forwarded: list[str], accelerator_type: str, json_path: str, slices: int = 1) -> list[str]:
   return [sys.executable, "-m", "nerfpod.pod.aot", *config_args(forwarded), f"--topology={accelerator_type}",
-          f"--what={','.join(PROGRAMS)}", f"--json={json_path}"]
+          *([f"--slices={slices}"] if slices > 1 else []), f"--what={','.join(PROGRAMS)}", f"--json={json_path}"]
 
 
 def _gib(n: float) -> str:
@@ -45,11 +45,13 @@ def _duration(seconds: float) -> str:
 def summary(report: dict) -> str:
   step = report["step"]
   memory = step["memory"]
+  slices = report.get("slices", 1)
+  pod = report["pod"] if slices == 1 else f"{slices} x {report['pod']}"
   if step["seconds"] is None:  # XLA refused it: more temporaries than a chip's HBM
-    return (f"{report['pod']} ({report['chips']} chips, {report['hosts']} hosts): per chip the step needs "
+    return (f"{pod} ({report['chips']} chips, {report['hosts']} hosts): per chip the step needs "
             f"{_gib(memory['peak_bytes'])} of temporaries, XLA has {_gib(memory['xla_available_bytes'])} of a chip's "
             f"{_gib(report['chip']['hbm_bytes'])} HBM for them")
-  return (f"{report['pod']} ({report['chips']} chips, {report['hosts']} hosts): per chip {_gib(memory['peak_bytes'])} "
+  return (f"{pod} ({report['chips']} chips, {report['hosts']} hosts): per chip {_gib(memory['peak_bytes'])} "
           f"of {_gib(report['chip']['hbm_bytes'])} HBM (arguments {_gib(memory['argument_bytes'])}, temporaries "
           f"{_gib(memory['temp_bytes'])}); step {_duration(step['seconds'])}, {step['rays_per_s']:,.0f} rays/s; "
           f"{report['num_steps']} steps in about {_duration(step['run_seconds'])} (XLA cost-model estimate, "
@@ -75,12 +77,14 @@ def refusal(report: dict) -> str | None:
           f"--config.train.batch_size, or a pod with more chips.")
 
 
-def run(forwarded: list[str], accelerator_type: str, dry_run: bool, prefix: str) -> int:
-  """Runs the preflight; returns 0 when the job may go on, else the exit status to stop with."""
+def run(forwarded: list[str], accelerator_type: str, dry_run: bool, prefix: str, slices: int = 1) -> int:
+  """Runs the preflight (for `slices` slices of the pod: multi-slice where more than one); returns 0 when the
+  job may go on, else the exit status to stop with."""
   with tempfile.TemporaryDirectory() as tmp:
     path = os.path.join(tmp, "preflight.json")
-    cmd = command(forwarded, accelerator_type, path)
-    print(f"{'# ' if dry_run else ''}{prefix}: preflight: compiling the step for {accelerator_type} here\n"
+    cmd = command(forwarded, accelerator_type, path, slices)
+    target = accelerator_type if slices == 1 else f"{slices} slices of {accelerator_type}"
+    print(f"{'# ' if dry_run else ''}{prefix}: preflight: compiling the step for {target} here\n"
           f"{'' if dry_run else '  '}{shlex.join(cmd)}", flush=True)
     result = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     if result.returncode != 0 or not os.path.exists(path):

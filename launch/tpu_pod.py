@@ -17,6 +17,12 @@ Everything after `--` goes to `python -m nerfpod.main` on every worker. The work
 that every worker can write (orbax, tensorstore and tensorboardX write gs:// themselves); the bucket is
 created in the pod's region if it does not exist. On the workers jax.distributed finds its peers by itself.
 
+Multi-slice (--slices=N, N > 1): N slices of --accelerator-type joined by the data-centre network, as one
+job (docs/scale.md#multi-slice). On TPU VMs they are one queued resource of N nodes (`gcloud compute tpus
+queued-resources create NAME --node-count=N --node-prefix=NAME ...`, the form multi-slice needs), whose nodes
+are reached together (`queued-resources scp/ssh --node=all --worker=all`); the TPU service gives every host
+the MEGASCALE_* variables JAX reads. With --gke, one Job per slice with those variables set.
+
 The run is started detached (it survives a dropped connection); following the log again, or stopping the
 run, is one gcloud command each, printed at the start. Maintenance or preemption sends every worker
 SIGTERM: nerfpod saves a checkpoint at a step all workers agree on and exits with status 75 (EX_TEMPFAIL;
@@ -85,6 +91,8 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   p.add_argument("--zone", required=True, help="e.g. us-central2-b")
   p.add_argument("--project", default="", help="GCP project; default: gcloud's configured one")
   p.add_argument("--accelerator-type", default="v4-32", help="for a new pod, e.g. v4-32, v5litepod-16")
+  p.add_argument("--slices", type=int, default=1, help="multi-slice: this many slices of --accelerator-type "
+                                                       "joined by the data-centre network (default 1)")
   p.add_argument("--version", default=None, help="for a new pod: the TPU VM software version (default: the "
                                                "image Google lists for the generation, e.g. v2-alpha-tpuv5-lite)")
   p.add_argument("--spot", action="store_true", default=None,
@@ -110,6 +118,8 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
   if pod is None:
     p.error(f"--accelerator-type={args.accelerator_type} is not a pod this script knows; known: "
             f"{', '.join(chips.known_names())}")
+  if args.slices < 1:
+    p.error(f"--slices={args.slices} must be 1 (one slice) or more (slices joined by the data-centre network)")
   if not NAME.fullmatch(args.name) or len(args.name) > 63:
     p.error(f"--name={args.name!r} must be lowercase letters, digits and hyphens, start with a letter, end with a "
             f"letter or digit and have at most 63 characters (Compute Engine and Kubernetes take no other)")
@@ -191,13 +201,39 @@ def pack_step(tarball: str, forwarded: list[str]) -> tuple[str, list[str]]:
       pack.tar_command(REPO, tarball, list_path)
 
 
+def _multislice(args) -> bool:
+  return getattr(args, "slices", 1) > 1
+
+
 def _tpu(args, verb: str, *rest: str) -> list[str]:
-  cmd = ["gcloud", "compute", "tpus", "tpu-vm", verb, *rest, f"--zone={args.zone}"]
+  """A gcloud TPU command: on the TPU VM (tpu-vm), or on the queued resource of a multi-slice job's slices."""
+  kind = "queued-resources" if _multislice(args) else "tpu-vm"
+  cmd = ["gcloud", "compute", "tpus", kind, verb, *rest, f"--zone={args.zone}"]
   return cmd + ([f"--project={args.project}"] if args.project else [])
 
 
 def _on_workers(args, command: str, worker: str = "all") -> list[str]:
-  return _tpu(args, "ssh", args.name, f"--worker={worker}", f"--command={command}")
+  """ssh to every worker (or one) of the pod; multi-slice: of every slice (node) at once, or slice 0's."""
+  nodes = [f"--node={'all' if worker == 'all' else '0'}"] if _multislice(args) else []
+  return _tpu(args, "ssh", args.name, *nodes, f"--worker={worker}", f"--command={command}")
+
+
+def create_command(args) -> list[str]:
+  """The pod's creation: a TPU VM, or for several slices one queued resource of --slices nodes (NAME-0,
+  NAME-1, ...), the form multi-slice needs; the TPU service sets each host's MEGASCALE_* variables."""
+  if _multislice(args):
+    return _tpu(args, "create", args.name, f"--node-count={args.slices}", f"--node-prefix={args.name}",
+                f"--accelerator-type={args.accelerator_type}", f"--runtime-version={args.version}") + (
+                    ["--spot"] if args.spot else [])
+  return _tpu(args, "create", args.name, f"--accelerator-type={args.accelerator_type}",
+              f"--version={args.version}") + (["--spot"] if args.spot else [])
+
+
+def wait_until_active(args) -> list[str]:
+  """A queued resource is granted when capacity allows: wait for ACTIVE (refusing FAILED or SUSPENDED)."""
+  state = shlex.join(_tpu(args, "describe", args.name, "--format=value(state.state)"))
+  return ["sh", "-c", f'while :; do s=$({state}); case "$s" in ACTIVE) exit 0;; FAILED|SUSPENDED) '
+                      f'echo "queued resource {args.name} is $s" >&2; exit 1;; esac; sleep 30; done']
 
 
 def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str], bool]]:
@@ -205,8 +241,7 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
   bucket = "/".join(args.workdir.split("/")[:3])
   region = args.zone.rsplit("-", 1)[0]
   project = [f"--project={args.project}"] if args.project else []
-  create = _tpu(args, "create", args.name, f"--accelerator-type={args.accelerator_type}",
-                f"--version={args.version}") + (["--spot"] if args.spot else [])
+  create = create_command(args)
   train = shlex.join([f"{VENV}/bin/python", "-m", "nerfpod.main", *forwarded, f"--workdir={args.workdir}"])
   train = train.replace(f"'{VENV}/bin/python'", f"{VENV}/bin/python")  # let the worker's shell expand ~
   # Detached, so that it outlives this ssh session; its exit status is kept for the log follower.
@@ -222,18 +257,22 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
       ("is the pod there?", _tpu(args, "describe", args.name), True),
       ("if not, create it", create, False),
   ]
+  if _multislice(args):
+    steps += [(f"wait until its {args.slices} slices are ACTIVE", wait_until_active(args), False)]
+  nodes = ["--node=all"] if _multislice(args) else []
   if not args.skip_setup:
     steps += [
         (*pack_step(tarball, forwarded), False),
         ("copy it to every worker", _tpu(args, "scp", tarball, f"{args.name}:~/nerfpod-src.tar.gz",
-                                         "--worker=all"), False),
+                                         *nodes, "--worker=all"), False),
         ("unpack it and set up Python " + args.python + " with the pinned versions on every worker",
          _on_workers(args, f"mkdir -p ~/{REMOTE_DIR} && tar -xzf ~/nerfpod-src.tar.gz -C ~/{REMOTE_DIR} && "
                            f"cd ~/{REMOTE_DIR} && {setup_commands(args.python)}"), False),
     ]
   steps += [
       ("check that every worker sees its TPU chips", _on_workers(
-          args, f"cd ~/{REMOTE_DIR} && " + device_check(chips.lookup(args.accelerator_type), "python").replace(
+          args, f"cd ~/{REMOTE_DIR} && " + device_check(chips.lookup(args.accelerator_type), "python",
+                                                        args.slices).replace(
               "python", f"{VENV}/bin/python", 1)), False),
   ]
   steps += [
@@ -255,22 +294,23 @@ def setup_commands(python: str) -> str:
           f"{uv} pip install -q --python {VENV}/bin/python -c constraints.txt -e '.[tpu]' gcsfs google-cloud-storage")
 
 
-def device_check(pod, python: str) -> str:
-  """The shell command (in the unpacked project) that fails in one sentence unless a host sees its chips."""
-  return shlex.join([python, "launch/check_devices.py", f"--pod={pod.name}", f"--chips={pod.num_chips}",
+def device_check(pod, python: str, slices: int = 1) -> str:
+  """The shell command (in the unpacked project) that fails in one sentence unless a host sees its chips (and
+  the job all of its slices' chips)."""
+  return shlex.join([python, "launch/check_devices.py", f"--pod={pod.name}", f"--chips={pod.num_chips * slices}",
                      f"--per-host={pod.num_chips // pod.num_hosts}"])
 
 
 def main(argv: list[str]) -> int:
   args, forwarded = parse(argv)
   if not args.skip_preflight:
-    code = preflight.run(forwarded, args.accelerator_type, args.dry_run, "launch/tpu_pod.py")
+    code = preflight.run(forwarded, args.accelerator_type, args.dry_run, "launch/tpu_pod.py", args.slices)
     if code:
       return code
   tarball = os.path.join(tempfile.gettempdir(), "nerfpod-src.tar.gz")
   if args.gke:
     pod = chips.lookup(args.accelerator_type)
-    return gke.launch(args, forwarded, pack_step(tarball, forwarded), pod, device_check(pod, "python"))
+    return gke.launch(args, forwarded, pack_step(tarball, forwarded), pod, device_check(pod, "python", args.slices))
   steps = plan(args, forwarded, tarball)
   print(f"launch/tpu_pod.py: follow the log again: "
         f"{shlex.join(_on_workers(args, f'tail -n 50 -F {LOG}', worker='0'))}", flush=True)

@@ -338,3 +338,103 @@ def test_preflight_prints_the_figures_and_refuses_only_what_does_not_fit():
   assert preflight.refusal(report) == (
       "the orbit renderer needs 18.00 GiB per chip on v5litepod-16 for 65,536 rays a call but a chip has 16.00 GiB "
       "of HBM; use a smaller --config.orbit.chunk.")
+
+
+def test_multislice_on_gke_is_one_job_per_slice_with_the_variables_multislice_jax_reads(tmp_path):
+  """--slices=2 --gke: the JobSet's replicated job has one replica (Job) per slice, each pod the MEGASCALE_*
+  variables (slice count, its Job's index as its slice, slice 0's first host as coordinator); valid against
+  both JobSet schemas."""
+  import json
+
+  import jsonschema
+  import yaml
+  manifest_path = tmp_path / "job.yaml"
+  args = [a for a in POD_ARGS if not a.startswith("--accelerator-type")]
+  result, calls = _tpu_pod(tmp_path, "--dry-run", "--gke", f"--manifest={manifest_path}",
+                           "--accelerator-type=v5litepod-16", "--slices=2", *args)
+  assert result.returncode == 0, result.stderr
+  assert calls == [] and "--max-log-requests=8" in result.stdout  # 2 slices x 4 hosts
+  job = yaml.safe_load(manifest_path.read_text())
+  crd = json.loads((REPO / "tests" / "data" / "jobset_crd_v1alpha2.openapi.json").read_text())
+  jsonschema.Draft4Validator(crd).validate(job)
+  schema = json.loads((REPO / "tests" / "data" / "jobset_v1alpha2.schema.json").read_text())
+  jsonschema.validate(job, schema)
+  (workers,) = job["spec"]["replicatedJobs"]
+  assert workers["replicas"] == 2
+  assert workers["template"]["spec"]["parallelism"] == workers["template"]["spec"]["completions"] == 4
+  # Each Job on a node pool of its own: one slice each.
+  assert job["metadata"]["annotations"]["alpha.jobset.sigs.k8s.io/exclusive-topology"] == \
+      "cloud.google.com/gke-nodepool"
+  container = workers["template"]["spec"]["template"]["spec"]["containers"][0]
+  env = {e["name"]: e for e in container["env"]}
+  assert env["MEGASCALE_NUM_SLICES"]["value"] == "2"
+  assert env["MEGASCALE_SLICE_ID"]["valueFrom"]["fieldRef"]["fieldPath"] == \
+      "metadata.annotations['jobset.sigs.k8s.io/job-index']"
+  assert env["MEGASCALE_COORDINATOR_ADDRESS"]["value"] == "nerf-pod-workers-0-0.nerf-pod"
+  assert "python launch/check_devices.py --pod=v5litepod-16 --chips=32 --per-host=4" in container["command"][-1]
+  for slice_index in range(2):  # the webhook's pod names, the last slice's too, are DNS labels
+    name = f"nerf-pod-workers-{slice_index}-3-abcde"
+    assert len(name) <= 63 and re.fullmatch(r"[a-z]([-a-z0-9]*[a-z0-9])?", name)
+  # One slice: no MEGASCALE_* variables, one replica (the manifest of before).
+  result, _ = _tpu_pod(tmp_path, "--dry-run", "--gke", f"--manifest={manifest_path}",
+                       "--accelerator-type=v5litepod-16", *args)
+  single = yaml.safe_load(manifest_path.read_text())
+  assert single["spec"]["replicatedJobs"][0]["replicas"] == 1
+  assert "env" not in single["spec"]["replicatedJobs"][0]["template"]["spec"]["template"]["spec"]["containers"][0]
+  broken = json.loads(json.dumps(job))
+  broken["spec"]["replicatedJobs"][0]["template"]["spec"]["template"]["spec"]["containers"][0]["env"][0] = {
+      "name": "MEGASCALE_NUM_SLICES", "value": 2}  # a number where Kubernetes takes a string
+  with pytest.raises(jsonschema.ValidationError):
+    jsonschema.validate(broken, schema)
+
+
+def test_multislice_on_tpu_vms_is_one_queued_resource_of_one_node_per_slice(tmp_path):
+  result, calls = _tpu_pod(tmp_path, "--dry-run", "--slices=2", "--spot",
+                           *[a if not a.startswith("--accelerator-type") else "--accelerator-type=v5litepod-256"
+                             for a in POD_ARGS])
+  assert result.returncode == 0, result.stderr
+  assert calls == []
+  commands = [shlex.split(line) for line in result.stdout.splitlines()
+              if line and not line.startswith(("#", "launch/tpu_pod.py:"))]
+  gcloud = [c for c in commands if c[0] == "gcloud" and c[1] == "compute"]
+  assert all(c[:4] == ["gcloud", "compute", "tpus", "queued-resources"] for c in gcloud), gcloud
+  describe, create, scp, install, check, start, follow = gcloud
+  assert describe[4:6] == ["describe", "nerf-pod"]
+  assert create[4:] == ["create", "nerf-pod", "--node-count=2", "--node-prefix=nerf-pod",
+                        "--accelerator-type=v5litepod-256", "--runtime-version=v2-alpha-tpuv5-lite",
+                        "--zone=us-central2-b", "--project=my-proj", "--spot"]
+  wait = next(c for c in commands if c[0] == "sh")
+  assert "queued-resources describe nerf-pod '--format=value(state.state)'" in wait[2]
+  assert "ACTIVE) exit 0" in wait[2] and "FAILED|SUSPENDED)" in wait[2]
+  assert commands.index(wait) == commands.index(create) + 1  # granted before anything is copied
+  # Every worker of every slice at once: the check and the run start jax.distributed across the slices.
+  for step in (scp, install, check, start):
+    assert "--node=all" in step and "--worker=all" in step, step
+  assert "nerf-pod:~/nerfpod-src.tar.gz" in scp
+  assert shlex.split(_command(check).split("&& ", 1)[1]) == [
+      "~/nerfpod-venv/bin/python", "launch/check_devices.py", "--pod=v5litepod-256", "--chips=512",
+      "--per-host=4"]
+  assert "--node=0" in follow and "--worker=0" in follow  # process 0: slice 0's first host
+
+
+@pytest.mark.parametrize("bad,message", [
+    (("--slices=0",), "--slices=0 must be 1 (one slice) or more"),
+    # 44 characters fit one slice (tested above); the 11th slice's pods have a two-digit Job index.
+    (("--gke", "--slices=11", "--accelerator-type=v5litepod-256", f"--name={'n' * 44}"),
+     f"--name={'n' * 44} is too long for a JobSet of 11 slices of 64 host(s): the names of its pods "
+     f"({'n' * 44}-workers-10-63-xxxxx) must fit in 63 characters; use at most 43 characters"),
+])
+def test_a_bad_slice_count_or_a_name_too_long_for_its_slices_is_one_sentence(tmp_path, bad, message):
+  result, calls = _tpu_pod(tmp_path, "--name=p", "--zone=us-central2-b", "--dry-run", "--workdir=gs://bkt/x",
+                           *bad, *RUN)
+  assert result.returncode == 2 and calls == [] and result.stdout == ""
+  lines = result.stderr.strip().splitlines()
+  assert len(lines) == 1 and message in lines[0], lines
+
+
+def test_the_preflight_compiles_every_slice():
+  sys.path.insert(0, str(REPO / "launch"))
+  import preflight
+  assert preflight.command(["--config=c.py"], "v5litepod-256", "r.json", slices=2)[1:] == [
+      "-m", "nerfpod.pod.aot", "--config=c.py", "--topology=v5litepod-256", "--slices=2",
+      "--what=step,eval,orbit", "--json=r.json"]
