@@ -102,8 +102,10 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     if jax.process_index() == 0:
       write_config(workdir, json.loads(config.to_json_best_effort()))
       write_scene(workdir, comps.scene.description())
+      slices = distributed.num_slices(comps.mesh)
       print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
-            f"{jax.process_count()} process(es), {jax.device_count()} device(s), "
+            f"{jax.process_count()} process(es), {jax.device_count()} device(s)"
+            f"{f' in {slices} slices' if slices > 1 else ''}, "
             f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
 
     schedule = components.learning_rate_schedule(tc)

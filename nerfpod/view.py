@@ -43,7 +43,7 @@ import numpy as np
 from absl import logging
 
 from nerfpod import camera_path as camera_paths
-from nerfpod import checkpoints, compilation, components, render, video, workdir_files
+from nerfpod import checkpoints, compilation, components, distributed, render, video, workdir_files
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing, keyframes
 
@@ -127,8 +127,9 @@ class Viewer:
     compilation.tune_host(self.config)  # process-wide: the viewer is a process of its own
     # The viewer is a process of its own, never one of a pod run's processes (it starts no jax.distributed):
     # its mesh, every device of this process (distributed.make_mesh), is all the devices its runtime has, so
-    # its renderer is not a program on a subset of anyone's slice.
-    self.comps = components.build(self.config)
+    # its renderer is not a program on a subset of anyone's slice. The slices are those its devices report, not
+    # the run's mesh.slices (a simulated count may not divide this process's devices; pixels do not depend on it).
+    self.comps = components.build(self.config, distributed.make_mesh())
     mesh = self.comps.mesh
     self.damaged: dict[int, str] = {}  # {step: why it does not read back whole}: skipped, never read again
     self._poll_error = ""  # the last poll's error, said once

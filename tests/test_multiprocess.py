@@ -68,6 +68,17 @@ def reference(tmp_path_factory):
   return {"workdir": workdir, "params": state["params"]}
 
 
+def test_two_processes_as_two_slices_give_the_bits_of_one_process_of_eight_devices(reference, tmp_path):
+  """Multi-slice on simulated CPU slices, one host per slice as on TPU multi-slice: 2 processes x 4 devices
+  with mesh.slices=2 (a (slice, data) mesh; the gradient mean within each slice, then across the two) end at
+  exactly the parameters of 1 x 8 devices in one slice."""
+  with procs.Run(tmp_path / "slices", dict(OVERRIDES, **{"mesh.slices": 2}), num_processes=2,
+                 devices_per_process=4) as pod:
+    pod.wait_ok(RUN_TIMEOUT)
+  assert "2 process(es), 8 device(s) in 2 slices" in pod.output(0)
+  assert_params_close(tmp_path / "slices", reference["params"], **SAME_SUMS)
+
+
 def test_two_processes_and_one_device_follow_the_same_trajectory(reference, tmp_path):
   record = tmp_path / "record"
   record.mkdir()

@@ -83,7 +83,9 @@ def restore(workdir: str) -> Trained:
   workdir = str(workdir)
   config = read_config(workdir)
   compilation.tune_host(config)
-  comps = components.build(config)
+  # The slices its devices report, not the run's mesh.slices (a count simulated on another machine may not
+  # divide these devices; the pixels do not depend on it).
+  comps = components.build(config, distributed.make_mesh())
   state = checkpoints.restore_read_only(workdir, config.checkpoint, comps.state_shapes)
   step = int(jax.device_get(state.step))
   transform = np.asarray(comps.scene.transform, np.float64)
