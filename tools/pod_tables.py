@@ -2,7 +2,7 @@
 
     python -m tools.pod_tables [--pods=v4-32,v5e-64,v5p-128,v6e-64] [--sections=...] [--out=FILE.md]
 
-Four tables, each from nerfpod.pod.aot.compile_pod (the real programs, XLA's TPU compiler, hlo_cost's
+Five tables, each from nerfpod.pod.aot.compile_pod (the real programs, XLA's TPU compiler, hlo_cost's
 roofline on the chips' published peaks; estimates, not measurements), headed by the versions, date, machine
 and command that made them:
 1. per config and pod, the train step: per-chip memory, step time, rays/s, share of the bf16 peak, time of
@@ -12,7 +12,10 @@ and command that made them:
 3. weak scaling: the default config's step with 256 rays per chip on v5e pods of 16 to 256 chips: step
    time and the all-reduce's share of it;
 4. formulations on v5e-64: the hash grid's lookup by gather (and scatter-add) against the matmul lookup
-   of its dense levels, and the MLP's matmuls in float32 against bfloat16.
+   of its dense levels, and the MLP's matmuls in float32 against bfloat16;
+5. multi-slice weak scaling (--sections=multislice, not in the default sections: minutes per row): the
+   default config's step with 256 rays per chip on 1, 2 and 4 slices of v5e-256 joined by DCN: step time,
+   the collectives' time and the part of it across the slices.
 A config whose batch or micro-batches do not split over a pod is shown with one micro-batch, and says so; a
 program the compiler refuses is shown as refused, with XLA's reason.
 """
@@ -34,23 +37,25 @@ _CONFIGS = flags.DEFINE_list("configs", ["default", "tiny", "blender", "blender_
                              "Configs (files in configs/) of the first table.")
 _SCALING = flags.DEFINE_list("scaling", ["v5e-16", "v5e-32", "v5e-64", "v5e-128", "v5e-256"],
                              "Pods of the weak-scaling table (default, 256 rays per chip).")
+_SLICE_COUNTS = flags.DEFINE_list("slice_counts", ["1", "2", "4"], "Slice counts of the multi-slice table.")
+_SLICE_POD = flags.DEFINE_string("slice_pod", "v5e-256", "The slice of the multi-slice table.")
 _OUT = flags.DEFINE_string("out", None, "Also write the tables (markdown) to this file.")
 _SECTIONS = flags.DEFINE_list("sections", ["configs", "scaling", "formulations"],
                               "Which tables (several processes can share the work): configs (the step and "
-                              "renderer tables), scaling, formulations.")
+                              "renderer tables), scaling, formulations, multislice.")
 
 
 def load_config(name: str, **overrides):
   return config_util.override(importlib.import_module(f"configs.{name}").get_config(None), **overrides)
 
 
-def _report(config, pod, note: list, what=("step",)):
+def _report(config, pod, note: list, what=("step",), slices: int = 1):
   """compile_pod's report of `what`; None (with the reason in `note`) where the batch does not split or the
   compiler refuses a program."""
   from nerfpod.pod import aot
   try:
     try:
-      return aot.compile_pod(config, pod, what)
+      return aot.compile_pod(config, pod, what, slices)
     except UserError as e:
       if config.train.microbatches == 1 or config.train.batch_size % pod.num_chips:
         note.append(str(e))
@@ -180,6 +185,26 @@ def main(argv):
     out.append(f"| `{name}` | {label} | {_time(step['seconds'])} | {_time(split['memory_bound'])} | "
                f"{_time(split['gather_scatter'])} | {step['flops_per_chip'] / 1e9:,.1f} G | "
                f"{_gib(step['memory']['peak_bytes'])} |")
+    print(out[-1], flush=True)
+  if "multislice" in _SECTIONS.value:
+    out += ["", "| slices | chips | hosts | batch | step | collectives | of which across slices (DCN) | DCN bytes "
+            "per chip | rays/s | per slice |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+  for count in [int(n) for n in _SLICE_COUNTS.value] if "multislice" in _SECTIONS.value else ():
+    pod = chips.lookup(_SLICE_POD.value)
+    chips_total = pod.num_chips * count
+    config = load_config("default", **{"train.batch_size": 256 * chips_total})
+    note = []
+    report = _report(config, pod, note, slices=count)
+    if report is None:
+      out.append(f"| {count} x {pod.name} | {chips_total} | | | refused: {' '.join(note)} | | | | | |")
+      print(out[-1], flush=True)
+      continue
+    step = report["step"]
+    split = step["seconds_split"]
+    dcn_bytes = sum(c["bytes"] * c["count"] for c in step["collectives"] if c["network"] == "dcn")
+    out.append(f"| {count} x {pod.name} | {chips_total} | {report['hosts']} | {256 * chips_total:,} | "
+               f"{_time(step['seconds'])} | {_time(split['collectives'])} | {_time(split['dcn'])} | "
+               f"{dcn_bytes / 2**10:,.0f} KiB | {step['rays_per_s']:,.0f} | {step['rays_per_s'] / count:,.0f} |")
     print(out[-1], flush=True)
   text = "\n".join([provenance(time.perf_counter() - started), ""] + out)
   print(f"\n{text}", flush=True)
