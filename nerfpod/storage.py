@@ -6,13 +6,14 @@
     header_reader(path)              a URL's file read lazily in small blocks (an image's size from its header)
     local_copy(paths)                local copies of files in a temporary folder (for readers of local files only)
     forget_listings()                what was listed of a bucket is listed again on the next look
+    check_reachable(path)            one sentence at once where a URL's storage cannot be connected to
 
 A local path takes exactly the route it always took (os, open). A URL goes to fsspec, which reads gs://
 through gcsfs (the `gcs` extra; gcsfs reads STORAGE_EMULATOR_HOST, for an emulator, and otherwise finds
 credentials as gcloud does). What a loader needs from a bucket is only listing and reading: objects,
 and the "folders" their names' slashes make. A folder's listing is kept once made (checking that a
 thousand images exist is one request), until forget_listings(): scenes.load calls it before each scene, which
-does not change while it loads.
+does not change while it loads; nerfpod.checkpoints before it lists a workdir's steps.
 
 Errors on a URL: a missing object is FileNotFoundError, as for a local file, so the loaders' sentences name
 it the same way; anything else (no network, no credentials, no access) is one UserError sentence naming the
@@ -25,6 +26,7 @@ import os
 import posixpath
 import shutil
 import socket
+import sys
 import tempfile
 import threading
 import urllib.parse
@@ -37,7 +39,6 @@ HEADER_BLOCK_BYTES = 64 * 1024  # what header_reader fetches at a time: an image
 CREDENTIALS_HINT = ("check the path, and for gs:// the network, your credentials (gcloud auth "
                     "application-default login, or a VM's service account) and their access to the bucket")
 
-_systems: dict = {}  # URL scheme -> its fsspec file system, as made by _filesystem
 _reached: set[str] = set()
 _reached_lock = threading.Lock()
 
@@ -65,8 +66,7 @@ def _filesystem(path):
   scheme = str(path).split("://", 1)[0]
   try:
     import fsspec
-    fs = _systems[scheme] = fsspec.filesystem(scheme)  # fsspec's one instance for the scheme
-    return fs
+    return fsspec.filesystem(scheme)  # fsspec keeps one instance per scheme
   except (ImportError, ValueError) as e:
     extra = " (pip install 'nerfpod[gcs]')" if scheme in ("gs", "gcs") else ""
     raise UserError(f"cannot read {path}: {scheme}:// paths need an fsspec file system for them{extra} "
@@ -74,9 +74,18 @@ def _filesystem(path):
 
 
 def forget_listings() -> None:
-  """Drops the folder listings kept so far, so that objects written since (by anyone) are seen."""
-  for fs in list(_systems.values()):
-    fs.invalidate_cache()
+  """Drops the folder listings that this process's bucket clients keep (gcsfs keeps every listing it makes,
+  for the life of the process, and does not see what other processes write since; etils.epath and orbax list
+  a workdir through it): the next look lists again."""
+  gcsfs = sys.modules.get("gcsfs")
+  if gcsfs is None:  # no bucket read yet
+    return
+  classes = [gcsfs.GCSFileSystem]
+  while classes:  # fsspec keeps the instances of each class (and subclass) apart
+    cls = classes.pop()
+    classes += cls.__subclasses__()
+    for fs in list(getattr(cls, "_cache", {}).values()):
+      fs.invalidate_cache()
 
 
 def endpoint(path) -> tuple[str, int] | None:

@@ -19,10 +19,15 @@ What the emulator (2026.7.19) gets wrong for these clients, patched in the servi
   workdir lock uploads lock.json that way. Its body is kept as bytes;
 - a multipart upload (uploadType=multipart: gcsfs's and google-cloud-storage's for small objects) goes
   through Python's email parser, which drops a last carriage return or line feed of the object (a JSON file's
-  final newline, 1 in 128 PNG files). It is split at its boundaries byte for byte instead.
-It also ignores preconditions (ifGenerationMatch): every conditional write succeeds. One run at a time per
-workdir does not need them; the lock's refusals are tested against a server that enforces them
-(test_workdir_lock_gcs.py).
+  final newline, 1 in 128 PNG files). It is split at its boundaries byte for byte instead;
+- a listing ignores startOffset and endOffset, the only bounds tensorstore's gcs driver gives when it deletes
+  a range of keys (creating an array with delete_existing, the render archive's group): it would delete every
+  object of the bucket. Listings keep to [startOffset, endOffset).
+- it ignores preconditions (ifGenerationMatch, ifGenerationNotMatch), and its downloads do not say the
+  object's generation (x-goog-generation). tensorstore's OCDBT checkpoints re-read their manifest with
+  ifGenerationNotMatch=<the generation they wrote>, expect 304 or a generation, and fail a save now and then
+  ("Malformed StorageGeneration") without them; the workdir lock creates lock.json only if absent. They are
+  enforced, and downloads carry the generation, as Cloud Storage does.
 
 Run as a script, `python tests/gcs.py PORT BUCKET` serves until it is killed.
 """
@@ -71,6 +76,75 @@ def _patch():
     return read_data(request_handler, query)
 
   server._read_data = read_uploads_exactly
+
+  from gcp_storage_emulator.handlers import objects
+  list_objects = objects.ls
+
+  def list_objects_in_range(request, response, storage, *args, **kwargs):
+    start = (request.query.get("startOffset") or [""])[0]
+    end = (request.query.get("endOffset") or [None])[0]
+    get_file_list = storage.get_file_list
+
+    def in_range(*list_args, **list_kwargs):
+      files, prefixes = get_file_list(*list_args, **list_kwargs)
+      keep = lambda name: start <= name and (end is None or name < end)  # noqa: E731
+      return [f for f in files if keep(f["name"])], [p for p in prefixes if keep(p)]
+
+    storage.get_file_list = in_range
+    try:
+      return list_objects(request, response, storage, *args, **kwargs)
+    finally:
+      del storage.get_file_list  # the class's own again
+
+  replaced = {list_objects: list_objects_in_range}
+  for name in ("get", "download", "delete", "insert"):
+    replaced[getattr(objects, name)] = _with_preconditions(getattr(objects, name), reading=name in ("get",
+                                                                                                  "download"))
+  objects.download = replaced[objects.download]  # objects.get calls it for alt=media
+  for _, methods in server.HANDLERS:  # the routes hold the handler functions themselves
+    for method, handler in list(methods.items()):
+      methods[method] = replaced.get(handler, handler)
+
+
+def _with_preconditions(handler, reading: bool):
+  """`handler` that first answers 412 (or 304, for a read) where the request's ifGenerationMatch or
+  ifGenerationNotMatch does not hold for the object as it is, as Cloud Storage does; and whose downloads say
+  the object's generation (x-goog-generation), as Cloud Storage's do."""
+  from http import HTTPStatus
+
+  from gcp_storage_emulator.exceptions import NotFound
+
+  def handle(request, response, storage, *args, **kwargs):
+    bucket = request.params["bucket_name"]
+    name = request.params.get("object_id")
+    if name is None:  # an upload: the name is in the query or the multipart metadata
+      data = request.data if request.query.get("uploadType") == ["multipart"] else None
+      name = (request.query.get("name") or [None])[0] or (data or {}).get("meta", {}).get("name")
+    try:
+      current = storage.get_file_obj(bucket, name)["generation"] if name else None
+    except NotFound:
+      current = None
+    match = (request.query.get("ifGenerationMatch") or [None])[0]
+    not_match = (request.query.get("ifGenerationNotMatch") or [None])[0]
+    failed = None
+    if match is not None and not (reading and current is None):
+      if (match == "0" and current is not None) or (match != "0" and current != match):
+        failed = HTTPStatus.PRECONDITION_FAILED
+    if not_match is not None and current is not None and current == not_match:
+      failed = HTTPStatus.NOT_MODIFIED if reading else HTTPStatus.PRECONDITION_FAILED
+    if failed is not None:
+      response.status = failed
+      if failed == HTTPStatus.PRECONDITION_FAILED:
+        response.json({"error": {"code": 412, "message": "At least one of the pre-conditions you specified did "
+                                                         "not hold."}})
+      return None
+    result = handler(request, response, storage, *args, **kwargs)
+    if reading and current is not None and response.status in (HTTPStatus.OK, HTTPStatus.PARTIAL_CONTENT):
+      response["x-goog-generation"] = current
+      response["x-goog-metageneration"] = "1"
+    return result
+
+  return handle
 
 
 def serve(port: int, bucket: str) -> None:
