@@ -174,6 +174,21 @@ def test_no_way_to_the_storage_is_one_sentence_at_once(emulator, monkeypatch):
   assert time.monotonic() - started < 5  # not a client's minute of retries
 
 
+def test_a_camera_path_file_is_read_from_a_bucket(emulator, tmp_path):
+  from nerfpod import camera_path
+  from nerfpod.nerf import cameras
+  poses = np.stack([cameras.spherical_pose(a, -30, 4) for a in (0, 120, 240)])
+  camera_path.write(tmp_path / "path.json", camera_path.CameraPath(poses, np.array([40.0, 50.0, 60.0]), 80, 60,
+                                                                   24.0), keyframes=[])
+  url = emulator.upload(tmp_path / "path.json", "paths/path.json")
+  got, want = camera_path.read(url), camera_path.read(tmp_path / "path.json")
+  np.testing.assert_array_equal(got.poses, want.poses)
+  np.testing.assert_array_equal(got.fov_y_deg, want.fov_y_deg)
+  assert (got.width, got.height, got.fps) == (want.width, want.height, want.fps) == (80, 60, 24.0)
+  with pytest.raises(UserError, match=f"^camera path {url}-nope does not exist"):
+    camera_path.read(f"{url}-nope")
+
+
 def test_paths_of_either_kind():
   assert storage.join("gs://b/scene", "images", "a.png") == "gs://b/scene/images/a.png"
   assert storage.normpath("gs://b/scene/./images/../x/") == "gs://b/scene/x"
