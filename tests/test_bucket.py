@@ -171,7 +171,44 @@ def test_no_way_to_the_storage_is_one_sentence_at_once(emulator, monkeypatch):
                                       rf"scene \(Connection refused\); start the storage emulator that "
                                       rf"STORAGE_EMULATOR_HOST={closed} names, or unset it.$"):
     scenes.load(_config("auto", "gs://nerfpod-test/scene"))
+  with pytest.raises(UserError, match=r"^cannot reach Cloud Storage at 127.0.0.1:\d+ to read gs://nerfpod-test/runs/a"):
+    checkpoints.finished_steps("gs://nerfpod-test/runs/a")  # what --mode=eval, render and the viewer list first
   assert time.monotonic() - started < 5  # not a client's minute of retries
+
+
+def test_a_bucket_that_refuses_access_is_one_sentence(emulator, monkeypatch):
+  """A server that answers every request 403, as Cloud Storage does without credentials for the bucket."""
+  import http.server
+  import threading
+
+  class Refusing(http.server.BaseHTTPRequestHandler):
+    def do_GET(self):
+      body = json.dumps({"error": {"code": 403, "message": "Anonymous caller does not have storage.objects.get "
+                                                           "access to the Google Cloud Storage object."}}).encode()
+      self.send_response(403)
+      self.send_header("Content-Type", "application/json")
+      self.send_header("Content-Length", str(len(body)))
+      self.end_headers()
+      self.wfile.write(body)
+
+    def log_message(self, *args):
+      pass
+
+  server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Refusing)
+  threading.Thread(target=server.serve_forever, daemon=True).start()
+  import gcsfs
+  monkeypatch.setenv("STORAGE_EMULATOR_HOST", f"http://127.0.0.1:{server.server_port}")
+  gcsfs.GCSFileSystem.clear_instance_cache()  # a client for this server, not the emulator
+  try:
+    started = time.monotonic()
+    with pytest.raises(UserError, match=r"^could not read gs://nerfpod-test/scene \(.*Anonymous caller does not "
+                                        r"have storage.objects.get access.*\); check the path, and for gs:// the "
+                                        r"network, your credentials \(gcloud auth application-default login"):
+      scenes.load(_config("auto", "gs://nerfpod-test/scene"))
+    assert time.monotonic() - started < 10  # refused, not retried
+  finally:
+    server.shutdown()
+    gcsfs.GCSFileSystem.clear_instance_cache()
 
 
 def test_a_camera_path_file_is_read_from_a_bucket(emulator, tmp_path):
@@ -260,6 +297,14 @@ def test_the_smoke_job_from_and_into_a_bucket_is_killed_resumes_and_ends_as_a_lo
   board.Reload()
   assert set(range(11, 21)) <= {e.step for e in board.Scalars("train/loss")}
   assert "lock.json" not in files  # released at the end
+
+  # Evaluation alone (read-only, from the bucket's newest checkpoint): the same metrics, written again.
+  emulator.delete("runs/smoke/eval/metrics.json")
+  evaluated = procs.run_main("--mode=eval", "--config=configs/default.py:smoke", f"--workdir={workdir}",
+                             *procs.overrides_to_flags(dict(RUN, **{"data.path": url})), env=emulator.env,
+                             devices_per_process=8, timeout=RUN_TIMEOUT)
+  assert evaluated.returncode == 0, evaluated.stderr[-3000:]
+  assert json.loads(emulator.read("runs/smoke/eval/metrics.json")) == want_metrics
 
   missing = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path / 'refused'}",
                            "--config.data.kind=blender", f"--config.data.path={url}-nope", env=emulator.env)
