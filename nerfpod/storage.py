@@ -68,9 +68,11 @@ def _filesystem(path):
     import fsspec
     return fsspec.filesystem(scheme)  # fsspec keeps one instance per scheme
   except (ImportError, ValueError) as e:
-    extra = " (pip install 'nerfpod[gcs]')" if scheme in ("gs", "gcs") else ""
-    raise UserError(f"cannot read {path}: {scheme}:// paths need an fsspec file system for them{extra} "
-                    f"({' '.join(str(e).split())[:200]}).") from None
+    if scheme in ("gs", "gcs"):
+      raise UserError(f"cannot read {path}: gs:// needs the gcsfs package, which is not installed; install the gcs "
+                      f"extra (pip install 'nerfpod[gcs]').") from None
+    raise UserError(f"cannot read {path}: no file system for {scheme}:// paths ({' '.join(str(e).split())[:200]}); "
+                    f"use a local path or gs://.") from None
 
 
 def forget_listings() -> None:
@@ -100,9 +102,12 @@ def endpoint(path) -> tuple[str, int] | None:
 
 
 def check_reachable(path) -> None:
-  """One sentence where the storage endpoint of a URL cannot be connected to (once per process and
-  endpoint); local paths and reached endpoints return at once."""
-  where = endpoint(path) if is_url(path) else None
+  """One sentence where a URL's client is not installed or its storage endpoint cannot be connected to (once
+  per process and endpoint); local paths and reached endpoints return at once."""
+  if not is_url(path):
+    return
+  _filesystem(path)  # its client installed
+  where = endpoint(path)
   if where is None:
     return
   key = f"{where[0]}:{where[1]}"

@@ -176,6 +176,21 @@ def test_no_way_to_the_storage_is_one_sentence_at_once(emulator, monkeypatch):
   assert time.monotonic() - started < 5  # not a client's minute of retries
 
 
+def test_without_gcsfs_a_bucket_path_is_one_sentence_naming_the_extra(monkeypatch):
+  import fsspec
+
+  def missing(protocol, **kwargs):
+    raise ImportError("Install gcsfs to access Google Storage")
+
+  monkeypatch.setattr(fsspec, "filesystem", missing)
+  want = (r"^cannot read gs://nerfpod-test/{}: gs:// needs the gcsfs package, which is not installed; install the "
+          r"gcs extra \(pip install 'nerfpod\[gcs\]'\).$")
+  with pytest.raises(UserError, match=want.format("scene")):
+    scenes.load(_config("auto", "gs://nerfpod-test/scene"))
+  with pytest.raises(UserError, match=want.format("runs/a")):
+    checkpoints.finished_steps("gs://nerfpod-test/runs/a")
+
+
 def test_a_bucket_that_refuses_access_is_one_sentence(emulator, monkeypatch):
   """A server that answers every request 403, as Cloud Storage does without credentials for the bucket."""
   import http.server
