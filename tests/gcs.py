@@ -18,11 +18,12 @@ What the emulator (2026.7.19) gets wrong for these clients, patched in the servi
   instead of stored as bytes, and the server fails on it (RemoteDisconnected for the client): nerfpod's
   workdir lock uploads lock.json that way. Its body is kept as bytes;
 - a multipart upload (uploadType=multipart: gcsfs's and google-cloud-storage's for small objects) goes
-  through Python's email parser, which drops a last carriage return or line feed of the object (a JSON file's
-  final newline, 1 in 128 PNG files). It is split at its boundaries byte for byte instead;
+  through Python's email parser, which drops a last carriage return or line feed of the object (a JSON or
+  text file's final newline, any binary file that ends in one). It is split at its boundaries byte for byte
+  instead;
 - a listing ignores startOffset and endOffset, the only bounds tensorstore's gcs driver gives when it deletes
   a range of keys (creating an array with delete_existing, the render archive's group): it would delete every
-  object of the bucket. Listings keep to [startOffset, endOffset).
+  object of the bucket. Listings keep to [startOffset, endOffset);
 - it ignores preconditions (ifGenerationMatch, ifGenerationNotMatch), and its downloads do not say the
   object's generation (x-goog-generation). tensorstore's OCDBT checkpoints re-read their manifest with
   ifGenerationNotMatch=<the generation they wrote>, expect 304 or a generation, and fail a save now and then
