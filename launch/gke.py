@@ -122,7 +122,7 @@ def container_script(workdir: str, forwarded: list[str], device_check: str) -> s
       "pip install -q google-cloud-storage",
       f"python -c {shlex.quote(fetch)}",
       "mkdir -p /nerfpod && tar -xzf /tmp/nerfpod-src.tar.gz -C /nerfpod && cd /nerfpod",
-      "pip install -q -c constraints.txt -e '.[tpu]' gcsfs",
+      "pip install -q -c constraints.txt -e '.[tpu,gcs]'",
       device_check,
       f"exec {train}",
   ])

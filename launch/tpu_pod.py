@@ -285,13 +285,14 @@ def plan(args, forwarded: list[str], tarball: str) -> list[tuple[str, list[str],
 def setup_commands(python: str) -> str:
   """Shell commands (in the unpacked project) that give a worker Python `python` in a virtual environment
   with exactly the versions of constraints.txt, the TPU runtime matched to that JAX (the `tpu` extra) and
-  the Cloud Storage filesystem orbax and tensorstore write gs:// with. The TPU VM images' own Python is
+  the Cloud Storage clients (the `gcs` extra: gcsfs, through which scenes are read and epath and orbax write
+  gs://, and google-cloud-storage, tensorboardX's). The TPU VM images' own Python is
   3.10, which today's JAX does not support: uv (installed for the user with the image's pip) fetches a
   standalone build of `python`."""
   uv = "~/.local/bin/uv"
   return (f"python3 -m pip install -q --user -U uv && {uv} python install {python} && "
           f"{uv} venv -q --allow-existing --python {python} {VENV} && "
-          f"{uv} pip install -q --python {VENV}/bin/python -c constraints.txt -e '.[tpu]' gcsfs google-cloud-storage")
+          f"{uv} pip install -q --python {VENV}/bin/python -c constraints.txt -e '.[tpu,gcs]'")
 
 
 def device_check(pod, python: str, slices: int = 1) -> str:

@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
 
@@ -49,10 +50,10 @@ def _fail(path, what: str) -> UserError:
 
 
 def read(path) -> CameraPath:
-  """Reads a camera_path.json; a missing file, bad JSON or a malformed camera is one sentence (UserError)."""
+  """Reads a camera_path.json, local or in a bucket (gs://); a missing file, bad JSON or a malformed camera is
+  one sentence (UserError)."""
   try:
-    with open(path) as f:
-      spec = json.load(f)
+    spec = json.loads(storage.read_bytes(path))
   except FileNotFoundError:
     raise UserError(f"camera path {path} does not exist; give the path of a camera_path.json file.") from None
   except (OSError, ValueError) as e:

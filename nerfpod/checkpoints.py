@@ -33,6 +33,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 from etils import epath
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.finite import all_finite
 
@@ -48,6 +49,8 @@ def finished_steps(workdir: str) -> list[int]:
   """Steps of the complete checkpoints, oldest first; temporary (cut-off) ones are not among them. A workdir
   that cannot be listed (a bucket without network or credentials) is one sentence."""
   directory = checkpoint_dir(workdir)
+  storage.check_reachable(workdir)  # no network: one sentence now, not after a bucket client's retries
+  storage.forget_listings()  # a bucket's steps as they are now (another process may have saved one since)
   try:
     if not directory.exists():
       return []

@@ -88,13 +88,17 @@ def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> N
 
 
 def write_json(path, value, sort_keys: bool = False) -> None:
-  """Writes `value` as indented JSON to `path` (local or gs://) whole or not at all: into PATH.tmp, then
-  renamed; creates the folder."""
+  """Writes `value` as indented JSON to `path` (local or gs://) whole or not at all: a local file into
+  PATH.tmp, then renamed (the folder created); an object in a bucket in one upload, which creates it whole or
+  not at all (a bucket has no rename: it would copy the object and delete the first)."""
   path = epath.Path(path)
-  path.parent.mkdir(parents=True, exist_ok=True)
-  tmp = path.parent / f"{path.name}.tmp"
   # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
   text = json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False)
+  if "://" in str(path):
+    path.write_text(text)
+    return
+  path.parent.mkdir(parents=True, exist_ok=True)
+  tmp = path.parent / f"{path.name}.tmp"
   try:
     tmp.write_text(text)
     tmp.replace(path)

@@ -7,7 +7,9 @@ on 127.0.0.1, started directly or through launch/local.py, and stand-in processe
 
 Run as a script, this file is one such process: `python tests/procs.py <nerfpod.main flags>` runs
 nerfpod.main and, when NERFPOD_TEST_RECORD is set to a folder, also records which rays the data pipeline
-loaded on this process (process_<index>.npz there); with NERFPOD_TEST_STAND_IN set it is a stand-in that
+loaded on this process (process_<index>.npz there), and when NERFPOD_TEST_STALL_AT_STEP is set to a step, stalls
+its data pipeline before that step's batch (a run that stops training there, to be killed at a known point,
+after the checkpoints before it); with NERFPOD_TEST_STAND_IN set it is a stand-in that
 only prints what it was given and does what that variable says (launcher tests, no JAX).
 """
 import os
@@ -42,7 +44,7 @@ def environment(devices_per_process: int, **extra: str) -> dict:
              JAX_COMPILATION_CACHE_DIR=os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(DEFAULT_COMPILATION_CACHE),
              JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID", "XLA_FLAGS",
-               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES"):
+               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES", "NERFPOD_TEST_STALL_AT_STEP"):
     env.pop(name, None)
   env.update(extra)
   return env
@@ -62,17 +64,19 @@ class Run:
   def __init__(self, workdir, overrides: dict | None = None, num_processes: int = 1,
                devices_per_process: int = 8, extra_flags=(), record_dir=None, log_dir=None,
                config="configs/default.py:smoke", via_launcher: bool = False, launcher_flags=(),
-               stand_in: str | None = None, compiles_dir=None):
+               stand_in: str | None = None, compiles_dir=None, env: dict | None = None):
     """Starts the processes.
 
     via_launcher: through launch/local.py (one child here, the launcher, whose output is process 0's),
     else each process directly (so that a test can signal any one of them). stand_in: the processes are
     stand-ins doing what it says, comma-separated per process: 'exit:N' or 'wait' (until SIGTERM, then
     exit 0; 'wait:N': exit N); `config`, `overrides` and `workdir` are then only passed on. compiles_dir:
-    each process records the devices of every program it compiles there (tests/compiles.py).
+    each process records the devices of every program it compiles there (tests/compiles.py). env: more
+    environment variables for the processes (e.g. a storage emulator's). A workdir may be a URL (gs://...);
+    then `log_dir` must be given.
     """
     import portpicker
-    self.workdir = pathlib.Path(workdir)
+    self.workdir = workdir if "://" in str(workdir) else pathlib.Path(workdir)  # pathlib would drop a '/'
     self.log_dir = pathlib.Path(log_dir or self.workdir.parent / f"{self.workdir.name}-logs")
     self.log_dir.mkdir(parents=True, exist_ok=True)
     self.procs: list[subprocess.Popen] = []
@@ -85,7 +89,7 @@ class Run:
     if num_processes > 1 and stand_in is None:
       flags += FAST_FAILURE_FLAGS
     flags += list(extra_flags)  # last, so that they win over the above
-    extra = {}
+    extra = dict(env or {})
     if record_dir is not None:
       extra["NERFPOD_TEST_RECORD"] = str(record_dir)
     if stand_in is not None:
@@ -198,6 +202,19 @@ def _record_loaded_rays(folder: str) -> None:
   atexit.register(save)
 
 
+def _stall_at_step(stall: int) -> None:
+  """Makes the data pipeline wait (an hour) before the batch of step `stall`: training stops there."""
+  from nerfpod import data
+  original = data.LocalRayBatch.map
+
+  def map_or_stall(self, step):
+    if int(step) == stall:
+      time.sleep(3600)
+    return original(self, step)
+
+  data.LocalRayBatch.map = map_or_stall
+
+
 def _stand_in(actions: str) -> None:
   """A stand-in for nerfpod.main in launcher tests (no JAX): prints what it was given, then does what
   `actions` (comma-separated, one per process) says for its process id: 'exit:N' or 'wait' (until SIGTERM,
@@ -220,6 +237,8 @@ if __name__ == "__main__":
   sys.path.insert(0, str(REPO))
   if os.environ.get("NERFPOD_TEST_RECORD"):
     _record_loaded_rays(os.environ["NERFPOD_TEST_RECORD"])
+  if os.environ.get("NERFPOD_TEST_STALL_AT_STEP"):
+    _stall_at_step(int(os.environ["NERFPOD_TEST_STALL_AT_STEP"]))
   if os.environ.get("NERFPOD_TEST_COMPILES"):
     import compiles
     index = next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0")

@@ -128,8 +128,8 @@ def test_tpu_pod_dry_run_prints_every_command_and_runs_none(tmp_path):
   assert "--worker=all" in install
   setup = _command(install)
   assert "uv python install 3.11" in setup and "venv" in setup and "--python 3.11 ~/nerfpod-venv" in setup
-  assert "pip install -q --python ~/nerfpod-venv/bin/python -c constraints.txt -e '.[tpu]'" in setup
-  assert "gcsfs" in setup  # what epath (orbax) needs for gs://
+  # the gcs extra: gcsfs (scenes, and the workdir through epath and orbax) and google-cloud-storage (events)
+  assert "pip install -q --python ~/nerfpod-venv/bin/python -c constraints.txt -e '.[tpu,gcs]'" in setup
   assert "--worker=all" in check
   assert shlex.split(_command(check).split("&& ", 1)[1]) == [
       "~/nerfpod-venv/bin/python", "launch/check_devices.py", "--pod=v4-32", "--chips=16", "--per-host=4"]
@@ -283,7 +283,7 @@ def test_tpu_pod_on_gke_writes_a_valid_jobset_with_one_process_per_host(tmp_path
   container = pod["containers"][0]
   assert container["resources"]["limits"]["google.com/tpu"] == 4
   script = container["command"][-1].splitlines()
-  assert "pip install -q -c constraints.txt -e '.[tpu]' gcsfs" in script
+  assert "pip install -q -c constraints.txt -e '.[tpu,gcs]'" in script
   assert "python launch/check_devices.py --pod=v5litepod-16 --chips=16 --per-host=4" in script
   assert shlex.split(script[-1]) == ["exec", "python", "-m", "nerfpod.main", "--config=configs/default.py",
                                      "--config.train.num_steps=500", "--workdir=gs://my-bucket/runs/lego"]

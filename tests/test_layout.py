@@ -23,7 +23,7 @@ FLOORS = {
     "scenes.capture": 2, "scenes.llff": 3, "scenes.colmap": 3, "scenes.nerfstudio": 3,
     "schema": 5, "video": 2, "monitor": 1,
     "distributed": 2, "camera_path": 2, "data": 5, "archive": 3, "render": 3,
-    "workdir_files": 6, "checkpoints": 6, "workdir_lock": 1, "profiling": 1,
+    "workdir_files": 6, "checkpoints": 6, "workdir_lock": 1, "profiling": 1, "storage": 1,
     "components": 7,
     "step": 8,
     "train": 9, "evaluate": 9, "orbit": 9, "view": 9, "export.video": 9,

@@ -1,9 +1,9 @@
 """Scene loaders. `load(config.data)` returns a Scene whatever the format."""
 import dataclasses
-import os
 
 from absl import logging
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.scenes.base import SPACES, Scene, Shards, Split
 
@@ -25,18 +25,18 @@ def detect(path: str) -> str:
   that names the missing files, in favour of a transforms.json or poses_bounds.npy beside it (the same
   capture's poses, written from that model by nerfpod prepare or LLFF's imgs2poses); with nothing else
   there it is refused, naming them. data.kind=colmap insists on the model."""
-  if os.path.isfile(path):
+  if storage.isfile(path):
     if path.endswith(".npz"):
       return "tiny"
     if path.endswith(".json"):
       return "nerfstudio"
-  elif os.path.isdir(path):
+  elif storage.isdir(path):
     from nerfpod.scenes import colmap
     if colmap.model_folder(path) is not None:
       return "colmap"
     found = next(((kind, name) for kind, name in (("nerfstudio", "transforms.json"), ("llff", "poses_bounds.npy"),
                                                   ("blender", "transforms_train.json"))
-                  if os.path.isfile(os.path.join(path, name))), None)
+                  if storage.isfile(storage.join(path, name))), None)
     broken = colmap.incomplete_model(path)
     if broken is not None:
       folder, missing = broken
@@ -69,7 +69,10 @@ def load(data_config, shards: Shards | None = None) -> Scene:
 
   `shards`: the training frames this host holds (data.shards) and its memory budget, checked before any
   image is read; files are read for those frames only. The scenes made in memory (procedural, tiny) are
-  made whole, then checked and cut to the shard. None: every frame, unchecked."""
+  made whole, then checked and cut to the shard. None: every frame, unchecked.
+
+  data.path may be local or a URL (gs://bucket/scene): every format is read through nerfpod.storage."""
+  storage.forget_listings()  # a bucket's folders as they are now
   scene = _load(data_config, shards)
   if shards is None or scene.kind not in IN_MEMORY_KINDS:
     return scene
@@ -103,7 +106,7 @@ def _load(data_config, shards: Shards | None) -> Scene:
   if kind == "blender":
     from nerfpod.scenes import blender
     return blender.load(path, data_config.downscale, shards=shards)
-  if not os.path.exists(path):
+  if not storage.exists(path):
     raise UserError(f"data.path {path!r} not found; set --config.data.path to the {kind} capture's folder.")
   if kind == "llff":
     from nerfpod.scenes import llff

@@ -18,6 +18,7 @@ import sys
 
 import numpy as np
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, Intrinsics
 
@@ -459,9 +460,11 @@ def check_split(split: Split, where: str) -> Split:
 
 
 def read_json(path: str):
-  """A scene's JSON file (Blender's transforms_*.json, nerfstudio's transforms.json); malformed JSON is one
-  sentence naming where."""
+  """A scene's JSON file (Blender's transforms_*.json, nerfstudio's transforms.json), local or in a bucket;
+  malformed JSON is one sentence naming where."""
   try:
+    if storage.is_url(path):
+      return json.loads(storage.read_bytes(path))
     with open(path) as f:
       return json.load(f)
   except json.JSONDecodeError as e:

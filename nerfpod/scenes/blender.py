@@ -4,6 +4,7 @@ import os
 import numpy as np
 from PIL import Image
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, Intrinsics
 from nerfpod.scenes.base import Scene, Shards, Split, check_poses, check_split, read_json, to_uint8, unscaled
@@ -22,7 +23,7 @@ def _read_json(path: str) -> dict:
 
 def _image_size(path: str, name: str, downscale: int) -> tuple[int, int]:
   """(width, height) of a frame's image as _read_image gives it, from the file's header."""
-  if not os.path.isfile(path):
+  if not storage.isfile(path):
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame from the "
                     f"transforms file.")
   return image_size(path, name, downscale)
@@ -31,11 +32,11 @@ def _image_size(path: str, name: str, downscale: int) -> tuple[int, int]:
 def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
   """An RGBA (or RGB) image composited on white and box-downscaled: uint8 (H, W, 4), the composited colour
   and the alpha (filtered as floats, stored as uint8)."""
-  if not os.path.isfile(path):
+  if not storage.isfile(path):
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame from the "
                     f"transforms file.")
   try:
-    with Image.open(path) as im:
+    with Image.open(storage.open_binary(path) if storage.is_url(path) else path) as im:
       rgba = np.asarray(im.convert("RGBA"), np.float32) / 255.0
   except OSError as e:
     raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
@@ -74,7 +75,7 @@ class _Listed:
 
 
 def _listed(root: str, split: str, downscale: int = 1) -> _Listed:
-  path = os.path.join(root, f"transforms_{split}.json")
+  path = storage.join(root, f"transforms_{split}.json")
   meta = _read_json(path)
   frames = meta["frames"]
   if not frames:
@@ -90,7 +91,7 @@ def _listed(root: str, split: str, downscale: int = 1) -> _Listed:
       raise UserError(f"{path}: frame {name!r} has a transform_matrix that is not a 4x4 matrix of numbers.") from e
     if pose.shape != (4, 4):
       raise UserError(f"{path}: frame {name!r} has a transform_matrix of shape {pose.shape}, expected 4x4.")
-    file = os.path.normpath(os.path.join(root, name))
+    file = storage.normpath(storage.join(root, name))
     if not os.path.splitext(file)[1]:
       file += ".png"  # the original data names its frames without an extension
     names.append(name)
@@ -116,19 +117,19 @@ def _listed(root: str, split: str, downscale: int = 1) -> _Listed:
 def load(root: str, downscale: int = 1, splits=SPLITS, shards: Shards | None = None) -> Scene:
   """Every split whose transforms file exists; train must exist. With `shards`, only this host's training
   frames are read, after checking that they and the held-out splits fit its budget."""
-  if not os.path.isdir(root):
+  if not storage.isdir(root):
     raise UserError(f"Blender scene folder {root!r} not found; set --config.data.path to a folder holding "
                     f"transforms_train.json.")
-  if not os.path.isfile(os.path.join(root, "transforms_train.json")):
+  if not storage.isfile(storage.join(root, "transforms_train.json")):
     raise UserError(f"{root} has no transforms_train.json; set --config.data.path to a NeRF synthetic scene "
                     f"folder.")
   listed = {s: _listed(root, s, int(downscale)) for s in splits
-            if os.path.isfile(os.path.join(root, f"transforms_{s}.json"))}
+            if storage.isfile(storage.join(root, f"transforms_{s}.json"))}
   frames = None
   if shards is not None and "train" in listed:
     heldout = sum(int(v.frame_bytes().sum()) for k, v in listed.items() if k != "train")
     shards.check(listed["train"].frame_bytes(), heldout, listed["train"].path)
     frames = shards.frames(len(listed["train"].names))
   loaded = {s: v.read(frames if s == "train" else None) for s, v in listed.items()}
-  name = os.path.basename(os.path.normpath(root))
+  name = os.path.basename(storage.normpath(root))
   return Scene(name, loaded, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="blender")

@@ -10,12 +10,14 @@ Pose normalisation (data.orient, data.center, data.scale) is one similarity comp
 the capture (train and held-out alike, as the original LLFF code does) and applied to all of them; the
 Scene records it (`Scene.transform`, capture -> scene) and training writes it to the workdir's scene.json.
 """
+import contextlib
 import dataclasses
 import os
 
 import numpy as np
 from PIL import Image
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf import poses as pose_math
 from nerfpod.nerf import cameras
@@ -33,17 +35,17 @@ READ_THREADS = max(1, min(8, os.cpu_count() or 1))
 
 def list_images(folder: str) -> list[str]:
   """The image files of a folder (png, jpg, jpeg in any case), sorted by name."""
-  return sorted(f for f in os.listdir(folder) if os.path.splitext(f)[1].lower() in IMAGE_EXTENSIONS)
+  return sorted(f for f in storage.listdir(folder) if os.path.splitext(f)[1].lower() in IMAGE_EXTENSIONS)
 
 
 def image_folder(root: str, downscale: int, base: str = "images") -> tuple[str, int]:
   """(folder, factor still to apply in memory): `base`_N/ where data.downscale = N > 1 and it exists, else
   `base`/ shrunk N times on loading. Refuses, naming the folders there are, where neither exists."""
-  if downscale > 1 and os.path.isdir(os.path.join(root, f"{base}_{downscale}")):
-    return os.path.join(root, f"{base}_{downscale}"), 1
-  if os.path.isdir(os.path.join(root, base)):
-    return os.path.join(root, base), downscale
-  there = sorted(d for d in os.listdir(root) if d.startswith(base) and os.path.isdir(os.path.join(root, d)))
+  if downscale > 1 and storage.isdir(storage.join(root, f"{base}_{downscale}")):
+    return storage.join(root, f"{base}_{downscale}"), 1
+  if storage.isdir(storage.join(root, base)):
+    return storage.join(root, base), downscale
+  there = sorted(d for d in storage.listdir(root) if d.startswith(base) and storage.isdir(storage.join(root, d)))
   hint = (f"; it has {', '.join(d + '/' for d in there)}: pass --config.data.downscale="
           f"{there[0].rpartition('_')[2] if there[0] != base else 1}" if there else
           f"; put the capture's images in {base}/ (or {base}_N/ for images shrunk N times)")
@@ -53,9 +55,10 @@ def image_folder(root: str, downscale: int, base: str = "images") -> tuple[str, 
 
 def read_image(path: str, name: str, downscale: int = 1) -> np.ndarray:
   """An image file as (H, W, 3) uint8, shrunk `downscale` times by averaging downscale^2 blocks (the image
-  cropped to a multiple of it). An alpha channel is dropped: captures are opaque."""
+  cropped to a multiple of it). An alpha channel is dropped: captures are opaque. A URL's file is fetched
+  whole, in one request."""
   try:
-    with Image.open(path) as im:
+    with Image.open(storage.open_binary(path) if storage.is_url(path) else path) as im:
       im = im.convert("RGB")
       if downscale > 1:  # PIL's reduce is the block average, in C
         w, h = im.width // downscale * downscale, im.height // downscale * downscale
@@ -69,10 +72,12 @@ def read_image(path: str, name: str, downscale: int = 1) -> np.ndarray:
 
 def image_size(path: str, name: str, downscale: int = 1) -> tuple[int, int]:
   """(width, height) of an image file as read_image gives it (shrunk `downscale` times), from its header
-  alone: nothing is decoded."""
+  alone: nothing is decoded (of a URL's file, only its first block is fetched)."""
   try:
-    with Image.open(path) as im:
-      w, h = im.size
+    with contextlib.ExitStack() as files:
+      source = files.enter_context(storage.header_reader(path)) if storage.is_url(path) else path
+      with Image.open(source) as im:
+        w, h = im.size
   except FileNotFoundError as e:
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame.") from e
   except OSError as e:
@@ -91,12 +96,12 @@ def image_sizes(paths: list[str], names: list[str], downscale=1) -> tuple[np.nda
 def check_files_exist(paths: list[str], names: list[str], where: str) -> None:
   """One sentence naming every missing image (the first few of many) and the folder looked in; where that
   folder holds no image at all, it says so, and how to fill it."""
-  missing = [(p, n) for p, n in zip(paths, names) if not os.path.isfile(p)]
+  missing = [(p, n) for p, n in zip(paths, names) if not storage.isfile(p)]
   if not missing:
     return
   shown = ", ".join(n for _, n in missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
   folders = sorted({os.path.dirname(p) for p, _ in missing})
-  empty = not (os.path.isdir(folders[0]) and list_images(folders[0]))
+  empty = not (storage.isdir(folders[0]) and list_images(folders[0]))
   if len(folders) == 1 and len(missing) == len(names) and empty:
     raise UserError(empty_folder_message(folders[0], f"{where} lists {len(names)} images ({shown}) to read from "
                                                      f"{folders[0]}/"))
@@ -108,10 +113,10 @@ def check_files_exist(paths: list[str], names: list[str], where: str) -> None:
 def empty_folder_message(folder: str, what: str) -> str:
   """`what`, then that `folder` holds no images and how to fill it: for an images_N/ beside images/, the
   ways to images shrunk N times."""
-  state = "holds no images" if os.path.isdir(folder) else "does not exist"
-  parent, base = os.path.split(os.path.normpath(folder))
+  state = "holds no images" if storage.isdir(folder) else "does not exist"
+  parent, base = os.path.split(storage.normpath(folder))
   stem, _, factor = base.rpartition("_")
-  if stem and factor.isdigit() and os.path.isdir(os.path.join(parent, stem)):
+  if stem and factor.isdigit() and storage.isdir(storage.join(parent, stem)):
     fix = (f"regenerate {base}/ as the images of {stem}/ shrunk {factor} times, delete the empty {base}/ to have "
            f"{stem}/ shrunk on loading, or use --config.data.downscale=1")
   else:

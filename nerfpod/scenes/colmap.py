@@ -12,6 +12,7 @@ import os
 
 import numpy as np
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras
 from nerfpod.scenes import capture
@@ -28,11 +29,19 @@ MODELS = {
 MODEL_FILES = ("cameras", "images", "points3D")
 
 
+def model_format(folder: str) -> str | None:
+  """'.bin' where `folder` holds the whole model in COLMAP's binary format, else '.txt' where it holds it in
+  text, else None (pycolmap reads the binary model where both are there)."""
+  for ext in (".bin", ".txt"):
+    if all(storage.isfile(storage.join(folder, f + ext)) for f in MODEL_FILES):
+      return ext
+  return None
+
+
 def model_folder(root: str) -> str | None:
   """Where the sparse model of a capture folder is: sparse/0/, sparse/ or the folder itself."""
-  for folder in (os.path.join(root, "sparse", "0"), os.path.join(root, "sparse"), root):
-    if all(os.path.isfile(os.path.join(folder, f + ".bin")) for f in MODEL_FILES) or all(
-        os.path.isfile(os.path.join(folder, f + ".txt")) for f in MODEL_FILES):
+  for folder in (storage.join(root, "sparse", "0"), storage.join(root, "sparse"), root):
+    if model_format(folder) is not None:
       return folder
   return None
 
@@ -44,15 +53,15 @@ def incomplete_model(root: str) -> tuple[str, list[str]] | None:
   a complete one: `model_folder`). The files are taken in the format (.bin or .txt) most of them are in."""
   if model_folder(root) is not None:
     return None
-  sparse = os.path.join(root, "sparse")
-  folders = [os.path.join(sparse, "0")] if os.path.isdir(os.path.join(sparse, "0")) else (
-      [sparse] if os.path.isdir(sparse) else [])
+  sparse = storage.join(root, "sparse")
+  folders = [storage.join(sparse, "0")] if storage.isdir(storage.join(sparse, "0")) else (
+      [sparse] if storage.isdir(sparse) else [])
   for folder in folders + [root]:
-    present = {ext: [f for f in MODEL_FILES if os.path.isfile(os.path.join(folder, f + ext))]
+    present = {ext: [f for f in MODEL_FILES if storage.isfile(storage.join(folder, f + ext))]
                for ext in (".bin", ".txt")}
     ext = max(present, key=lambda e: len(present[e]))  # .bin on a tie
     if present[ext] or folder != root:
-      return folder, [os.path.join(folder, f + ext) for f in MODEL_FILES if f not in present[ext]]
+      return folder, [storage.join(folder, f + ext) for f in MODEL_FILES if f not in present[ext]]
   return None
 
 
@@ -84,7 +93,11 @@ def _reconstruction(folder: str):
     raise UserError("reading COLMAP models needs the pycolmap package: pip install 'nerfpod[colmap]' "
                     "(or pip install pycolmap).") from e
   try:
-    return pycolmap.Reconstruction(folder)
+    # pycolmap reads local files only: a bucket's model is copied into a temporary folder first.
+    with storage.local_copy([storage.join(folder, f + model_format(folder)) for f in MODEL_FILES]) as local:
+      return pycolmap.Reconstruction(local)
+  except UserError:
+    raise
   except Exception as e:  # pycolmap raises its own error types for unreadable models
     reason = (str(e).strip().splitlines() or [type(e).__name__])[-1]
     raise UserError(f"the COLMAP model in {folder} cannot be read ({reason}); re-export it from COLMAP.") from e
@@ -119,7 +132,7 @@ def load(root: str, data_config, shards=None) -> Scene:
   downscale = int(data_config.downscale)
   image_dir, shrink = capture.image_folder(root, downscale)
   names = [im.name for im in images]
-  paths = [os.path.join(image_dir, n) for n in names]
+  paths = [storage.join(image_dir, n) for n in names]
   capture.check_files_exist(paths, names, f"the COLMAP model in {folder}")
   # World-to-camera poses, checked (finite, rigid) before they are inverted.
   world_to_camera = np.stack([np.concatenate([np.asarray(im.cam_from_world().matrix(), np.float64),
@@ -144,5 +157,5 @@ def load(root: str, data_config, shards=None) -> Scene:
   bounds = np.array(bounds, np.float64) if all(b is not None for b in bounds) else None
   framing = capture.frame(poses, bounds, names, data_config, "colmap", folder, default_space="unbounded")
   read = lambda i: capture.read_image(paths[i], names[i], shrink)
-  return capture_scene(os.path.basename(os.path.normpath(root)), "colmap", read, cams, names, framing, folder,
+  return capture_scene(os.path.basename(storage.normpath(root)), "colmap", read, cams, names, framing, folder,
                        capture.READ_THREADS, shards)

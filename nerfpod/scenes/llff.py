@@ -11,6 +11,7 @@ import os
 
 import numpy as np
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras
 from nerfpod.scenes import capture
@@ -22,7 +23,7 @@ POSES_FILE = "poses_bounds.npy"
 def read_poses_bounds(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   """(poses (N, 4, 4) OpenGL c2w, hwf (N, 3) at full resolution, bounds (N, 2)) from poses_bounds.npy."""
   try:
-    arr = np.load(path, allow_pickle=False)
+    arr = np.load(storage.open_binary(path) if storage.is_url(path) else path, allow_pickle=False)
   except (OSError, ValueError) as e:
     raise UserError(f"{path} is not a readable .npy array ({e}); regenerate it with LLFF's imgs2poses.py.") from e
   if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
@@ -37,8 +38,8 @@ def read_poses_bounds(path: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def load(root: str, data_config, shards=None) -> Scene:
-  path = os.path.join(root, POSES_FILE)
-  if not os.path.isfile(path):
+  path = storage.join(root, POSES_FILE)
+  if not storage.isfile(path):
     raise UserError(f"{root} has no {POSES_FILE}; set --config.data.path to an LLFF scene folder (with "
                     f"{POSES_FILE} and images_N/).")
   poses, hwf, bounds = read_poses_bounds(path)
@@ -58,7 +59,7 @@ def load(root: str, data_config, shards=None) -> Scene:
     raise UserError(f"{path}: the row of {names[bad[0]]} has a height/width/focal or near/far bound that is not "
                     f"a positive number; regenerate the file.")
   check_poses(poses, names, path)
-  paths = [os.path.join(folder, f) for f in files]
+  paths = [storage.join(folder, f) for f in files]
   widths, heights = capture.image_sizes(paths, names, shrink)
   full = Cameras(np.round(hwf[:, 1]).astype(np.int64), np.round(hwf[:, 0]).astype(np.int64), hwf[:, 2].copy(),
                  hwf[:, 2].copy(), hwf[:, 1] / 2.0, hwf[:, 0] / 2.0, np.zeros((len(hwf), 6)))
@@ -67,5 +68,5 @@ def load(root: str, data_config, shards=None) -> Scene:
   cams = capture.scaled_cameras(full, widths, heights, names, path, factor)
   framing = capture.frame(poses, bounds, names, data_config, "llff", path, default_space="forward_facing")
   read = lambda i: capture.read_image(paths[i], names[i], shrink)
-  return capture_scene(os.path.basename(os.path.normpath(root)), "llff", read, cams, names, framing, path,
+  return capture_scene(os.path.basename(storage.normpath(root)), "llff", read, cams, names, framing, path,
                        capture.READ_THREADS, shards)

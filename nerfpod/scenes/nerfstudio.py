@@ -14,6 +14,7 @@ import os
 
 import numpy as np
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, DISTORTION_PARAMS
 from nerfpod.scenes import capture
@@ -46,11 +47,11 @@ def _distortion(meta: dict, frame: dict, where: str) -> list[float]:
 def _image_path(base: str, file_path: str, downscale: int) -> tuple[str, int]:
   """(the file to read, factor still to apply): nerfstudio's images_N/ counterpart of images/... where
   data.downscale = N > 1 and it exists."""
-  path = os.path.normpath(os.path.join(base, file_path))
+  path = storage.normpath(storage.join(base, file_path))
   if downscale > 1:
     parent, name = os.path.split(path)
-    shrunk = os.path.join(parent + f"_{downscale}", name)
-    if os.path.isfile(shrunk):
+    shrunk = storage.join(parent + f"_{downscale}", name)
+    if storage.isfile(shrunk):
       return shrunk, 1
   return path, downscale
 
@@ -64,9 +65,9 @@ def _read_meta(path: str) -> dict:
 
 def load(path: str, data_config, shards=None) -> Scene:
   """`path`: a folder holding transforms.json, or the JSON file itself."""
-  if os.path.isdir(path):
-    path = os.path.join(path, TRANSFORMS)
-  if not os.path.isfile(path):
+  if storage.isdir(path):
+    path = storage.join(path, TRANSFORMS)
+  if not storage.isfile(path):
     raise UserError(f"{path} not found; set --config.data.path to a folder holding {TRANSFORMS} (or to the file).")
   meta = _read_meta(path)
   base = os.path.dirname(path)
@@ -140,7 +141,7 @@ def load(path: str, data_config, shards=None) -> Scene:
       split_lists["val"] = split_lists["test"]
     if "test" not in split_lists and "val" in split_lists:
       split_lists["test"] = split_lists["val"]
-  name = os.path.basename(os.path.normpath(base)) or "capture"
+  name = os.path.basename(storage.normpath(base)) or "capture"
   framing = capture.frame(poses, None, names, data_config, "nerfstudio", path, default_space="unbounded",
                           split_lists=split_lists)
   read = lambda i: capture.read_image(located[i][0], names[i], located[i][1])

@@ -4,6 +4,7 @@ import zipfile
 
 import numpy as np
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Intrinsics
 from nerfpod.scenes.base import Scene, Split, check_split
@@ -12,10 +13,10 @@ NUM_TRAIN = 100  # frames 0-99 train, the rest are held out (the tutorial valida
 
 
 def load(path: str) -> Scene:
-  if not os.path.isfile(path):
+  if not storage.isfile(path):
     raise UserError(f"Tiny NeRF data file {path!r} not found; set --config.data.path to tiny_nerf_data.npz.")
   try:
-    with np.load(path) as npz:
+    with np.load(storage.open_binary(path) if storage.is_url(path) else path) as npz:
       missing = {"images", "poses", "focal"} - set(npz.files)
       if missing:
         raise UserError(f"{path} lacks the key(s) {sorted(missing)}; a Tiny NeRF npz holds images, poses "

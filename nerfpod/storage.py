@@ -1,0 +1,227 @@
+"""Files that may be local or in a bucket (gs://bucket/folder/file): the one path layer scenes are read through.
+
+    is_url, join, normpath           paths of either kind (a URL keeps its '//')
+    isfile, isdir, exists, listdir   what a folder holds
+    read_bytes(path)                 a whole file, in one request for a URL
+    header_reader(path)              a URL's file read lazily in small blocks (an image's size from its header)
+    local_copy(paths)                local copies of files in a temporary folder (for readers of local files only)
+    forget_listings()                what was listed of a bucket is listed again on the next look
+    check_reachable(path)            one sentence at once where a URL's storage cannot be connected to
+
+A local path takes exactly the route it always took (os, open). A URL goes to fsspec, which reads gs://
+through gcsfs (the `gcs` extra; gcsfs reads STORAGE_EMULATOR_HOST, for an emulator, and otherwise finds
+credentials as gcloud does). What a loader needs from a bucket is only listing and reading: objects,
+and the "folders" their names' slashes make. A folder's listing is kept once made (checking that a
+thousand images exist is one request), until forget_listings(): scenes.load calls it before each scene, which
+does not change while it loads; nerfpod.checkpoints before it lists a workdir's steps.
+
+Errors on a URL: a missing object is FileNotFoundError, as for a local file, so the loaders' sentences name
+it the same way; anything else (no network, no credentials, no access) is one UserError sentence naming the
+path. Before the first request to a storage endpoint, a process connects to it once with a short timeout,
+so that no network is one sentence at once rather than after a client's minute of retries.
+"""
+import contextlib
+import io
+import os
+import posixpath
+import shutil
+import socket
+import sys
+import tempfile
+import threading
+import urllib.parse
+
+from nerfpod.errors import UserError
+
+GCS_ENDPOINT = "https://storage.googleapis.com"  # Cloud Storage, where STORAGE_EMULATOR_HOST is not set
+CONNECT_TIMEOUT_SECONDS = 10.0  # the first connection to a storage endpoint
+HEADER_BLOCK_BYTES = 64 * 1024  # what header_reader fetches at a time: an image header is in the first block
+CREDENTIALS_HINT = ("check the path, and for gs:// the network, your credentials (gcloud auth "
+                    "application-default login, or a VM's service account) and their access to the bucket")
+
+_reached: set[str] = set()
+_reached_lock = threading.Lock()
+
+
+def is_url(path) -> bool:
+  """Whether `path` is a URL (gs://...) rather than a local path."""
+  return "://" in str(path)
+
+
+def join(folder, *names: str) -> str:
+  """`names` under `folder`, a local path or a URL."""
+  return posixpath.join(str(folder), *names) if is_url(folder) else os.path.join(folder, *names)
+
+
+def normpath(path) -> str:
+  """os.path.normpath, keeping a URL's scheme: gs://b/x/../y/ -> gs://b/y."""
+  if not is_url(path):
+    return os.path.normpath(path)
+  scheme, rest = str(path).split("://", 1)
+  return f"{scheme}://{posixpath.normpath(rest)}"
+
+
+def _filesystem(path):
+  """The fsspec file system for a URL's scheme; one sentence where its package is not installed."""
+  scheme = str(path).split("://", 1)[0]
+  try:
+    import fsspec
+    return fsspec.filesystem(scheme)  # fsspec keeps one instance per scheme
+  except (ImportError, ValueError) as e:
+    if scheme in ("gs", "gcs"):
+      raise UserError(f"cannot read {path}: gs:// needs the gcsfs package, which is not installed; install the gcs "
+                      f"extra (pip install 'nerfpod[gcs]').") from None
+    raise UserError(f"cannot read {path}: no file system for {scheme}:// paths ({' '.join(str(e).split())[:200]}); "
+                    f"use a local path or gs://.") from None
+
+
+def forget_listings() -> None:
+  """Drops the folder listings that this process's bucket clients keep (gcsfs keeps every listing it makes,
+  for the life of the process, and does not see what other processes write since; etils.epath and orbax list
+  a workdir through it): the next look lists again."""
+  gcsfs = sys.modules.get("gcsfs")
+  if gcsfs is None:  # no bucket read yet
+    return
+  classes = [gcsfs.GCSFileSystem]
+  while classes:  # fsspec keeps the instances of each class (and subclass) apart
+    cls = classes.pop()
+    classes += cls.__subclasses__()
+    for fs in list(getattr(cls, "_cache", {}).values()):
+      fs.invalidate_cache()
+
+
+def endpoint(path) -> tuple[str, int] | None:
+  """(host, port) that a URL's requests go to: STORAGE_EMULATOR_HOST for gs:// where it is set, else Cloud
+  Storage; None for other schemes."""
+  if not str(path).startswith(("gs://", "gcs://")):
+    return None
+  url = os.environ.get("STORAGE_EMULATOR_HOST") or GCS_ENDPOINT
+  url = url if "://" in url else "http://" + url
+  parts = urllib.parse.urlsplit(url)
+  return parts.hostname or "", parts.port or (443 if parts.scheme == "https" else 80)
+
+
+def check_reachable(path) -> None:
+  """One sentence where a URL's client is not installed or its storage endpoint cannot be connected to (once
+  per process and endpoint); local paths and reached endpoints return at once."""
+  if not is_url(path):
+    return
+  _filesystem(path)  # its client installed
+  where = endpoint(path)
+  if where is None:
+    return
+  key = f"{where[0]}:{where[1]}"
+  with _reached_lock:
+    if key in _reached:
+      return
+  try:
+    socket.create_connection(where, timeout=CONNECT_TIMEOUT_SECONDS).close()
+  except OSError as e:
+    emulator = os.environ.get("STORAGE_EMULATOR_HOST")
+    fix = (f"start the storage emulator that STORAGE_EMULATOR_HOST={emulator} names, or unset it" if emulator
+           else "check this machine's network (a pod's hosts reach Cloud Storage through their VPC)")
+    raise UserError(f"cannot reach Cloud Storage at {key} to read {path} "
+                    f"({e.strerror or type(e).__name__}); {fix}.") from None
+  with _reached_lock:
+    _reached.add(key)
+
+
+def _call(path, what: str, function, *args, **kwargs):
+  """function(*args, **kwargs) for the URL `path`: FileNotFoundError as it is, any other failure one
+  sentence."""
+  check_reachable(path)
+  try:
+    return function(*args, **kwargs)
+  except (FileNotFoundError, UserError):
+    raise
+  except Exception as e:  # noqa: BLE001 (whatever a bucket client raises: HTTP, auth, connection)
+    reason = " ".join(str(e).split())[:300] or type(e).__name__
+    raise UserError(f"could not {what} {path} ({reason}); {CREDENTIALS_HINT}.") from None
+
+
+def _info(path) -> dict | None:
+  """A URL's object or folder description (fsspec's info), None where there is neither. The parent folder
+  is listed first (once: gcsfs keeps the listing), so that checking many files of one folder costs one
+  request."""
+  fs = _filesystem(path)
+  parent = posixpath.dirname(str(path).rstrip("/"))
+  if "/" in parent.split("://", 1)[1]:  # below a bucket: list its folder
+    try:
+      _call(parent, "list", fs.ls, parent, detail=True)
+    except FileNotFoundError:
+      return None
+  try:
+    return _call(path, "read", fs.info, path)
+  except FileNotFoundError:
+    return None
+
+
+def isfile(path) -> bool:
+  if not is_url(path):
+    return os.path.isfile(path)
+  info = _info(path)
+  return info is not None and info.get("type") == "file"
+
+
+def isdir(path) -> bool:
+  if not is_url(path):
+    return os.path.isdir(path)
+  info = _info(path)
+  return info is not None and info.get("type") == "directory"
+
+
+def exists(path) -> bool:
+  if not is_url(path):
+    return os.path.exists(path)
+  return _info(path) is not None
+
+
+def listdir(path) -> list[str]:
+  """The names in a folder (os.listdir for a local one); FileNotFoundError where it does not exist."""
+  if not is_url(path):
+    return os.listdir(path)
+  fs = _filesystem(path)
+  folder = str(path).rstrip("/")
+  own = folder.split("://", 1)[1]
+  names = _call(path, "list", fs.ls, folder, detail=False)
+  return [posixpath.basename(n.rstrip("/")) for n in names if n.rstrip("/") != own]
+
+
+def read_bytes(path) -> bytes:
+  """The whole file: one request for a URL."""
+  if not is_url(path):
+    with open(path, "rb") as f:
+      return f.read()
+  return _call(path, "read", _filesystem(path).cat_file, path)
+
+
+def header_reader(path):
+  """A binary file object of a URL's file that fetches HEADER_BLOCK_BYTES at a time: reading an image's header
+  through it fetches the first block only. (Local paths: open(path, "rb").)"""
+  if not is_url(path):
+    return open(path, "rb")
+  return _call(path, "read", _filesystem(path).open, path, "rb", block_size=HEADER_BLOCK_BYTES)
+
+
+def open_binary(path):
+  """A binary file object of the whole file: read in one request for a URL (io.BytesIO), opened for a local
+  path."""
+  return open(path, "rb") if not is_url(path) else io.BytesIO(read_bytes(path))
+
+
+@contextlib.contextmanager
+def local_copy(paths):
+  """A local folder holding `paths` under their own names: a temporary copy of URLs (removed afterwards), for
+  readers of local files only (pycolmap); local paths must share one folder, which is given as it is."""
+  paths = [str(p) for p in paths]
+  if not any(is_url(p) for p in paths):
+    yield os.path.dirname(paths[0]) if paths else "."
+    return
+  folder = tempfile.mkdtemp(prefix="nerfpod-copy-")
+  try:
+    for path in paths:
+      with open(os.path.join(folder, posixpath.basename(path)), "wb") as f:
+        f.write(read_bytes(path))
+    yield folder
+  finally:
+    shutil.rmtree(folder, ignore_errors=True)
