@@ -14,7 +14,7 @@ import os
 import ml_collections
 from etils import epath
 
-from nerfpod import schema
+from nerfpod import schema, storage
 from nerfpod.errors import UserError
 
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
@@ -124,6 +124,7 @@ def write_scene(workdir: str, scene_json: dict) -> None:
 def read_config(workdir: str) -> ml_collections.ConfigDict:
   """The run's config from workdir/config.json (earlier field names renamed), checked by the schema; a
   missing, unreadable or unreachable one is one sentence. For the tools that take only a --workdir."""
+  storage.check_reachable(workdir)  # no network: one sentence now, not after a bucket client's retries
   path = epath.Path(workdir) / "config.json"
   try:
     text = path.read_text()
