@@ -236,7 +236,7 @@ def test_a_config_whose_slices_are_not_the_topologys_is_one_sentence():
 @pytest.mark.slow
 @needs_libtpu
 def test_two_slices_of_v5e_256_compile_every_program_of_the_default_config(tmp_path):
-  """The issue's check: --topology=v5e-256 --slices=2 with the default config (512 chips on 128 hosts)
+  """--topology=v5e-256 --slices=2 with the default config (512 chips on 128 hosts)
   compiles the step and both renderers over every chip of both slices, exit 0, and reports the DCN
   collective (about 100 s on a 2-core CPU)."""
   report_path = tmp_path / "report.json"

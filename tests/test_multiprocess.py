@@ -68,24 +68,17 @@ def reference(tmp_path_factory):
   return {"workdir": workdir, "params": state["params"]}
 
 
-def test_two_processes_as_two_slices_give_the_bits_of_one_process_of_eight_devices(reference, tmp_path):
-  """Multi-slice on simulated CPU slices, one host per slice as on TPU multi-slice: 2 processes x 4 devices
-  with mesh.slices=2 (a (slice, data) mesh; the gradient mean within each slice, then across the two) end at
-  exactly the parameters of 1 x 8 devices in one slice."""
-  with procs.Run(tmp_path / "slices", dict(OVERRIDES, **{"mesh.slices": 2}), num_processes=2,
-                 devices_per_process=4) as pod:
-    pod.wait_ok(RUN_TIMEOUT)
-  assert "2 process(es), 8 device(s) in 2 slices" in pod.output(0)
-  assert_params_close(tmp_path / "slices", reference["params"], **SAME_SUMS)
-
-
-def test_two_processes_and_one_device_follow_the_same_trajectory(reference, tmp_path):
+def test_two_processes_as_two_slices_and_one_device_follow_the_same_trajectory(reference, tmp_path):
+  """2 processes x 4 devices, each process one simulated slice as on TPU multi-slice (mesh.slices=2: a
+  (slice, data) mesh, the gradient mean within each slice, then across the two), end at exactly the
+  parameters of 1 process x 8 devices in one slice, each process loading its own half of every batch; one
+  process of one device follows the same trajectory. (The other 2 x 4 runs below are single-slice.)"""
   record = tmp_path / "record"
   record.mkdir()
-  with procs.Run(tmp_path / "pod", OVERRIDES, num_processes=2, devices_per_process=4,
+  with procs.Run(tmp_path / "pod", dict(OVERRIDES, **{"mesh.slices": 2}), num_processes=2, devices_per_process=4,
                  record_dir=record) as pod:
     pod.wait_ok(RUN_TIMEOUT)
-  assert "2 process(es), 8 device(s)" in pod.output(0)
+  assert "2 process(es), 8 device(s) in 2 slices" in pod.output(0)
   assert_params_close(tmp_path / "pod", reference["params"], **SAME_SUMS)
 
   # Each process loaded its own half of every global batch, and the halves make up the whole batch.
