@@ -536,12 +536,17 @@ def test_horns_photos_agree_with_the_published_poses(tmp_path, capsys):
   assert len(rotation) == 20 and np.median(rotation) < 1.0 and np.median(position) < 0.03
 
 
+# The cup at 400x300 in every run; at its own 800x600 (3.5-5 min on 2 cores, the longest test by far) only
+# where NERFPOD_TEST_FULL_SFM=1 asks for it: the same pipeline on the same photos, with tighter bounds.
+CUP_SIZES = [(2, 3.5, 0.07)] + ([(1, 2.0, 0.05)] if os.environ.get("NERFPOD_TEST_FULL_SFM") == "1" else [])
+
+
 @needs_pycolmap
 @pytest.mark.slow
-@pytest.mark.parametrize("shrink,max_degrees,max_centre", [(2, 3.5, 0.07), (1, 2.0, 0.05)])
+@pytest.mark.parametrize("shrink,max_degrees,max_centre", CUP_SIZES)
 def test_cup_photos_agree_with_the_shared_model(tmp_path, capsys, shrink, max_degrees, max_centre):
-  """The shared COLMAP cup's 77 images at 400x300 (20-30 s) and at their 800x600 (3.5-5 min on 2 cores): 95%
-  registered or more; after a similarity alignment the median rotation error and the median camera-centre
+  """The shared COLMAP cup's 77 images at 400x300 (20-30 s; and at their 800x600 with NERFPOD_TEST_FULL_SFM=1):
+  95% registered or more; after a similarity alignment the median rotation error and the median camera-centre
   error (as a share of the cameras' mean distance from their centroid) within bounds. The shared model, made on
   the 800x600 images with per-image cameras, is a reference, not the truth; at 400x300 SIFT finds fewer,
   less precise features."""
