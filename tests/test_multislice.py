@@ -117,6 +117,7 @@ def test_two_slices_of_four_devices_train_to_the_bits_of_one_slice_of_eight():
   jax.tree.map(np.testing.assert_array_equal, params_2x4, params_8)
 
 
+@pytest.mark.slow  # two more step compilations; the quick loop keeps the ordered mean's bit equality above
 def test_one_all_reduce_over_both_axes_is_the_same_mean():
   """compile.gradient_mean=pmean (the TPU's): one jax.lax.pmean over (slice, data), the same mean up to the
   summation order."""
