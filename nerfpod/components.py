@@ -25,6 +25,7 @@ from jax.sharding import Mesh
 from nerfpod import camera_path, compilation, data, distributed, render, scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import pose_correction
 
 # Tags folded into the seed so that each use of randomness has its own stream.
 _PARAMS_STREAM, _RAYS_STREAM = 0, 1
@@ -52,14 +53,11 @@ def learning_rate_schedule(train_config, lr_init: float | None = None,
   return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
 
 
-# The parameter of the per-frame pose corrections (nerf/model.py), which have their own optimiser.
-POSE_PARAM = "pose_correction"
-
-
 def _pose_labels(params):
   """'pose' for the pose corrections, 'field' for every other parameter (appearance codes included)."""
-  return jax.tree_util.tree_map_with_path(
-      lambda path, _: "pose" if any(getattr(k, "key", None) == POSE_PARAM for k in path) else "field", params)
+  def label(path, _):
+    return "pose" if any(getattr(k, "key", None) == pose_correction.PARAM for k in path) else "field"
+  return jax.tree_util.tree_map_with_path(label, params)
 
 
 def make_optimizer(train_config) -> optax.GradientTransformation:

@@ -96,7 +96,7 @@ class NeRF(nn.Module):
       else:
         codes = table[frames_R]
     if self.pose_refine:
-      corrections = self.param("pose_correction", nn.initializers.zeros, (self.num_frames, 6), jnp.float32)
+      corrections = self.param(pose_correction.PARAM, nn.initializers.zeros, (self.num_frames, 6), jnp.float32)
       if frames_R is not None:
         origins_Rx3, directions_Rx3 = pose_correction.correct_rays(origins_Rx3, directions_Rx3,
                                                                    corrections[frames_R])

@@ -13,6 +13,9 @@ Shapes: N frames (or rays), vectors (..., 6) as [tx, ty, tz, wx, wy, wz].
 import jax.numpy as jnp
 import numpy as np
 
+# The model's parameter holding the corrections, (N, 6) per training frame (nerf/model.py).
+PARAM = "pose_correction"
+
 # Below this squared angle, sin(a)/a and (1 - cos a)/a^2 are their Taylor series (exact to float32 there,
 # and differentiable at 0, where the closed forms divide 0 by 0).
 _SMALL_ANGLE_SQ = 1e-4
@@ -57,6 +60,15 @@ def correct_rays(origins_Rx3, directions_Rx3, corrections_Rx6):
   rotation = so3_exp(corrections_Rx6[..., 3:])
   directions = jnp.einsum("...ij,...j->...i", rotation, directions_Rx3)
   return origins_Rx3 + corrections_Rx6[..., :3], directions
+
+
+def of_params(params) -> np.ndarray | None:
+  """The training frames' corrections (N, 6), NumPy, of a model's parameters (replicated arrays: this
+  process's copy), or None where the run had no pose refinement."""
+  corrections = params["params"].get(PARAM)
+  if corrections is None:
+    return None
+  return np.asarray(corrections.addressable_data(0) if hasattr(corrections, "addressable_data") else corrections)
 
 
 def corrected_poses(poses_Nx4x4, corrections_Nx6) -> np.ndarray:
