@@ -88,8 +88,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.distortion_weight = 0.0  # proposal sampling: weight of the distortion loss (eq. 15); 0: off
   c.train.pose_refine = False     # learn an SE(3) correction of each training frame's pose (nerfacto's camera
                                   # optimiser); held-out frames keep their given poses
-  c.train.pose_lr_init = 1e-3     # the corrections' own learning rate at the start (after warm-up)
-  c.train.pose_lr_final = 1e-4    # ... and at the last step (log-linear decay, as train.lr_*)
+  c.train.pose_lr_init = 1e-4     # the corrections' own learning rate at the start (after warm-up); 1e-3
+                                  # let them drift by degrees (docs/results.md)
+  c.train.pose_lr_final = 1e-5    # ... and at the last step (log-linear decay, as train.lr_*)
   c.train.pose_weight_decay = 0.0  # decoupled weight decay of the corrections (AdamW), pulls them to zero
   c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
   c.train.log_every = 100         # steps between TensorBoard scalars and console lines

@@ -39,7 +39,7 @@ ADDED_FIELDS = {
     "train.profile_steps": [],                                             # no profile
     "data.shards": 1, "data.host_memory_gib": 0.0,                         # every host held every frame
     "model.appearance_dim": 0, "train.pose_refine": False,                 # no per-frame appearance or poses
-    "train.pose_lr_init": 1e-3, "train.pose_lr_final": 1e-4, "train.pose_weight_decay": 0.0,  # unused then
+    "train.pose_lr_init": 1e-4, "train.pose_lr_final": 1e-5, "train.pose_weight_decay": 0.0,  # unused then
 }
 
 
