@@ -27,6 +27,10 @@ def get_config(arg: str | None = None):
   c.render.num_samples = 32       # 32 samples for the field: cheaper steps than 48 coarse + 32 fine
   c.train.num_steps = 4000
   c.orbit.path = "ellipse"        # mip-NeRF 360's, through the capture's cameras
+  # Per-frame appearance codes and pose refinement stay off: on the cup and the fox both lowered held-out PSNR
+  # (docs/results.md, "Appearance codes and pose refinement"); turn them on for captures that need them.
+  c.model.appearance_dim = 0
+  c.train.pose_refine = False
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

@@ -32,6 +32,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model.field = "hashgrid"      # 'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)
   c.model.use_viewdirs = False    # feed the view direction to the colour head (view-dependent effects)
   c.model.compute_dtype = "float32"    # matmul dtype: 'bfloat16' for mixed precision on TPU/GPU
+  c.model.appearance_dim = 0      # width of a learned appearance code per training frame (GLO, NeRF-W), fed to
+                                  # the colour head; held-out views get the codes' mean; 0: off
   c.model.mlp = ml_collections.ConfigDict()  # NeRF's MLP: the Tiny NeRF tutorial's by default
   c.model.mlp.num_frequencies = 6  # positional-encoding frequencies L of points; 0 switches it off
   c.model.mlp.depth = 8           # number of hidden layers
@@ -84,6 +86,12 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.grad_clip = 0.0         # clip the global gradient norm to this; 0: no clipping
   c.train.interlevel_weight = 1.0  # proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)
   c.train.distortion_weight = 0.0  # proposal sampling: weight of the distortion loss (eq. 15); 0: off
+  c.train.pose_refine = False     # learn an SE(3) correction of each training frame's pose (nerfacto's camera
+                                  # optimiser); held-out frames keep their given poses
+  c.train.pose_lr_init = 1e-4     # the corrections' own learning rate at the start (after warm-up); 1e-3
+                                  # let them drift by degrees (docs/results.md)
+  c.train.pose_lr_final = 1e-5    # ... and at the last step (log-linear decay, as train.lr_*)
+  c.train.pose_weight_decay = 0.0  # decoupled weight decay of the corrections (AdamW), pulls them to zero
   c.train.seed = 0                # seeds the parameters, the ray batches and the stratified jitter
   c.train.log_every = 100         # steps between TensorBoard scalars and console lines
   c.train.image_every = 500       # steps between rendered held-out views in TensorBoard; 0: never

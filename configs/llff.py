@@ -26,6 +26,8 @@ def get_config(arg: str | None = None):
   # The default's eight levels and 32-unit MLPs keep a step near the default job's cost, so 8,000 steps fit
   # the 30-minute budget.
   c.train.num_steps = 8000
+  c.model.appearance_dim = 0      # per-frame appearance codes and pose refinement: off (not measured on
+  c.train.pose_refine = False     # forward-facing captures; on 360 ones they cost PSNR: docs/results.md)
   c.orbit.path = "spiral"         # the original's: two turns, 120 frames, looking at the focus depth
   c.orbit.width = 252             # half the images' width (504): 120 frames stay within minutes on a CPU
   if args["smoke"]:

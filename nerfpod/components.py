@@ -25,6 +25,7 @@ from jax.sharding import Mesh
 from nerfpod import camera_path, compilation, data, distributed, render, scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import pose_correction
 
 # Tags folded into the seed so that each use of randomness has its own stream.
 _PARAMS_STREAM, _RAYS_STREAM = 0, 1
@@ -37,22 +38,44 @@ class TrainState:
   opt_state: Any
 
 
-def learning_rate_schedule(train_config) -> optax.Schedule:
-  """Linear warm-up to lr_init, then log-linear decay to lr_final at the last step (the original NeRF's)."""
+def learning_rate_schedule(train_config, lr_init: float | None = None,
+                           lr_final: float | None = None) -> optax.Schedule:
+  """Linear warm-up to lr_init, then log-linear decay to lr_final at the last step (the original NeRF's);
+  train.lr_init and train.lr_final unless given."""
   tc = train_config
+  lr_init = tc.lr_init if lr_init is None else lr_init
+  lr_final = tc.lr_final if lr_final is None else lr_final
   decay_steps = max(1, tc.num_steps - tc.lr_warmup_steps)
-  decay = optax.exponential_decay(tc.lr_init, decay_steps, tc.lr_final / tc.lr_init)
+  decay = optax.exponential_decay(lr_init, decay_steps, lr_final / lr_init)
   if tc.lr_warmup_steps <= 0:
     return decay
-  warmup = optax.linear_schedule(0.0, tc.lr_init, tc.lr_warmup_steps)
+  warmup = optax.linear_schedule(0.0, lr_init, tc.lr_warmup_steps)
   return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
 
 
+def _pose_labels(params):
+  """'pose' for the pose corrections, 'field' for every other parameter (appearance codes included)."""
+  def label(path, _):
+    return "pose" if any(getattr(k, "key", None) == pose_correction.PARAM for k in path) else "field"
+  return jax.tree_util.tree_map_with_path(label, params)
+
+
 def make_optimizer(train_config) -> optax.GradientTransformation:
-  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0)."""
+  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0). With
+  train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
+  train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser)."""
   tc = train_config
   adam = optax.adam(learning_rate_schedule(tc), eps=tc.adam_eps)
+  if tc.pose_refine:
+    pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
+                       weight_decay=tc.pose_weight_decay)
+    adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
   return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if tc.grad_clip > 0 else adam
+
+
+def uses_frames(config) -> bool:
+  """Whether the training batches carry each ray's training-frame index (per-frame appearance or poses)."""
+  return bool(config.model.appearance_dim) or bool(config.train.pose_refine)
 
 
 def ray_bounds(config, scene) -> tuple[float, float]:
@@ -139,7 +162,7 @@ class Components(Program):
     tc = self.config.train
     dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
                                distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
-                               max(tc.num_steps, 1), self.config.data.shards)
+                               max(tc.num_steps, 1), self.config.data.shards, uses_frames(self.config))
     return data.iterator(dataset, start_step)
 
 
@@ -156,7 +179,7 @@ def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
   return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
 
 
-def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool) -> dict:
+def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool, with_frames: bool = False) -> dict:
   """The global batch of data.LocalRayBatch's fields (less its host-side step) as ShapeDtypeStructs laid
   over every device of `mesh` (its data axis, and its slice axis across slices): each host's rows on its own
   devices, as distributed.to_global makes them."""
@@ -165,12 +188,16 @@ def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool) -> dict:
             "rgb": ((batch_size, 3), jnp.float32), "ray_ids": ((batch_size,), jnp.int32)}
   if with_alpha:
     shapes["alpha"] = ((batch_size,), jnp.float32)
+  if with_frames:
+    shapes["frame"] = ((batch_size,), jnp.int32)
   return {k: jax.ShapeDtypeStruct(shape, dtype, sharding=sharding) for k, (shape, dtype) in shapes.items()}
 
 
 # Ray bounds for a program compiled without its scene where the config leaves them to the scene: the values
 # are constants of the program and change neither its shapes nor its cost.
 _PLACEHOLDER_BOUNDS = (2.0, 6.0)
+# Likewise the training frames (rows of the per-frame appearance codes and pose corrections).
+_PLACEHOLDER_FRAMES = 100
 # Likewise the NDC cube's camera (fx, fy, width, height) of a forward-facing scene: LLFF's at images_8.
 _PLACEHOLDER_NDC_CAMERA = (421.0, 421.0, 504.0, 378.0)
 
@@ -179,20 +206,23 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
   """The step's and renderer's pieces for `config` on `mesh` (any devices: a TPU topology's too), the model
   formulated and compiled for `backend` (default JAX's). With `scene`, its ray bounds, NDC camera,
   background and alpha; without (the pod compile tool), placeholders of the same shapes and cost, the batch
-  carrying alpha where the scene format has it (scenes.HAS_ALPHA)."""
+  carrying alpha where the scene format has it (scenes.HAS_ALPHA), and _PLACEHOLDER_FRAMES training frames."""
   if scene is not None:
     ndc = ndc_camera(config, scene)
     near, far = ray_bounds(config, scene)
     background, with_alpha = tuple(scene.background), scene.split("train").alphas is not None
+    num_frames = len(scene.split("train"))
   else:
+    num_frames = _PLACEHOLDER_FRAMES
     ndc = _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None
     near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
-  model = nerf_model.from_config(config, ndc, backend)
+  model = nerf_model.from_config(config, ndc, backend, num_frames)
   optimizer = make_optimizer(config.train)
   return Program(config, mesh, model, optimizer, float(near), float(far), background,
-                 state_shapes(model, optimizer, mesh), batch_shapes(config.train.batch_size, mesh, with_alpha),
+                 state_shapes(model, optimizer, mesh),
+                 batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),
                  compilation.compiler_options(config, backend))
 
 

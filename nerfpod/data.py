@@ -36,14 +36,15 @@ def shard_pixel_indices(seed: int, step: int, shard: int, batch_size: int, num_p
 
 class LocalRayBatch(grain.transforms.Map):
   """step -> this host's slice of the global batch: rays, target colours (and alphas where the data have
-  them) and the rays' positions in the global batch.
+  them) and the rays' positions in the global batch; `with_frames`: also each ray's training frame (its
+  index in the split, "frame"), for per-frame appearance codes and pose corrections.
 
   Frames may differ in size and camera: a flat index picks its frame by the split's pixel offsets, and each
   ray goes through its own frame's camera (lens distortion included). Colours stay uint8 in memory and
   become float32 here, for this slice only."""
 
   def __init__(self, split: Split, seed: int, batch_size: int, rows: slice, pixel_center: float,
-               num_shards: int = 1):
+               num_shards: int = 1, with_frames: bool = False):
     self._pixels = split.pixels
     self._alphas = split.alphas
     self._poses = split.poses
@@ -52,6 +53,7 @@ class LocalRayBatch(grain.transforms.Map):
     self._seed, self._batch_size, self._rows = seed, batch_size, rows
     self._pixel_center = pixel_center
     self._num_shards = num_shards
+    self._with_frames = with_frames
     if num_shards > 1:  # this host's shards: those whose sub-batches are its rows, each with its frames
       per_shard = batch_size // num_shards
       shard_ids = range(rows.start // per_shard, rows.stop // per_shard)
@@ -94,15 +96,18 @@ class LocalRayBatch(grain.transforms.Map):
     }
     if self._alphas is not None:
       batch["alpha"] = to_float(self._alphas[flat])
+    if self._with_frames:
+      batch["frame"] = image.astype(np.int32)
     return batch
 
 
 def ray_batches(split: Split, seed: int, batch_size: int, rows: slice, pixel_center: float,
-                num_steps: int, num_shards: int = 1) -> grain.MapDataset:
+                num_steps: int, num_shards: int = 1, with_frames: bool = False) -> grain.MapDataset:
   """The random-access dataset of this host's slices of global batches 0 .. num_steps - 1 (`num_shards`:
-  data.shards; the rows then span whole sub-batches, those of the shards the split holds)."""
+  data.shards; the rows then span whole sub-batches, those of the shards the split holds; `with_frames`:
+  the rays' training frames too)."""
   return grain.MapDataset.range(num_steps).map(
-      LocalRayBatch(split, seed, batch_size, rows, pixel_center, num_shards))
+      LocalRayBatch(split, seed, batch_size, rows, pixel_center, num_shards, with_frames))
 
 
 def iterator(dataset: grain.MapDataset, start_step: int, prefetch: int = 4):

@@ -39,6 +39,8 @@ ADDED_FIELDS = {
     "train.profile_steps": [],                                             # no profile
     "data.shards": 1, "data.host_memory_gib": 0.0,                         # every host held every frame
     "mesh.slices": 0,                                                      # the slices the devices report
+    "model.appearance_dim": 0, "train.pose_refine": False,                 # no per-frame appearance or poses
+    "train.pose_lr_init": 1e-4, "train.pose_lr_final": 1e-5, "train.pose_weight_decay": 0.0,  # unused then
 }
 
 
@@ -164,6 +166,7 @@ FIELDS: dict[str, Field] = {
     "model.field": choice("mlp", "hashgrid"),
     "model.use_viewdirs": boolean(),
     "model.compute_dtype": choice("float32", "bfloat16"),
+    "model.appearance_dim": integer(0, example=16),
     "model.mlp.num_frequencies": integer(0, 30, example=10),
     "model.mlp.depth": integer(1, example=8),
     "model.mlp.width": integer(1, example=256),
@@ -204,6 +207,10 @@ FIELDS: dict[str, Field] = {
     "train.grad_clip": number(0.0),
     "train.interlevel_weight": number(0.0, example=1.0),
     "train.distortion_weight": number(0.0, example=0.002),
+    "train.pose_refine": boolean(),
+    "train.pose_lr_init": number(above=0.0, example=1e-3),
+    "train.pose_lr_final": number(above=0.0, example=1e-4),
+    "train.pose_weight_decay": number(0.0, example=0.01),
     "train.seed": integer(0),
     "train.log_every": integer(1, example=100),
     "train.image_every": integer(0, example=500),
@@ -298,6 +305,10 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.mlp.skips={_show(c['model.mlp.skips'])} names layers after which the input rejoins, "
                f"so each must be below model.mlp.depth - 1 = {c['model.mlp.depth'] - 1} "
                f"(e.g. --config.model.mlp.skips='(4,)' with depth 8).")
+  if c["model.appearance_dim"] and c["model.field"] == "mlp" and not c["model.use_viewdirs"]:
+    out.append(f"model.appearance_dim={c['model.appearance_dim']} feeds appearance codes to the colour head, "
+               f"which the MLP field without view directions shares with the density; use "
+               f"--config.model.use_viewdirs=true (or --config.model.appearance_dim=0).")
   if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
     out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
                f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")

@@ -64,7 +64,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     if random_background and "alpha" in batch:
       ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
-    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms)
+    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms,
+                         frames=batch.get("frame"))  # per-frame appearance and pose corrections, where on
     mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
     loss = jnp.sum(mses)
     extra = {}

@@ -18,10 +18,11 @@ start-up is one sentence (exit code 2).
 What the page shows: the scene from the camera the user drags, rendered on this machine's JAX devices (CPU
 or GPU) by the same compiled renderer evaluation and orbits use; the channel picked (rgb, depth, acc,
 disparity, coloured as the orbit videos are); the training and held-out cameras as frustums holding their
-images; the checkpoint's step. Rendering is progressive and never blocks the page: each browser has its
-own render thread; a moved camera is drawn first at `coarse_resolution` (one renderer call), and at full
-resolution (the canvas's size, at most the page's "Max resolution") once the camera has been still for
-`STILL_SECONDS`; a full render is abandoned between chunks as soon as the camera moves again. Every call
+images (the training cameras at their corrected poses where the run refined them: train.pose_refine); the
+checkpoint's step. Rendering is progressive and never blocks the page: each browser has its own render
+thread; a moved camera is drawn first at `coarse_resolution` (one renderer call), and at full resolution
+(the canvas's size, at most the page's "Max resolution") once the camera has been still for `STILL_SECONDS`;
+a full render is abandoned between chunks as soon as the camera moves again. Every call
 to the renderer has the same number of rays (the last chunk padded), so it compiles once.
 
 Camera paths: "Add keyframe" records the browser's camera; "Save path" writes the keyframes' path
@@ -45,7 +46,7 @@ from absl import logging
 from nerfpod import camera_path as camera_paths
 from nerfpod import checkpoints, compilation, components, distributed, render, video, workdir_files
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras, compositing, keyframes
+from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 
 STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
 THUMBNAIL_PIXELS = 64     # longest side of the images shown in the frustums
@@ -320,10 +321,14 @@ class Viewer:
     self._frustums = []
     scale = 0.03 * self._scene_extent()
     colours = {"train": (40, 90, 220)}
+    corrections = pose_correction.of_params(self.params)
     for name, split in self.comps.scene.splits.items():
       fov = cameras.fov_y(split.intrinsics)
       aspect = split.intrinsics.width / split.intrinsics.height
-      for i, (pose, image) in enumerate(zip(split.poses, split.images)):
+      poses = split.poses
+      if name == "train" and corrections is not None:  # pose refinement: the poses the field was fitted to
+        poses = pose_correction.corrected_poses(poses, corrections)
+      for i, (pose, image) in enumerate(zip(poses, split.images)):
         wxyz, position = cameras.pose_to_opencv(pose)
         self._frustums.append(scene.add_camera_frustum(
             f"/cameras/{name}/{i}", fov=float(fov), aspect=aspect, scale=scale, wxyz=wxyz, position=position,

@@ -1,4 +1,6 @@
 """Exporting an orbit archive: colour maps, videos read back, the contact sheet, refusing partial archives."""
+import types
+
 import imageio.v2 as imageio
 import numpy as np
 import pytest
@@ -240,6 +242,38 @@ def test_cameras_round_trip_through_the_nerfstudio_loader_to_the_same_rays(smoke
       want, got = in_capture_frame(a, i, capture_to_scene), in_capture_frame(b, i, np.asarray(loaded.transform))
       np.testing.assert_allclose(got[0], want[0], atol=2e-4)
       np.testing.assert_allclose(got[1], want[1], atol=2e-5)
+
+
+def test_a_pose_refined_run_exports_its_training_frames_corrected_poses(smoke_workdir, tmp_path):
+  """Training frames: the corrected pose (in the capture's frame) and the given one beside it; held-out frames:
+  their given poses."""
+  import dataclasses
+  import json
+  from nerfpod.export import cameras as cameras_export
+  from nerfpod.export import trained as trained_lib
+  from nerfpod.nerf import pose_correction
+  trained = trained_lib.restore(str(smoke_workdir))
+  train = trained.comps.scene.split("train")
+  corrections = np.random.default_rng(0).uniform(-0.05, 0.05, (len(train), 6)).astype(np.float32)
+  params = {"params": {**trained.params["params"], pose_correction.PARAM: corrections}}
+  refined = dataclasses.replace(trained, params=params, capture_to_scene=np.diag([0.5, 0.5, 0.5, 1.0]))
+  out = tmp_path / "transforms.json"
+  cameras_export.export(types.SimpleNamespace(normalized=False), refined, str(out))
+  meta = json.loads(out.read_text())
+  assert meta["nerfpod"]["pose_refined"] is True
+  frames = {f["file_path"]: f for f in meta["frames"]}
+  want = pose_correction.corrected_poses(train.poses, corrections)
+  want[:, :3, 3] *= 2.0  # scene -> capture: the inverse of the similarity's scale 0.5
+  given = np.asarray(train.poses, np.float64).copy()
+  given[:, :3, 3] *= 2.0
+  for i in (0, len(train) - 1):
+    frame = frames[f"images/train_{i:04d}.png"]
+    np.testing.assert_allclose(frame["transform_matrix"], want[i], atol=1e-9)
+    np.testing.assert_allclose(frame["nerfpod_given_transform_matrix"], given[i], atol=1e-9)
+  test = trained.comps.scene.split("test")
+  frame = frames["images/test_0000.png"]
+  assert "nerfpod_given_transform_matrix" not in frame
+  np.testing.assert_allclose(np.asarray(frame["transform_matrix"])[:3, :3], test.poses[0][:3, :3], atol=1e-6)
 
 
 def test_depth_maps_read_back_as_the_rendered_depth(smoke_workdir, tmp_path):

@@ -14,7 +14,7 @@ from conftest import REPO
 FLOORS = {
     "errors": 0,
     "nerf": 0, "nerf.cameras": 1, "nerf.sampling": 1, "nerf.stepfun": 1, "nerf.encodings": 1,
-    "nerf.compositing": 1, "nerf.coord": 1, "nerf.paths": 2, "nerf.poses": 1,
+    "nerf.compositing": 1, "nerf.coord": 1, "nerf.paths": 2, "nerf.poses": 1, "nerf.pose_correction": 1,
     "nerf.keyframes": 2,
     "nerf.fields": 2, "nerf.model": 3,
     "pod": 0, "pod.chips": 1, "pod.hlo_cost": 2,

@@ -7,7 +7,10 @@ data.downscale) written to images/SPLIT_NNNN.png beside the JSON, its camera-to-
 nerfstudio's) and its own intrinsics (fl_x, fl_y, cx, cy, w, h and the distortion k1, k2, k3, k4, p1, p2;
 camera_model OPENCV where any frame is distorted, else PINHOLE), and the splits as train_filenames,
 val_filenames and test_filenames. Poses are in the capture's own coordinates (the inverse of the run's
-capture -> scene similarity in scene.json), or in the normalised scene's with --normalized.
+capture -> scene similarity in scene.json), or in the normalised scene's with --normalized. A run trained
+with pose refinement (train.pose_refine) exports its training frames' corrected poses, the ones its field was
+fitted to, and keeps each one's given pose as "nerfpod_given_transform_matrix"; held-out frames keep their
+given poses (they were evaluated from them).
 """
 import io
 import os
@@ -20,6 +23,7 @@ from PIL import Image
 from nerfpod import workdir_files
 from nerfpod.errors import UserError
 from nerfpod.export import trained as trained_lib
+from nerfpod.nerf import pose_correction
 from nerfpod.nerf.cameras import DISTORTION_PARAMS
 
 ABOUT = "the cameras, poses and images as a nerfstudio transforms.json"
@@ -38,6 +42,7 @@ def check(args) -> None:
 
 def export(args, trained: trained_lib.Trained, out: str) -> dict:
   scene = trained.comps.scene
+  corrections = pose_correction.of_params(trained.params)
   folder = epath.Path(out).parent
   frames, lists, written = [], {}, {}  # written: id(split) -> its file names (val and test may be one split)
   distorted = any(s.cameras.is_distorted for s in scene.splits.values())
@@ -48,7 +53,10 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
     if id(split) in written:
       lists[name] = written[id(split)]
       continue
-    poses = trained.poses_out(split.poses, args.normalized)
+    given = trained.poses_out(split.poses, args.normalized)
+    corrected = name == "train" and corrections is not None
+    poses = (trained.poses_out(pose_correction.corrected_poses(split.poses, corrections), args.normalized)
+             if corrected else given)
     files = []
     for i in range(len(split)):
       file_path = f"images/{name}_{i:04d}.png"
@@ -63,6 +71,8 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
                "fl_y": float(cams.fy[i]), "cx": float(cams.cx[i]), "cy": float(cams.cy[i]), "w": int(cams.width[i]),
                "h": int(cams.height[i]), "nerfpod_name": str(split.names[i])}
       frame.update({k: float(v) for k, v in zip(DISTORTION_PARAMS, cams.distortion[i])})
+      if corrected:
+        frame["nerfpod_given_transform_matrix"] = given[i].tolist()
       frames.append(frame)
       done += 1
       progress.update(done)
@@ -71,6 +81,7 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
           **{f"{name}_filenames": files for name, files in lists.items() if name in ("train", "val", "test")},
           "nerfpod": {"workdir": trained.workdir, "step": trained.step, "scene": scene.name,
                       "coordinates": "normalized scene" if args.normalized else "capture",
+                      "pose_refined": corrections is not None,
                       "capture_to_scene": np.asarray(trained.capture_to_scene).tolist()}}
   if jax.process_index() == 0:
     workdir_files.write_json(out, meta)

@@ -190,8 +190,11 @@ class FieldQuery:
     name, contracted = trained.field_name(), trained.config.render.space == "contract"
 
     def apply(params, points, viewdirs):
+      # With appearance codes, the colour is the mean code's, as every held-out rendering's (nerf/model.py).
+      codes = params["params"].get("appearance")
+      codes = () if codes is None else (jnp.broadcast_to(codes.mean(0), points.shape[:-1] + codes.shape[1:]),)
       return field.apply({"params": params["params"][name]}, coord.contract(points) if contracted else points,
-                         viewdirs)
+                         viewdirs, *codes)
 
     def full(params, points, viewdirs):
       sigma, pullback = jax.vjp(lambda p: apply(params, p, viewdirs)[1], points)

@@ -17,6 +17,8 @@ class MLPField(nn.Module):
   after layer `i % 4 == 0 and i > 0`, is skips=(4,)). Without view directions one linear head gives
   (rgb, sigma), as in the Tiny NeRF tutorial. With them (the paper): sigma from the trunk, then a linear
   bottleneck of `width` concatenated with the encoded direction, one layer of width/2 and the rgb head.
+  An appearance code per point (`codes_NxA`, the ray's frame's) joins the encoded direction there; it needs
+  the view branch (the colour head is then apart from the density).
   """
   # Sizes and switches come from config.model (configs/default.py documents each); no defaults here.
   depth: int
@@ -29,7 +31,7 @@ class MLPField(nn.Module):
   dtype: jnp.dtype  # matmul dtype: bfloat16 for mixed precision, params stay float32
 
   @nn.compact
-  def __call__(self, points_Nx3, viewdirs_Nx3=None):
+  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None):
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     encoded = positional = encodings.positional_encoding(points_Nx3, self.num_frequencies)
     x = encoded
@@ -39,12 +41,15 @@ class MLPField(nn.Module):
         x = jnp.concatenate([x, positional], axis=-1)
     activation = _ACTIVATIONS[self.density_activation]
     if not self.use_viewdirs:
+      if codes_NxA is not None:
+        raise ValueError("appearance codes need the MLP's view branch (model.use_viewdirs)")  # schema refuses
       raw = dense(4, "output")(x).astype(jnp.float32)
       return nn.sigmoid(raw[..., :3]), activation(raw[..., 3])
     sigma = activation(dense(1, "density")(x).astype(jnp.float32)[..., 0])
     bottleneck = dense(self.width, "bottleneck")(x)
     dirs = encodings.positional_encoding(viewdirs_Nx3, self.viewdir_frequencies)
-    h = nn.relu(dense(self.width // 2, "view")(jnp.concatenate([bottleneck, dirs.astype(x.dtype)], -1)))
+    head_in = [bottleneck, dirs.astype(x.dtype)] + ([] if codes_NxA is None else [codes_NxA.astype(x.dtype)])
+    h = nn.relu(dense(self.width // 2, "view")(jnp.concatenate(head_in, -1)))
     return nn.sigmoid(dense(3, "rgb")(h).astype(jnp.float32)), sigma
 
 
@@ -53,7 +58,8 @@ class HashGridField(nn.Module):
 
   Points are mapped from the box [-bound, bound]^3 into the unit cube (outside it the density is zero).
   Density is exp of the first output of the density MLP (Instant-NGP's "trunc_exp" forward); the colour MLP
-  takes the remaining features and, with view directions, their degree-4 spherical-harmonic encoding.
+  takes the remaining features and, with view directions, their degree-4 spherical-harmonic encoding, and
+  with appearance codes (`codes_NxA`, each point's ray's frame's), the code (nerfacto's colour head).
   """
   # Sizes and switches come from config.model.hashgrid and config.model; no defaults here.
   bound: float
@@ -69,7 +75,7 @@ class HashGridField(nn.Module):
   matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
 
   @nn.compact
-  def __call__(self, points_Nx3, viewdirs_Nx3=None):
+  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None):
     unit = (points_Nx3 + self.bound) / (2.0 * self.bound)
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
     features = encodings.HashGridEncoding(
@@ -82,6 +88,8 @@ class HashGridField(nn.Module):
     colour_in = [h[..., 1:]]
     if self.use_viewdirs:
       colour_in.append(encodings.spherical_harmonics_deg4(viewdirs_Nx3))
+    if codes_NxA is not None:
+      colour_in.append(codes_NxA)
     c = jnp.concatenate(colour_in, axis=-1)
     c = nn.relu(dense(self.hidden_width, "colour_hidden_0")(c))
     c = nn.relu(dense(self.hidden_width, "colour_hidden_1")(c))

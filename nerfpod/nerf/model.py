@@ -5,7 +5,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from nerfpod.nerf import compositing, coord, fields, sampling, stepfun
+from nerfpod.nerf import compositing, coord, fields, pose_correction, sampling, stepfun
 
 
 class NeRF(nn.Module):
@@ -30,6 +30,12 @@ class NeRF(nn.Module):
   (proposal rounds too).
 
   A bounded field (the hash grid) has each ray's [near, far] clipped to its box first (not in contracted space).
+  Real captures (NeRF-W, nerfacto): with `model_config.appearance_dim` > 0, an appearance code per training
+  frame (a learned table of `num_frames` rows, GLO, zeros at the start) joins the colour head's input, never
+  the density's; with `pose_refine`, a correction per training frame (nerf/pose_correction.py, zeros at the
+  start) moves each training ray before anything else. Both take the rays' training-frame indices `frames`;
+  without them (held-out views, orbits, the viewer) every ray gets the mean of the training codes and no
+  correction: held-out frames are rendered from their given poses (docs/training.md says why).
   Randomness comes in as arrays of uniform numbers, one (R, n) array per round of `sample_counts()` (none:
   deterministic evaluation), so the module is a pure function of its inputs. Every attribute comes from
   the config (`from_config`).
@@ -43,6 +49,8 @@ class NeRF(nn.Module):
   spacing: str = "linear"
   ndc_camera: tuple[float, float, float, float] | None = None  # (fx, fy, width, height) defining the NDC cube
   proposal_samples: tuple = ()
+  num_frames: int = 0        # training frames: rows of the appearance codes and pose corrections
+  pose_refine: bool = False  # learn a pose correction per training frame
 
   def sample_counts(self) -> tuple:
     """How many uniform numbers per ray each sampling round takes, in the order __call__ takes them."""
@@ -51,10 +59,10 @@ class NeRF(nn.Module):
     return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
   grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
 
-  def _render(self, field, origins, directions, viewdirs, t_RxS, background):
+  def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes):
     points = self._points(origins, directions, t_RxS)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
-    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3))
+    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb = rgb.reshape(points.shape)
     sigma = sigma.reshape(points.shape[:-1])
     out = compositing.composite(rgb, sigma, t_RxS, directions, last_delta=self.last_delta,
@@ -76,14 +84,34 @@ class NeRF(nn.Module):
       return sampling.stratified(near, far, num, uniform)
     return coord.s_to_t(sampling.stratified(0.0, 1.0, num, uniform), near, far, self.spacing)
 
+  def _per_frame(self, origins_Rx3, directions_Rx3, frames_R):
+    """(origins, directions, appearance codes (R, A) or None): the rays moved by their frames' pose
+    corrections and their frames' codes (`frames_R` None: unmoved, and the mean of the codes)."""
+    codes = None
+    if self.model_config.appearance_dim:
+      table = self.param("appearance", nn.initializers.zeros,
+                         (self.num_frames, self.model_config.appearance_dim), jnp.float32)
+      if frames_R is None:
+        codes = jnp.broadcast_to(jnp.mean(table, axis=0), origins_Rx3.shape[:-1] + table.shape[1:])
+      else:
+        codes = table[frames_R]
+    if self.pose_refine:
+      corrections = self.param(pose_correction.PARAM, nn.initializers.zeros, (self.num_frames, 6), jnp.float32)
+      if frames_R is not None:
+        origins_Rx3, directions_Rx3 = pose_correction.correct_rays(origins_Rx3, directions_Rx3,
+                                                                   corrections[frames_R])
+    return origins_Rx3, directions_Rx3, codes
+
   @nn.compact
-  def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms):
+  def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
     near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
-    (R, n) array of numbers in [0, 1) per entry of `sample_counts()`, or none at all (evaluation).
+    (R, n) array of numbers in [0, 1) per entry of `sample_counts()`, or none at all (evaluation); frames:
+    (R,) int32 training-frame index of each ray (training), or None.
     """
     uniforms = uniforms or (None,) * len(self.sample_counts())
+    origins_Rx3, directions_Rx3, codes = self._per_frame(origins_Rx3, directions_Rx3, frames)
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
     if self.space == "ndc":
       if self.ndc_camera is None:
@@ -93,12 +121,13 @@ class NeRF(nn.Module):
       near, far = sampling.clip_to_box(origins_Rx3, directions_Rx3, near, far,
                                        self.model_config.hashgrid.bound)
     if self.proposal_samples:
-      return [self._proposal_render(origins_Rx3, directions_Rx3, viewdirs, near, far, background, uniforms)]
+      return [self._proposal_render(origins_Rx3, directions_Rx3, viewdirs, near, far, background, uniforms,
+                                    codes)]
     t = self._distances(near, far, self.num_samples, uniforms[0])
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
                                    matmul_max_rows=self.grid_matmul_max_rows)
-    coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background)
+    coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes)
     if self.num_importance == 0:
       return [coarse]
     # Importance samples are drawn in s, where the coarse samples are evenly spread ('linear': s is t).
@@ -113,7 +142,7 @@ class NeRF(nn.Module):
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
                                    matmul_max_rows=self.grid_matmul_max_rows)
-    fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background)
+    fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes)
     return [coarse, fine]
 
   def _points(self, origins, directions, t_RxS):
@@ -121,7 +150,7 @@ class NeRF(nn.Module):
     points = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
     return coord.contract(points) if self.space == "contract" else points
 
-  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms):
+  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms, codes):
     if self.spacing == "linear":
       warp = sampling.linear_warp(near, far)
     else:  # even in s is even in inverse distance
@@ -147,11 +176,19 @@ class NeRF(nn.Module):
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows)
-    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3))
+    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     out = compositing.composite_intervals(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_edges,
                                           directions, background=background)
     out.update(t=t_mids, s_edges=s_edges, proposals=proposals)
     return self._in_world_units(out, t_mids)
+
+
+def _per_point(codes_RxA, sample_shape) -> tuple:
+  """() without appearance codes, else (codes (R * S, A),): each ray's code at each of its S samples."""
+  if codes_RxA is None:
+    return ()
+  return (jnp.broadcast_to(codes_RxA[..., None, :], sample_shape + codes_RxA.shape[-1:]).reshape(
+      -1, codes_RxA.shape[-1]),)
 
 
 def grid_matmul_max_rows(config, backend: str) -> int:
@@ -167,10 +204,14 @@ def grid_matmul_max_rows(config, backend: str) -> int:
   return config.compile.matmul_max_rows if lookup == "matmul" else 0
 
 
-def from_config(config, ndc_camera=None, backend: str | None = None) -> NeRF:
+def from_config(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0) -> NeRF:
   """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
   JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
-  whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera)."""
+  whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera).
+  `num_frames`: the training frames, each with its own appearance code (model.appearance_dim > 0) and pose
+  correction (train.pose_refine); at least 1 where either is on."""
+  if (config.model.appearance_dim or config.train.pose_refine) and num_frames < 1:
+    raise ValueError("model.appearance_dim and train.pose_refine need the training frame count (num_frames)")
   dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
   backend = backend or jax.default_backend()
   render = config.render
@@ -178,4 +219,5 @@ def from_config(config, ndc_camera=None, backend: str | None = None) -> NeRF:
               last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
               proposal_samples=tuple(render.proposal_samples),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
-              grid_matmul_max_rows=grid_matmul_max_rows(config, backend))
+              grid_matmul_max_rows=grid_matmul_max_rows(config, backend), num_frames=int(num_frames),
+              pose_refine=bool(config.train.pose_refine))

@@ -1,0 +1,234 @@
+"""Real captures' per-frame parameters: appearance codes (model.appearance_dim) and pose corrections
+(train.pose_refine): the SE(3) maths against references, what the model does with them, the sharded step
+on 8 devices against 1, an exact resume through a checkpoint, and the corrected cameras' export."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import Mesh
+
+from conftest import smoke_config
+from nerfpod import checkpoints, components, data, distributed, scenes, step
+from nerfpod.nerf import cameras, pose_correction
+from nerfpod.nerf import model as nerf_model
+
+BOTH = {"model.appearance_dim": 4, "train.pose_refine": True}
+
+
+def _expm_series(k, terms=40):
+  """exp of a 3x3 matrix by its power series, float64 (the brute-force reference)."""
+  out, term = np.eye(3), np.eye(3)
+  for n in range(1, terms):
+    term = term @ k / n
+    out = out + term
+  return out
+
+
+def _skew(w):
+  return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-6, 3e-3, 0.3, 2.5])
+def test_so3_exp_is_the_matrix_exponential_of_the_skew_matrix(scale):
+  rng = np.random.default_rng(0)
+  w = rng.normal(size=(16, 3))
+  w = scale * w / np.linalg.norm(w, axis=-1, keepdims=True)
+  want = np.stack([_expm_series(_skew(v)) for v in w])
+  np.testing.assert_allclose(np.asarray(pose_correction.so3_exp(jnp.asarray(w, jnp.float32))), want, atol=2e-6)
+  np.testing.assert_allclose(pose_correction.so3_exp_numpy(w), want, atol=1e-12)
+
+
+def test_so3_exp_gradient_is_finite_at_zero_and_matches_finite_differences():
+  d = jnp.array([0.3, -0.5, 0.8])
+  f = lambda w: pose_correction.so3_exp(w) @ d  # noqa: E731
+  jac = np.asarray(jax.jacfwd(f)(jnp.zeros(3)))
+  np.testing.assert_allclose(jac, -_skew(np.asarray(d)), atol=1e-6)  # d(exp(w) d)/dw at 0 = -[d]x
+  w0 = jnp.array([0.2, -0.1, 0.4])
+  eps = 1e-2
+  numeric = np.stack([(f(w0 + eps * e) - f(w0 - eps * e)) / (2 * eps) for e in jnp.eye(3)], -1)
+  np.testing.assert_allclose(np.asarray(jax.jacfwd(f)(w0)), numeric, atol=1e-3)
+
+
+def test_a_zero_correction_leaves_rays_bit_identical():
+  rng = np.random.default_rng(1)
+  origins = jnp.asarray(rng.normal(size=(257, 3)), jnp.float32)
+  directions = jnp.asarray(rng.normal(size=(257, 3)), jnp.float32)
+  o, d = jax.jit(pose_correction.correct_rays)(origins, directions, jnp.zeros((257, 6)))
+  np.testing.assert_array_equal(np.asarray(o), np.asarray(origins))
+  np.testing.assert_array_equal(np.asarray(d), np.asarray(directions))
+
+
+def test_corrected_rays_are_the_rays_of_the_corrected_pose():
+  """correct_rays on a frame's rays = the rays of corrected_poses' camera (what the export writes)."""
+  rng = np.random.default_rng(2)
+  pose = cameras.look_at(np.array([1.0, -3.0, 1.5]))
+  intr = cameras.Intrinsics.from_focal(40, 30, 35.0)
+  rows, cols = rng.integers(0, 30, 50), rng.integers(0, 40, 50)
+  correction = np.array([0.05, -0.02, 0.03, 0.04, -0.03, 0.02])
+  origins, directions = cameras.rays_for_pixels(pose, intr, rows, cols)
+  o, d = pose_correction.correct_rays(jnp.asarray(origins), jnp.asarray(directions),
+                                      jnp.asarray(np.tile(correction, (50, 1)), jnp.float32))
+  moved = pose_correction.corrected_poses(pose[None], correction[None])[0]
+  want_o, want_d = cameras.rays_for_pixels(moved, intr, rows, cols)
+  np.testing.assert_allclose(np.asarray(o), want_o, atol=1e-6)
+  np.testing.assert_allclose(np.asarray(d), want_d, atol=1e-6)
+  np.testing.assert_allclose(moved[:3, :3] @ moved[:3, :3].T, np.eye(3), atol=1e-12)  # still a rotation
+
+
+def _plane_colour(origins, directions):
+  """A textured ground plane z = 0: the colour where each ray meets it (a smooth scene to register on)."""
+  t = -origins[:, 2] / directions[:, 2]
+  x, y = origins[:, 0] + t * directions[:, 0], origins[:, 1] + t * directions[:, 1]
+  return jnp.stack([jnp.sin(3.0 * x + 1.3 * y), jnp.sin(2.1 * y - 0.7 * x + 1.0),
+                    jnp.cos(1.7 * x + 2.3 * y)], -1)
+
+
+def test_a_known_pose_perturbation_is_recovered_on_a_textured_plane():
+  """Frames whose given poses are off by a known SE(3) error: Adam on their corrections (zeros at the start),
+  against pixels seen from the true poses, brings the corrected poses back to the true ones."""
+  intr = cameras.Intrinsics.from_focal(32, 32, 18.0)  # wide (about 83 degrees): the plane pins all 6 DOF
+  rng = np.random.default_rng(3)
+  truths = np.stack([cameras.look_at(np.array([0.4 * i - 0.6, -1.5, 2.0]), (0.2 * i, 0.3, 0.0))
+                     for i in range(4)])
+  error = np.concatenate([rng.uniform(-0.05, 0.05, (4, 3)), rng.uniform(-0.04, 0.04, (4, 3))], -1)
+  given = pose_correction.corrected_poses(truths, error)  # the SfM poses: the truth moved by the error
+  rows, cols = (x.ravel() for x in np.meshgrid(np.arange(32), np.arange(32), indexing="ij"))
+  frames = np.repeat(np.arange(4), 32 * 32)
+  rays_of = lambda poses: [jnp.asarray(np.concatenate(x)) for x in zip(  # noqa: E731
+      *[cameras.rays_for_pixels(p, intr, rows, cols) for p in poses])]
+  target = _plane_colour(*rays_of(truths))
+  given_o, given_d = rays_of(given)
+
+  def loss(corrections):
+    o, d = pose_correction.correct_rays(given_o, given_d, corrections[frames])
+    return jnp.mean((_plane_colour(o, d) - target) ** 2)
+
+  optimizer = optax.adam(3e-3)
+  corrections = jnp.zeros((4, 6))
+  opt_state = optimizer.init(corrections)
+
+  @jax.jit
+  def update(corrections, opt_state):
+    grads = jax.grad(loss)(corrections)
+    updates, opt_state = optimizer.update(grads, opt_state)
+    return optax.apply_updates(corrections, updates), opt_state
+
+  start = float(loss(corrections))
+  for _ in range(600):
+    corrections, opt_state = update(corrections, opt_state)
+  assert float(loss(corrections)) < 1e-4 * start
+  recovered = pose_correction.corrected_poses(given, np.asarray(corrections))
+  np.testing.assert_allclose(recovered[:, :3, 3], truths[:, :3, 3], atol=2e-3)
+  np.testing.assert_allclose(recovered[:, :3, :3], truths[:, :3, :3], atol=2e-3)
+  assert np.abs(given - truths).max() > 0.03  # the error was real: 15x the tolerance
+
+
+def _model_and_params(overrides, num_frames=5):
+  config = smoke_config(**{"render.proposal_samples": (), "model.use_viewdirs": True, **overrides})
+  model = nerf_model.from_config(config, num_frames=num_frames)
+  rng = np.random.default_rng(4)
+  origins = jnp.asarray(rng.normal(size=(32, 3)) * 0.1 + [0.0, 0.0, 4.0], jnp.float32)
+  directions = jnp.asarray(rng.normal(size=(32, 3)) * 0.1 + [0.0, 0.0, -1.0], jnp.float32)
+  params = model.init(jax.random.key(0), origins, directions, 2.0, 6.0, jnp.ones(3))
+  return model, params, origins, directions
+
+
+@pytest.mark.parametrize("field", ["hashgrid", "mlp"])
+def test_appearance_codes_change_colour_never_density_and_held_out_views_get_their_mean(field):
+  model, params, origins, directions = _model_and_params({"model.field": field, "model.appearance_dim": 4})
+  table = params["params"]["appearance"]
+  assert table.shape == (5, 4) and not np.any(np.asarray(table))  # zeros at the start
+  table = jnp.asarray(np.random.default_rng(5).normal(size=(5, 4)), jnp.float32)
+  params = {"params": {**params["params"], "appearance": table}}
+  apply = jax.jit(model.apply, static_argnums=(3, 4))
+  frames = jnp.asarray(np.arange(32) % 5, jnp.int32)
+  out = apply(params, origins, directions, 2.0, 6.0, jnp.ones(3), frames=frames)[-1]
+  other = apply(params, origins, directions, 2.0, 6.0, jnp.ones(3), frames=(frames + 1) % 5)[-1]
+  assert np.abs(np.asarray(out["rgb"]) - np.asarray(other["rgb"])).max() > 1e-4  # codes reach the colour
+  np.testing.assert_array_equal(np.asarray(out["weights"]), np.asarray(other["weights"]))  # not the density
+  # Without frames (held-out views, orbits): every ray gets the mean code.
+  held_out = apply(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
+  mean = {"params": {**params["params"], "appearance": jnp.broadcast_to(table.mean(0), table.shape)}}
+  as_mean = apply(mean, origins, directions, 2.0, 6.0, jnp.ones(3), frames=frames)[-1]
+  np.testing.assert_allclose(np.asarray(held_out["rgb"]), np.asarray(as_mean["rgb"]), atol=1e-6)
+
+
+def test_zero_pose_corrections_render_exactly_what_the_model_without_them_renders():
+  model, params, origins, directions = _model_and_params({"train.pose_refine": True})
+  assert not np.any(np.asarray(params["params"]["pose_correction"]))
+  plain, plain_params, _, _ = _model_and_params({})
+  assert set(params["params"]) - set(plain_params["params"]) == {"pose_correction"}
+  frames = jnp.asarray(np.arange(32) % 5, jnp.int32)
+  with_corrections = model.apply(params, origins, directions, 2.0, 6.0, jnp.ones(3), frames=frames)[-1]
+  without = plain.apply(plain_params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
+  for k in ("rgb", "depth", "acc"):
+    np.testing.assert_array_equal(np.asarray(with_corrections[k]), np.asarray(without[k]))
+
+
+def _run_steps(mesh, config, num_steps, optimizer, state=None, first_step=0):
+  scene = scenes.load(config.data)
+  split = scene.split("train")
+  model = nerf_model.from_config(config, num_frames=len(split))
+  if state is None:
+    state = components.initial_state(model, optimizer, config.train.seed, mesh)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, random_background=True)
+  dataset = data.ray_batches(split, 0, config.train.batch_size, slice(0, config.train.batch_size), 0.5,
+                             first_step + num_steps, with_frames=True)
+  losses = []
+  for i in range(first_step, first_step + num_steps):
+    batch = dict(dataset[i])
+    batch.pop("step")
+    state, metrics = step_fn(state, distributed.to_global(mesh, batch), jax.random.key(7))
+    losses.append(float(metrics["loss"]))
+  return np.array(losses), state
+
+
+def test_eight_devices_match_one_device_with_appearance_and_pose_refinement():
+  config = smoke_config(**BOTH, **{"model.use_viewdirs": True, "train.batch_size": 128})
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  sgd = optax.sgd(0.5)  # plain SGD: parameters differ exactly as the averaged gradients do (test_step.py)
+  losses_1, state_1 = _run_steps(one, config, 3, sgd)
+  losses_8, state_8 = _run_steps(distributed.make_mesh(), config, 3, sgd)
+  np.testing.assert_allclose(losses_8, losses_1, rtol=2e-5)
+  params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
+  for name in ("appearance", "pose_correction"):  # the per-frame tables moved, and alike
+    assert np.abs(params_1["params"][name]).max() > 0
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
+
+
+def test_pose_corrections_have_their_own_learning_rate_and_a_resume_continues_exactly(tmp_path):
+  """The run's optimiser (pose corrections on their own AdamW) over 4 steps straight, and over 2 steps, a
+  checkpoint, a restore and 2 more: the same bits."""
+  config = smoke_config(**BOTH, **{"model.use_viewdirs": True, "train.batch_size": 64, "train.num_steps": 4,
+                                   "render.proposal_samples": (),  # a smaller program (8 devices vs 1 has them)
+                                   "train.lr_warmup_steps": 0, "train.pose_lr_init": 1e-2,
+                                   "train.pose_lr_final": 1e-2})
+  optimizer = components.make_optimizer(config.train)
+  mesh = Mesh(np.array(jax.devices()[:2]), (distributed.DATA_AXIS,))
+  _, straight = _run_steps(mesh, config, 4, optimizer)
+  _, half = _run_steps(mesh, config, 2, optimizer)
+  shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), half)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=1) as ckpt:
+    ckpt.save(2, half, {"next_step": 2}, force=True)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=1) as ckpt:
+    restored, position = ckpt.restore(shapes)
+  assert position == {"next_step": 2}
+  _, resumed = _run_steps(mesh, config, 2, optimizer, state=restored, first_step=2)
+  jax.tree.map(np.testing.assert_array_equal, jax.device_get(resumed), jax.device_get(straight))
+  # Adam moves every entry by about its learning rate at first: the corrections by pose_lr (1e-2), far more
+  # than the field's lr_init would (1e-2 too here, so compare with the step's own size instead).
+  moved = np.abs(jax.device_get(straight.params)["params"]["pose_correction"])
+  assert 1e-3 < moved.max() <= 4 * 1e-2 * 1.01
+
+
+def test_batches_carry_each_rays_training_frame_with_and_without_shards():
+  split = scenes.load(smoke_config().data).split("train")
+  for shards in (1, 4):
+    batch = data.LocalRayBatch(split, 0, 64, slice(0, 64), 0.5, shards, with_frames=True).map(3)
+    assert batch["frame"].dtype == np.int32 and batch["frame"].shape == (64,)
+    # The procedural scene's cameras sit at distinct positions: a ray's origin names its frame.
+    np.testing.assert_allclose(batch["origins"], split.poses[batch["frame"], :3, 3], atol=1e-6)
+    if shards > 1:  # sub-batch s holds shard s's frames (frame i in shard i mod S)
+      np.testing.assert_array_equal(batch["frame"].reshape(4, 16) % 4, np.repeat(np.arange(4)[:, None], 16, 1))
+  assert "frame" not in data.LocalRayBatch(split, 0, 64, slice(0, 64), 0.5).map(3)
