@@ -34,7 +34,7 @@ NUM_STEPS = 16
 # which leaves time to cut a save off), a short evaluation and an 8-frame orbit.
 OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.every_steps": 2,
              "checkpoint.max_to_keep": 2, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 2,
-             "orbit.num_frames": 8, "model.appearance_dim": 4, "train.pose_refine": True}
+             "orbit.num_frames": 8}
 RUN_TIMEOUT = 150  # seconds for one run of 2 processes on a loaded 2-core machine
 KINDS = ("start-up/restore", "mid-step", "mid-save", "evaluation", "orbit")
 # The schedule of SIGKILLs: what each one waits for before its random delay. Training faults first, then

@@ -86,7 +86,7 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
               "grain": "grain", "tensorstore": "tensorstore", "ml_collections": "ml-collections",
               "absl": "absl-py", "tensorboardX": "tensorboardx", "PIL": "pillow", "imageio": "imageio",
               "etils": "etils", "viser": "viser", "pycolmap": "pycolmap",
-              "imageio_ffmpeg": "imageio-ffmpeg", "wandb": "wandb", "skimage": "scikit-image"}
+              "imageio_ffmpeg": "imageio-ffmpeg", "wandb": "wandb", "skimage": "scikit-image", "fsspec": "fsspec"}
   import ast
   found = set()
   for path in (REPO / "nerfpod").rglob("*.py"):

@@ -413,7 +413,7 @@ def test_nerfpod_view_serves_the_page_and_stops_on_ctrl_c(trained_workdir):
     assert "<html" in page.lower()
     assert sorted(p.name for p in (trained_workdir / "checkpoints").iterdir()) == before, "the viewer wrote"
     proc.send_signal(signal.SIGINT)
-    assert proc.wait(timeout=30) == 0
+    assert proc.wait(timeout=90) == 0  # a bound for a loaded machine (it took over 30 s under the whole suite)
   finally:
     proc.kill()
     proc.wait()
