@@ -20,10 +20,9 @@ from nerfpod import archive as archives
 from nerfpod import checkpoints, scenes, storage
 from nerfpod.errors import UserError
 from nerfpod.scenes import procedural
-from test_captures import write_colmap_bin, write_colmap_txt, write_images, write_llff, write_transforms
+from test_captures import CAPTURE_KINDS as CAPTURES, write_capture_kinds, write_images
 
 SIZE = 16  # the loaders' scenes: the procedural scene's first frames at 16x16, images_2/ at 8x8
-CAPTURES = ("llff", "colmap_bin", "colmap_txt", "nerfstudio")
 
 
 @pytest.fixture(scope="module")
@@ -71,15 +70,7 @@ def local_scenes(tmp_path_factory):
   images = [train.image_uint8(i) for i in range(len(train))]
   names = [f"r_{i}.png" for i in range(len(train))]
   poses, focal = train.poses.astype(np.float64), float(train.cameras.fx[0])
-  for kind in CAPTURES:
-    (root / kind).mkdir()
-  write_llff(root / "llff", poses, focal, images, names)
-  intrinsics = [(SIZE, SIZE, (focal, focal, SIZE / 2, SIZE / 2), n) for n in names]
-  for kind, writer in (("colmap_bin", write_colmap_bin), ("colmap_txt", write_colmap_txt)):
-    writer(root / kind / "sparse" / "0", poses, intrinsics)
-    write_images(root / kind / "images", names, images)
-  write_transforms(root / "nerfstudio", poses, SIZE, SIZE, focal, focal, SIZE / 2, SIZE / 2, names)
-  write_images(root / "nerfstudio" / "images", names, images)
+  write_capture_kinds(root, poses, focal, images, names, SIZE)
   for kind in CAPTURES:
     write_images(root / kind / "images_2", names, [_half(im) for im in images])
   return root

@@ -48,6 +48,23 @@ def quaternion_wxyz(rot):
   return np.array([w, x, y, z])
 
 
+CAPTURE_KINDS = ("llff", "colmap_bin", "colmap_txt", "nerfstudio")
+
+
+def write_capture_kinds(root, poses_gl, focal, images, names, size):
+  """The same square frames (size x size, one pinhole camera of focal `focal`, camera-to-world OpenGL poses)
+  as each real-capture format, one folder root/<kind> per CAPTURE_KINDS entry."""
+  for kind in CAPTURE_KINDS:
+    (root / kind).mkdir()
+  write_llff(root / "llff", poses_gl, focal, images, names)
+  intrinsics = [(size, size, (focal, focal, size / 2, size / 2), n) for n in names]
+  for kind, writer in (("colmap_bin", write_colmap_bin), ("colmap_txt", write_colmap_txt)):
+    writer(root / kind / "sparse" / "0", poses_gl, intrinsics)
+    write_images(root / kind / "images", names, images)
+  write_transforms(root / "nerfstudio", poses_gl, size, size, focal, focal, size / 2, size / 2, names)
+  write_images(root / "nerfstudio" / "images", names, images)
+
+
 def write_images(folder, names, images):
   os.makedirs(folder, exist_ok=True)
   for name, im in zip(names, images):
@@ -137,15 +154,7 @@ def lego(tmp_path_factory):
     json.dump({"camera_angle_x": meta["camera_angle_x"],
                "frames": [{"file_path": f"./train/r_{i}", "transform_matrix": p.tolist()}
                           for i, p in enumerate(poses)]}, f)
-  for kind in ("llff", "colmap_bin", "colmap_txt", "nerfstudio"):
-    (root / kind).mkdir()
-  write_llff(root / "llff", poses, focal, images, names)
-  intrinsics = [(SIZE, SIZE, (focal, focal, SIZE / 2, SIZE / 2), n) for n in names]
-  for kind, writer in (("colmap_bin", write_colmap_bin), ("colmap_txt", write_colmap_txt)):
-    writer(root / kind / "sparse" / "0", poses, intrinsics)
-    write_images(root / kind / "images", names, images)
-  write_transforms(root / "nerfstudio", poses, SIZE, SIZE, focal, focal, SIZE / 2, SIZE / 2, names)
-  write_images(root / "nerfstudio" / "images", names, images)
+  write_capture_kinds(root, poses, focal, images, names, SIZE)
   reference = blender.load(str(root / "blender")).split("train")
   return {"root": root, "reference": reference, "poses": poses, "focal": focal, "names": names, "images": images}
 
