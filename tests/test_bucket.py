@@ -20,7 +20,7 @@ from nerfpod import archive as archives
 from nerfpod import checkpoints, scenes, storage
 from nerfpod.errors import UserError
 from nerfpod.scenes import procedural
-from test_captures import CAPTURE_KINDS as CAPTURES, write_capture_kinds, write_images
+from test_captures import CAPTURE_KINDS as CAPTURES, data_config as _config, write_capture_kinds, write_images
 
 SIZE = 16  # the loaders' scenes: the procedural scene's first frames at 16x16, images_2/ at 8x8
 
@@ -80,14 +80,6 @@ def local_scenes(tmp_path_factory):
 def bucket_scenes(emulator, local_scenes):
   """The same scenes uploaded: gs://BUCKET/scenes/<name>."""
   return {p.name: emulator.upload(p, f"scenes/{p.name}") for p in sorted(local_scenes.iterdir())}
-
-
-def _config(kind, path, **fields):
-  config = smoke_config().data
-  config.kind, config.path = kind, str(path)
-  for key, value in fields.items():
-    config[key] = value
-  return config
 
 
 def assert_same_scene(got, want):
