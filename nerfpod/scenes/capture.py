@@ -10,7 +10,6 @@ Pose normalisation (data.orient, data.center, data.scale) is one similarity comp
 the capture (train and held-out alike, as the original LLFF code does) and applied to all of them; the
 Scene records it (`Scene.transform`, capture -> scene) and training writes it to the workdir's scene.json.
 """
-import contextlib
 import dataclasses
 import os
 
@@ -74,10 +73,8 @@ def image_size(path: str, name: str, downscale: int = 1) -> tuple[int, int]:
   """(width, height) of an image file as read_image gives it (shrunk `downscale` times), from its header
   alone: nothing is decoded (of a URL's file, only its first block is fetched)."""
   try:
-    with contextlib.ExitStack() as files:
-      source = files.enter_context(storage.header_reader(path)) if storage.is_url(path) else path
-      with Image.open(source) as im:
-        w, h = im.size
+    with storage.header_reader(path) as f, Image.open(f) as im:
+      w, h = im.size
   except FileNotFoundError as e:
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame.") from e
   except OSError as e:
