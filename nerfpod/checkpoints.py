@@ -304,11 +304,25 @@ def damage_reason(error: BaseException) -> str:
   return " ".join(str(error).split())[:300] or type(error).__name__
 
 
+class _AbandonedReadTasks(logging.Filter):
+  """Drops asyncio's "Task exception was never retrieved" for orbax's reads (an abandoned read that failed
+  too, reported when its task is collected: a traceback per array)."""
+
+  def filter(self, record):
+    message = record.getMessage()
+    return not (message.startswith("Task exception was never retrieved") and f"{os.sep}orbax{os.sep}" in message)
+
+
 def quiet_abandoned_reads(hook):
   """`hook` (sys.unraisablehook), less the reports of the reads orbax abandons when a restore fails (a
   damaged step): orbax stops at the first failed read and closes its event loop with the other reads still
   under way, so each of those later reports "Event loop is closed" (from tensorstore's thread) or, at exit,
-  an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened."""
+  an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened.
+  Also quiets asyncio's log of those reads that failed in turn (a logging filter, installed once)."""
+  asyncio_log = logging.getLogger("asyncio")
+  if not any(isinstance(f, _AbandonedReadTasks) for f in asyncio_log.filters):
+    asyncio_log.addFilter(_AbandonedReadTasks())
+
   def quiet(unraisable):
     error, trace = unraisable.exc_value, unraisable.exc_traceback
     closed_loop = (isinstance(error, RuntimeError) and str(error) == "Event loop is closed" and trace is not None

@@ -79,8 +79,8 @@ def smoke_run(tmp_path_factory):
 
 
 # The longest test files, with their seconds in a whole run on the 2-core machine (docs/results.md): run first,
-# so that with `-n 2` (pytest-xdist, whole files per worker in this order: --dist loadgroup with a group per
-# file, --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order of
+# so that with `-n 2` (pytest-xdist: whole files per worker in this order, pytest_xdist_make_scheduler below,
+# --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order of
 # tests does not change what they check.
 LONGEST_FILES = {"test_multiprocess": 110, "test_aot": 110, "test_chaos": 90, "test_export": 65, "test_step": 60,
                  "test_resilience": 55, "test_wandb": 50, "test_bucket": 50, "test_prepare": 45, "test_view": 45,
@@ -94,6 +94,47 @@ SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view")
 
 def pytest_collection_modifyitems(config, items):
   items.sort(key=lambda item: -LONGEST_FILES.get(item.path.stem, 0))  # stable: within a file, as written
-  for item in items:  # with -n 2 (--dist=loadgroup): whole files per worker, the smoke run's users together
-    stem = item.path.stem
-    item.add_marker(pytest.mark.xdist_group("smoke_run" if stem in SMOKE_RUN_FILES else stem))
+
+
+def _work_unit(nodeid: str) -> str:
+  """What one worker runs whole: a test file (so that its module fixtures are built once), or the smoke run's
+  files together (so that the session's smoke run is trained once)."""
+  stem = nodeid.split("::")[0].rsplit("/", 1)[-1].removesuffix(".py")
+  return "smoke_run" if stem in SMOKE_RUN_FILES else stem
+
+
+def pytest_xdist_make_scheduler(config, log):
+  """With -n: whole work units (_work_unit) per worker, in collection order. (pytest-xdist's own loadgroup
+  marks no longer group anything with pytest 9.2, which keeps a test's id where xdist 3.8 no longer writes.)"""
+  from xdist.scheduler import LoadScopeScheduling
+
+  class ByWorkUnit(LoadScopeScheduling):
+    def _split_scope(self, nodeid):
+      return _work_unit(nodeid)
+
+  return ByWorkUnit(config, log)
+
+
+def _sigint_ignored() -> bool:
+  """Whether this process ignores SIGINT at the C level (what processes it starts inherit, whatever Python's
+  signal.getsignal says)."""
+  try:
+    with open("/proc/self/status") as f:
+      ignored = next((int(line.split()[1], 16) for line in f if line.startswith("SigIgn:")), 0)
+  except OSError:
+    return False
+  return bool(ignored & (1 << (2 - 1)))
+
+
+_SIGINT_IGNORED = [_sigint_ignored()]
+
+
+def pytest_runtest_teardown(item):
+  """Names a test after which this process ignores SIGINT (a C library's system() can leave it so): processes
+  started after it would ignore Ctrl-C."""
+  if _sigint_ignored() != _SIGINT_IGNORED[0]:
+    _SIGINT_IGNORED[0] = not _SIGINT_IGNORED[0]
+    import warnings
+    warnings.warn(f"SIGINT is {'now' if _SIGINT_IGNORED[0] else 'no longer'} ignored by this test process after "
+                  f"{item.nodeid}")
+

@@ -215,6 +215,26 @@ def _stall_at_step(stall: int) -> None:
   data.LocalRayBatch.map = map_or_stall
 
 
+def _cache_every_process() -> None:
+  """Lets every process of a test run write JAX's persistent compilation cache, not only process 0.
+
+  On a CPU each process's executables carry its process index, so each process has cache keys of its own;
+  JAX writes entries from process 0 only (against write contention on shared filesystems), so every other
+  process compiled every program in every run: about 10 s of a 2-process smoke run's 18, during which
+  process 0 waits for it. Here the disk is local and the keys differ per process: no contention. A cached
+  executable is the one compiling it would give, so runs compute the same bits either way."""
+  from jax._src import compilation_cache, compiler, config
+  original = compiler._cache_write
+
+  def write(cache_key, compile_time_secs, module_name, backend, executable, host_callbacks):
+    if (compiler.distributed.global_state.process_id in (None, 0) or host_callbacks
+        or compile_time_secs < config.persistent_cache_min_compile_time_secs.value):
+      return original(cache_key, compile_time_secs, module_name, backend, executable, host_callbacks)
+    compilation_cache.put_executable_and_time(cache_key, module_name, executable, backend, int(compile_time_secs))
+
+  compiler._cache_write = write
+
+
 def _stand_in(actions: str) -> None:
   """A stand-in for nerfpod.main in launcher tests (no JAX): prints what it was given, then does what
   `actions` (comma-separated, one per process) says for its process id: 'exit:N' or 'wait' (until SIGTERM,
@@ -243,6 +263,7 @@ if __name__ == "__main__":
     import compiles
     index = next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0")
     compiles.install(os.path.join(os.environ["NERFPOD_TEST_COMPILES"], f"compiles_process_{index}.jsonl"))
+  _cache_every_process()
   from nerfpod import main
   sys.argv[0] = "nerfpod.main"
   main.run()

@@ -222,3 +222,24 @@ def test_a_workdir_whose_checkpoints_cannot_be_listed_is_one_sentence(tmp_path, 
   with pytest.raises(UserError, match=r"could not list the checkpoints of .* \(503 Service Unavailable retry "
                                       r"later\); check the --workdir path"):
     checkpoints.latest_step(str(tmp_path))
+
+
+def test_abandoned_orbax_reads_are_quiet_and_other_reports_are_not(caplog):
+  """What a failed restore leaves behind (orbax's other reads, failing in turn) is not reported; the same
+  reports of anything else still are."""
+  import logging
+  import types
+  seen = []
+  hook = checkpoints.quiet_abandoned_reads(seen.append)
+  def coroutine_of(filename):
+    return types.SimpleNamespace(cr_code=types.SimpleNamespace(co_filename=filename))
+  orbax_file = f"{os.sep}site-packages{os.sep}orbax{os.sep}checkpoint{os.sep}serialization.py"
+  hook(types.SimpleNamespace(exc_value=None, exc_traceback=None, object=coroutine_of(orbax_file)))
+  mine = types.SimpleNamespace(exc_value=None, exc_traceback=None, object=coroutine_of("/home/me/mine.py"))
+  hook(mine)
+  assert seen == [mine]
+  with caplog.at_level(logging.ERROR, logger="asyncio"):
+    for where in (orbax_file, "/home/me/mine.py"):
+      logging.getLogger("asyncio").error(f"Task exception was never retrieved\nfuture: <Task finished "
+                                         f"coro=<async_deserialize() done, defined at {where}:394>>")
+  assert [r.getMessage().count("mine.py") for r in caplog.records] == [1]

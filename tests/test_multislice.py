@@ -1,6 +1,9 @@
 """Multi-slice meshes on simulated CPU slices: the (slice, data) mesh, the two-level gradient mean, and a run
 of 2 slices x 4 devices giving the very bits of 1 x 8 (docs/scale.md#multi-slice)."""
+import re
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.sharding import NamedSharding, PartitionSpec as P
@@ -88,6 +91,35 @@ def test_the_two_level_mean_gives_the_bits_of_the_one_level_mean(slices, per_sli
     while len(partial) > 1:
       partial = [partial[i] + partial[i + 1] for i in range(0, len(partial), 2)]
     np.testing.assert_array_equal(flat, partial[0] / np.float32(count))
+
+
+def test_a_tree_is_averaged_in_one_exchange_per_dtype_with_each_leafs_own_bits():
+  """The leaves of a tree (several shapes, two dtypes) are packed into one vector per dtype for the
+  exchanges: each leaf's mean is bit for bit its mean alone, and the program has one collective-permute per
+  butterfly round and dtype (3 rounds x 2 dtypes over 8 devices), not one per leaf."""
+  devices = jax.devices()[:8]
+  mesh = distributed.make_mesh(devices)
+  axes = distributed.batch_axes(mesh)
+  rng = np.random.default_rng(3)
+  def spread(*shape):
+    return (rng.normal(size=(8, *shape)) * 10.0 ** rng.integers(-6, 6, size=(8, *shape))).astype(np.float32)
+  tree = {"grid": spread(16, 2), "w": spread(3, 5), "b": spread(5), "scale": spread(),
+          "half": spread(7).astype(jnp.bfloat16)}
+  def on_mesh(local):
+    fn = jax.jit(jax.shard_map(local, mesh=mesh, in_specs=P(axes), out_specs=P()))
+    args = jax.tree.map(lambda v: jax.device_put(v, NamedSharding(mesh, P(axes))), tree)
+    return fn, args
+  fn, args = on_mesh(lambda t: jax.tree.map(lambda x: x[None], distributed.ordered_mean(
+      jax.tree.map(lambda x: x[0], t), mesh.axis_names, (8,))))
+  together = jax.device_get(fn(args))
+  hlo = fn.lower(args).compile().as_text()
+  assert len(re.findall(r"= \S+ collective-permute(-start)?\(", hlo)) == 3 * 2, hlo.count("collective-permute")
+  for name in tree:
+    one = jax.jit(jax.shard_map(lambda x: distributed.ordered_mean(x[0], mesh.axis_names, (8,))[None], mesh=mesh,
+                                in_specs=P(axes), out_specs=P()))
+    want = np.asarray(one(jax.device_put(tree[name], NamedSharding(mesh, P(axes)))))[0]
+    assert together[name][0].dtype == want.dtype
+    np.testing.assert_array_equal(together[name][0], want, err_msg=name)
 
 
 def _train(mesh, config, num_steps, ordered=True):
