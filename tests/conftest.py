@@ -114,27 +114,3 @@ def pytest_xdist_make_scheduler(config, log):
 
   return ByWorkUnit(config, log)
 
-
-def _sigint_ignored() -> bool:
-  """Whether this process ignores SIGINT at the C level (what processes it starts inherit, whatever Python's
-  signal.getsignal says)."""
-  try:
-    with open("/proc/self/status") as f:
-      ignored = next((int(line.split()[1], 16) for line in f if line.startswith("SigIgn:")), 0)
-  except OSError:
-    return False
-  return bool(ignored & (1 << (2 - 1)))
-
-
-_SIGINT_IGNORED = [_sigint_ignored()]
-
-
-def pytest_runtest_teardown(item):
-  """Names a test after which this process ignores SIGINT (a C library's system() can leave it so): processes
-  started after it would ignore Ctrl-C."""
-  if _sigint_ignored() != _SIGINT_IGNORED[0]:
-    _SIGINT_IGNORED[0] = not _SIGINT_IGNORED[0]
-    import warnings
-    warnings.warn(f"SIGINT is {'now' if _SIGINT_IGNORED[0] else 'no longer'} ignored by this test process after "
-                  f"{item.nodeid}")
-

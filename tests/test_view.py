@@ -402,9 +402,9 @@ def test_nerfpod_view_serves_the_page_and_stops_on_ctrl_c(trained_workdir):
     s.bind(("127.0.0.1", 0))
     port = s.getsockname()[1]
   before = sorted(p.name for p in (trained_workdir / "checkpoints").iterdir())
-  # The viewer starts as from a terminal, with SIGINT's default action, even where a library called earlier in
-  # this test process left SIGINT ignored at the C level (seen under the whole suite): an ignored signal stays
-  # ignored in a child, a caught one does not, so catch it here, as Python does by default.
+  # The viewer starts as from a terminal, with SIGINT's default action, also where the suite itself was started
+  # in the background of a non-interactive shell, which ignores SIGINT (the viewer then rightly ignores it
+  # too, as any program would: an ignored signal stays ignored in a child, a caught one does not).
   signal.signal(signal.SIGINT, signal.default_int_handler)
   proc = subprocess.Popen([sys.executable, "-m", "nerfpod.view", f"--workdir={trained_workdir}", f"--port={port}"],
                           cwd=REPO, env=environment(1), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
