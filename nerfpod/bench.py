@@ -13,7 +13,7 @@ the backend reports it).
 Quality mode trains the config from scratch and evaluates the held-out split every `--eval_every` steps,
 recording the wall time since the process started (evaluation pauses excluded; also the process's CPU time,
 less disturbed by other load) at which the mean PSNR first
-reaches 20, 25, 28 and 30 dB, and at its end which samples matter: how many samples per ray each field
+reaches 20, 25, 28 and 30 dB (and any --targets), the training's rays/s, and at its end which samples matter: how many samples per ray each field
 spends (proposal rounds apart) and the share of the NeRF field's samples that carry a non-negligible weight
 (> 1% of the ray's light) on the first held-out views. Results print as a JSON line (and go to --out if
 given).
@@ -35,6 +35,8 @@ _QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20
 _MAX_SECONDS = flags.DEFINE_float("max_seconds", 600.0, "Quality mode: stop after this much wall time.")
 _EVAL_EVERY = flags.DEFINE_integer("eval_every", 250, "Quality mode: steps between held-out evaluations.")
 _OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file.")
+_TARGETS = flags.DEFINE_list("targets", [], "Quality mode: more held-out PSNRs (dB) to time, beside 20, 25, 28 "
+                             "and 30, e.g. --targets=31,33.")
 THRESHOLDS = (20.0, 25.0, 28.0, 30.0)
 NEGLIGIBLE_WEIGHT = 0.01  # a sample below this share of its ray's light hardly changes the pixel
 
@@ -179,17 +181,25 @@ def weight_share(trainer, views: int = 2, chunk: int = 4096) -> dict:
           "samples_above_negligible_per_ray": per_ray * above / total}
 
 
-def time_to_quality(config, max_seconds: float, eval_every: int, started: float | None = None) -> dict:
+def _db(threshold: float) -> str:
+  return f"{threshold:g}db"  # 28.0 -> "28db", 25.5 -> "25.5db"
+
+
+def time_to_quality(config, max_seconds: float, eval_every: int, started: float | None = None,
+                    thresholds=THRESHOLDS) -> dict:
   """Trains from scratch, evaluating every `eval_every` steps; the wall time (and this process's CPU time,
-  which a loaded machine disturbs less) since start-up, evaluations excluded, at which each threshold is
-  first reached. `started`: the perf_counter() reading taken as start-up (default: when this module was
-  imported, as `nerfpod bench` does it; a caller that imported it long before passes its own)."""
+  which a loaded machine disturbs less) since start-up, evaluations excluded, at which each of `thresholds`
+  (held-out PSNR, dB) is first reached, and the training's rays/s (from the end of the first step, which
+  compiles, to the last). `started`: the perf_counter() reading taken as start-up (default: when this module
+  was imported, as `nerfpod bench` does it; a caller that imported it long before passes its own)."""
   import jax
+  thresholds = tuple(sorted(set(float(t) for t in thresholds)))
   start = _START if started is None else started
   trainer = _Trainer(config)
   paused = paused_cpu = 0.0  # time spent in the benchmark's own evaluations
   reached, reached_cpu, history = {}, {}, []
   previous = None
+  first_step_done = None  # elapsed (evaluations excluded) when step 1 was done
   for step in range(1, config.train.num_steps + 1):
     # As the training loop does: the next step is dispatched (and its batch loaded) while this one runs,
     # with at most one step in flight; the clock is read once the step is done.
@@ -198,23 +208,31 @@ def time_to_quality(config, max_seconds: float, eval_every: int, started: float 
       jax.block_until_ready(previous)
     previous = metrics
     elapsed = time.perf_counter() - start - paused
+    if step == 2:
+      first_step_done = elapsed  # step 1's result was waited for just above
     if step % eval_every == 0 or step == config.train.num_steps or elapsed > max_seconds:
       jax.block_until_ready(metrics)
       elapsed, cpu = time.perf_counter() - start - paused, time.process_time() - paused_cpu
       t, c = time.perf_counter(), time.process_time()
       psnr = trainer.heldout_psnr()
       paused, paused_cpu = paused + time.perf_counter() - t, paused_cpu + time.process_time() - c
+      last_elapsed = elapsed
       history.append({"step": step, "seconds": round(elapsed, 1), "cpu_seconds": round(cpu, 1),
                       "psnr": round(psnr, 2)})
       print(json.dumps(history[-1]), flush=True)
-      for threshold in THRESHOLDS:
+      for threshold in thresholds:
         if psnr >= threshold and threshold not in reached:
           reached[threshold], reached_cpu[threshold] = elapsed, cpu
-      if elapsed > max_seconds or all(t in reached for t in THRESHOLDS):
+      if elapsed > max_seconds or all(t in reached for t in thresholds):
         break
-  return {f"seconds_to_{int(t)}db": reached.get(t) for t in THRESHOLDS} | {
-      f"cpu_seconds_to_{int(t)}db": reached_cpu.get(t) for t in THRESHOLDS} | {
-      "final_psnr": history[-1]["psnr"], "final_step": history[-1]["step"], "history": history,
+  last = history[-1]
+  trained_rays = (last["step"] - 1) * config.train.batch_size
+  rays_per_s = (trained_rays / (last_elapsed - first_step_done)
+                if first_step_done is not None and last_elapsed > first_step_done else None)
+  return {f"seconds_to_{_db(t)}": reached.get(t) for t in thresholds} | {
+      f"cpu_seconds_to_{_db(t)}": reached_cpu.get(t) for t in thresholds} | {
+      "rays_per_s": rays_per_s,
+      "final_psnr": last["psnr"], "final_step": last["step"], "history": history,
       "samples_per_ray": samples_per_ray(config), "weights": weight_share(trainer), **_peak_memory()}
 
 
@@ -246,7 +264,14 @@ def main(argv):
                         "device_kind": jax.devices()[0].device_kind},
             "compiler_options": compilation.compiler_options(config)}
   if _QUALITY.value:
-    result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value)
+    try:
+      targets = [float(t) for t in _TARGETS.value]
+    except ValueError:
+      print(f"nerfpod bench: error: --targets={','.join(_TARGETS.value)} is not a list of PSNRs in dB; give e.g. "
+            f"--targets=31,33.", file=sys.stderr, flush=True)
+      sys.exit(2)
+    result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value,
+                                        thresholds=THRESHOLDS + tuple(targets))
   else:
     result["throughput"] = throughput(config, _STEPS.value)
   line = json.dumps(result)

@@ -62,9 +62,14 @@ def test_mixed_precision_is_also_measured_against_the_bfloat16_peak():
 def test_quality_mode_reports_thresholds_and_the_samples_that_matter():
   config = smoke_config(**{"render.proposal_samples": (16,), "render.num_samples": 8, "train.num_steps": 4})
   # (The clock starts now: this module may have been imported long before the test runs.)
-  result = benchmark.time_to_quality(config, max_seconds=600, eval_every=2, started=time.perf_counter())
+  result = benchmark.time_to_quality(config, max_seconds=600, eval_every=2, started=time.perf_counter(),
+                                     thresholds=benchmark.THRESHOLDS + (31.5, 20))
   assert set(result) >= {"seconds_to_20db", "seconds_to_25db", "seconds_to_28db", "seconds_to_30db",
-                         "cpu_seconds_to_30db"}
+                         "seconds_to_31.5db", "cpu_seconds_to_30db", "cpu_seconds_to_31.5db"}
+  assert len([k for k in result if k.startswith("seconds_to_")]) == 5  # 20 once
+  # Rays/s over steps 2..4, timed without the first step's compilation.
+  seconds = result["history"][-1]["seconds"]
+  assert 3 * config.train.batch_size / seconds < result["rays_per_s"] < 1e8
   assert [h["step"] for h in result["history"]] == [2, 4]
   assert result["samples_per_ray"] == {"field": 8, "proposal": 16}
   weights = result["weights"]
