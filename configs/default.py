@@ -82,6 +82,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.lr_final = 1e-3         # learning rate at the last step (log-linear decay in between)
   c.train.lr_warmup_steps = 50    # linear warm-up from 0, steps
   c.train.adam_eps = 1e-15        # Adam's epsilon (1e-15 for hash grids, 1e-8 for MLPs)
+  c.train.adam_b1 = 0.9           # Adam's decay of the gradients' mean
+  c.train.adam_b2 = 0.999         # ... and of their square (Instant-NGP: 0.99, which follows a hash grid's
+                                  # sparse gradients faster)
   c.train.random_background = True  # data with alpha: composite training rays on random colours
   c.train.grad_clip = 0.0         # clip the global gradient norm to this; 0: no clipping
   c.train.interlevel_weight = 1.0  # proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)

@@ -65,7 +65,7 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
   train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
   train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser)."""
   tc = train_config
-  adam = optax.adam(learning_rate_schedule(tc), eps=tc.adam_eps)
+  adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
   if tc.pose_refine:
     pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
                        weight_decay=tc.pose_weight_decay)

@@ -41,6 +41,7 @@ ADDED_FIELDS = {
     "mesh.slices": 0,                                                      # the slices the devices report
     "model.appearance_dim": 0, "train.pose_refine": False,                 # no per-frame appearance or poses
     "train.pose_lr_init": 1e-4, "train.pose_lr_final": 1e-5, "train.pose_weight_decay": 0.0,  # unused then
+    "train.adam_b1": 0.9, "train.adam_b2": 0.999,                          # optax's Adam defaults
 }
 
 
@@ -203,6 +204,8 @@ FIELDS: dict[str, Field] = {
     "train.lr_final": number(above=0.0, example=5e-5),
     "train.lr_warmup_steps": integer(0),
     "train.adam_eps": number(above=0.0, example=1e-15),
+    "train.adam_b1": number(0.0, 0.9999, example=0.9),
+    "train.adam_b2": number(0.0, 0.9999, example=0.99),
     "train.random_background": boolean(),
     "train.grad_clip": number(0.0),
     "train.interlevel_weight": number(0.0, example=1.0),

@@ -26,6 +26,19 @@ def test_learning_rate_warms_up_linearly_then_decays_log_linearly_to_its_final_v
   assert float(no_warmup(0)) == pytest.approx(tc.lr_init)
 
 
+def test_adams_decays_are_the_configs():
+  """train.adam_b1 and train.adam_b2 reach Adam: after one step from zero, its moments are (1 - b1) g and
+  (1 - b2) g^2."""
+  config = smoke_config(**{"train.adam_b1": 0.8, "train.adam_b2": 0.99})
+  optimizer = components.make_optimizer(config.train)
+  params = {"w": jnp.zeros(3)}
+  grads = {"w": jnp.array([1.0, -2.0, 0.5])}
+  _, state = optimizer.update(grads, optimizer.init(params), params)
+  adam = next(s for s in jax.tree.leaves(state, is_leaf=lambda x: hasattr(x, "nu")) if hasattr(s, "nu"))
+  np.testing.assert_allclose(adam.mu["w"], 0.2 * grads["w"], rtol=1e-6)
+  np.testing.assert_allclose(adam.nu["w"], 0.01 * grads["w"] ** 2, rtol=1e-6)
+
+
 def test_gradient_clipping_scales_the_global_norm_to_the_limit_before_adam():
   grads = {"a": jnp.array([3.0, 0.0]), "b": jnp.array([[4.0]])}  # global norm 5
   # A huge epsilon makes Adam's first step linear in the gradient, -lr * g / (|g| + eps) per entry (its
