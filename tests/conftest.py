@@ -103,6 +103,7 @@ def _work_unit(nodeid: str) -> str:
   return "smoke_run" if stem in SMOKE_RUN_FILES else stem
 
 
+@pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook: without the plugin, never called
 def pytest_xdist_make_scheduler(config, log):
   """With -n: whole work units (_work_unit) per worker, in collection order. (pytest-xdist's own loadgroup
   marks no longer group anything with pytest 9.2, which keeps a test's id where xdist 3.8 no longer writes.)"""
