@@ -35,7 +35,6 @@ Viewer cameras are viser's (OpenCV: looking down +z, +y down); nerfpod's poses a
 import argparse
 import dataclasses
 import os
-import signal
 import socket
 import sys
 import threading
@@ -481,9 +480,6 @@ def run(argv=None):
   sentence and exit code 2."""
   started = time.perf_counter()
   args = _parse(sys.argv[1:] if argv is None else argv)
-  # Ctrl-C stops the viewer even where whoever started it had SIGINT blocked (a mask is inherited across exec,
-  # and every thread started below inherits this thread's).
-  signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
   logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
   sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
   try:
@@ -495,11 +491,8 @@ def run(argv=None):
   print(f"nerfpod: view: step {viewer.step} of {args.workdir} at {viewer.url} (ready in "
         f"{time.perf_counter() - started:.1f} s; Ctrl-C stops)", flush=True)
   try:
-    # Short sleeps, not one long one: Python runs a signal's handler in the main thread, but the kernel may
-    # hand the signal to any of the process's threads (JAX's, the server's), and then a long sleep in the
-    # main thread is not interrupted: Ctrl-C would wait for the sleep's end.
     while True:
-      time.sleep(0.5)
+      time.sleep(3600)
   except KeyboardInterrupt:
     # Stop serving (for at most 10 s), then leave at once: the viewer writes nothing, so skipping the
     # interpreter's clean-up of JAX's and the server's threads loses nothing; that clean-up can take long

@@ -78,14 +78,15 @@ def smoke_run(tmp_path_factory):
   return types.SimpleNamespace(workdir=workdir, losses=losses, metrics=metrics)
 
 
-# The longest test files, with their seconds in a whole run on the 2-core machine (docs/results.md): run first,
-# so that with `-n 2` (pytest-xdist: whole files per worker in this order, pytest_xdist_make_scheduler below,
-# --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order of
-# tests does not change what they check.
-LONGEST_FILES = {"test_multiprocess": 110, "test_aot": 110, "test_chaos": 90, "test_export": 65, "test_step": 60,
-                 "test_resilience": 55, "test_wandb": 50, "test_bucket": 50, "test_prepare": 45, "test_view": 45,
-                 "test_pod_sweep": 35, "test_workdir_lock": 35, "test_benchmark": 35, "test_real_configs": 25,
-                 "test_captures": 25, "test_layout": 20, "test_multislice": 20, "test_whole_slice": 18}
+# The longest test files, with their seconds in a whole run on the 2-core machine (2026-11-25, commit 8c2adbc,
+# `--durations=0` summed per file; docs/results.md): run first, so that with `-n 2` (pytest-xdist: whole files
+# per worker in this order, pytest_xdist_make_scheduler below, --no-loadscope-reorder) the two workers end
+# together instead of one finishing a long file alone. The order of tests does not change what they check.
+LONGEST_FILES = {"test_multiprocess": 195, "test_step": 140, "test_export": 124, "test_aot": 124, "test_chaos": 85,
+                 "test_view": 84, "test_benchmark": 84, "test_per_frame": 83, "test_wandb": 70, "test_pod_sweep": 59,
+                 "test_resilience": 56, "test_prepare": 55, "test_shards": 49, "test_model": 44,
+                 "test_multislice": 41, "test_real_configs": 36, "test_workdir_lock": 34, "test_bucket": 34,
+                 "test_whole_slice": 33, "test_layout": 28}
 
 
 # The files that read the session's smoke run (smoke_run above) go to one worker, which trains it once.

@@ -105,19 +105,15 @@ def test_a_tree_is_averaged_in_one_exchange_per_dtype_with_each_leafs_own_bits()
     return (rng.normal(size=(8, *shape)) * 10.0 ** rng.integers(-6, 6, size=(8, *shape))).astype(np.float32)
   tree = {"grid": spread(16, 2), "w": spread(3, 5), "b": spread(5), "scale": spread(),
           "half": spread(7).astype(jnp.bfloat16)}
-  def on_mesh(local):
-    fn = jax.jit(jax.shard_map(local, mesh=mesh, in_specs=P(axes), out_specs=P()))
-    args = jax.tree.map(lambda v: jax.device_put(v, NamedSharding(mesh, P(axes))), tree)
-    return fn, args
-  fn, args = on_mesh(lambda t: jax.tree.map(lambda x: x[None], distributed.ordered_mean(
-      jax.tree.map(lambda x: x[0], t), mesh.axis_names, (8,))))
-  together = jax.device_get(fn(args))
-  hlo = fn.lower(args).compile().as_text()
+  # The mean of a tree (or of one array) over the 8 devices, each device holding row i of every leaf.
+  mean = jax.jit(jax.shard_map(lambda t: jax.tree.map(lambda x: x[None], distributed.ordered_mean(
+      jax.tree.map(lambda x: x[0], t), mesh.axis_names, (8,))), mesh=mesh, in_specs=P(axes), out_specs=P()))
+  on_devices = jax.tree.map(lambda v: jax.device_put(v, NamedSharding(mesh, P(axes))), tree)
+  together = jax.device_get(mean(on_devices))
+  hlo = mean.lower(on_devices).compile().as_text()
   assert len(re.findall(r"= \S+ collective-permute(-start)?\(", hlo)) == 3 * 2, hlo.count("collective-permute")
   for name in tree:
-    one = jax.jit(jax.shard_map(lambda x: distributed.ordered_mean(x[0], mesh.axis_names, (8,))[None], mesh=mesh,
-                                in_specs=P(axes), out_specs=P()))
-    want = np.asarray(one(jax.device_put(tree[name], NamedSharding(mesh, P(axes)))))[0]
+    want = np.asarray(mean(on_devices[name]))[0]
     assert together[name][0].dtype == want.dtype
     np.testing.assert_array_equal(together[name][0], want, err_msg=name)
 
