@@ -82,11 +82,11 @@ def smoke_run(tmp_path_factory):
 # `--durations=0` summed per file; docs/results.md): run first, so that with `-n 2` (pytest-xdist: whole files
 # per worker in this order, pytest_xdist_make_scheduler below, --no-loadscope-reorder) the two workers end
 # together instead of one finishing a long file alone. The order of tests does not change what they check.
-LONGEST_FILES = {"test_multiprocess": 195, "test_step": 140, "test_export": 124, "test_aot": 124, "test_chaos": 85,
+LONGEST_FILES = {"test_multiprocess": 195, "test_step": 105, "test_export": 124, "test_aot": 124, "test_chaos": 85,
                  "test_view": 84, "test_benchmark": 84, "test_per_frame": 83, "test_wandb": 70, "test_pod_sweep": 59,
                  "test_resilience": 56, "test_prepare": 55, "test_shards": 49, "test_model": 44,
                  "test_multislice": 41, "test_real_configs": 36, "test_workdir_lock": 34, "test_bucket": 34,
-                 "test_whole_slice": 33, "test_layout": 28}
+                 "test_whole_slice": 33}
 
 
 # The files that read the session's smoke run (smoke_run above) go to one worker, which trains it once.

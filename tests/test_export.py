@@ -341,7 +341,8 @@ def test_mesh_and_point_cloud_lie_on_the_procedural_scenes_true_surfaces(tmp_pat
   env = dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="1")
   done = subprocess.run([sys.executable, "-m", "nerfpod.main", f"--config={REPO / 'configs' / 'default.py'}",
                          f"--workdir={tmp_path / 'run'}", "--config.train.num_steps=400", "--config.eval.max_views=1",
-                         "--config.orbit.render_after_training=false", "--config.train.image_every=0"],
+                         "--config.eval.lpips_net=none", "--config.orbit.render_after_training=false",
+                         "--config.train.image_every=0"],
                         capture_output=True, text=True, timeout=900, env=env, cwd=REPO)
   assert done.returncode == 0, done.stderr[-3000:]
   cloud, mesh = tmp_path / "cloud.ply", tmp_path / "mesh.ply"

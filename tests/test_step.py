@@ -68,16 +68,6 @@ def test_microbatches_accumulate_to_the_same_step():
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_4, params_1)
 
 
-@pytest.mark.slow  # two compiles; in the quick loop, test_golden pins the smoke job's Adam trajectory on 8 devices
-def test_adam_step_on_eight_devices_follows_the_same_loss_trajectory():
-  config = smoke_config(**{"train.batch_size": 128})
-  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  optimizer = components.make_optimizer(config.train)
-  losses_1, _ = _run_steps(one, config, 4, optimizer)
-  losses_8, _ = _run_steps(distributed.make_mesh(), config, 4, optimizer)
-  np.testing.assert_allclose(losses_8, losses_1, rtol=1e-4)
-
-
 def _with_biases(params, density_bias, rgb_bias):
   """The hash-grid field's params with its density and colour output biases set (pushing sigma and rgb)."""
   def set_bias(path, p):
@@ -118,12 +108,11 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
   assert loss(white_walls, True) > 0.1    # on random colours they do not: E[(1 - u)^2] = 1/3
 
 
-@pytest.mark.slow  # four compiles per field
-@pytest.mark.parametrize("field", ["mlp", "hashgrid"])
-def test_cpu_compiler_options_change_kernels_not_results(field):
-  """nerfpod's CPU default (YNNPACK off) reaches the compiled step and leaves its results unchanged."""
-  config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
-                           "model.mlp.skips": (1,), "train.batch_size": 128})
+@pytest.mark.slow  # four compiles
+def test_cpu_compiler_options_change_kernels_not_results():
+  """nerfpod's CPU default (YNNPACK off) reaches the compiled step of the default field (the hash grid, whose
+  small MLPs are the dots YNNPACK would take) and leaves its results unchanged."""
+  config = smoke_config(**{"train.batch_size": 128})
   options = compilation.compiler_options(config)
   assert options == dict(compilation.CPU_WITHOUT_YNNPACK)
   config.compile.cpu_ynnpack = True
