@@ -21,16 +21,9 @@ def get_config(arg: str | None = None):
   c.data.downscale = 8            # images_8/, the original's default factor
   c.data.space = "forward_facing"
   c.render.space = "ndc"          # near/far default to the NDC cube's 0 and 1
-  c.render.proposal_samples = (64,)  # one proposal round of 64 intervals in NDC, then 32 samples for the
-  c.render.num_samples = 32       # field: 27.26 dB on horns against 24.17 dB with 48 stratified samples
-  c.model.proposal.num_levels, c.model.proposal.log2_table_size = 4, 12  # as tiny_fast: more rays/s
-  # The default's eight levels and 32-unit MLPs, 2^17 rows (2^19 made each step's dense Adam update over the
-  # table dear), 16,000 steps of 512 rays with Adam's b2 = 0.99 (Instant-NGP's): the whole job in 18 minutes
-  # on a 2-core CPU (docs/results.md).
-  c.model.hashgrid.log2_table_size = 17
+  # The default's eight levels and 32-unit MLPs, proposal sampling in NDC and 16,000 steps of 512 rays
+  # (for_real_capture): the whole job in 18 minutes on a 2-core CPU (docs/results.md).
   c.train.num_steps = 16_000
-  c.train.batch_size = 512
-  c.train.adam_b2 = 0.99
   c.model.appearance_dim = 0      # per-frame appearance codes and pose refinement: off (not measured on
   c.train.pose_refine = False     # forward-facing captures; on 360 ones they cost PSNR: docs/results.md)
   c.orbit.path = "spiral"         # the original's: two turns, 120 frames, looking at the focus depth
