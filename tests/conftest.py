@@ -79,9 +79,10 @@ def smoke_run(tmp_path_factory):
 
 
 # The longest test files, with their seconds in a whole run on the 2-core machine (2026-11-25, commit 8c2adbc,
-# `--durations=0` summed per file; docs/results.md): run first, so that with `-n 2` (pytest-xdist: whole files
-# per worker in this order, pytest_xdist_make_scheduler below, --no-loadscope-reorder) the two workers end
-# together instead of one finishing a long file alone. The order of tests does not change what they check.
+# `--durations=0` summed per file, less the tests removed since; docs/results.md): run first, so that with
+# `-n 2` (pytest-xdist: whole files per worker in this order, pytest_xdist_make_scheduler below,
+# --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order
+# of tests does not change what they check.
 LONGEST_FILES = {"test_multiprocess": 195, "test_step": 105, "test_export": 124, "test_aot": 124, "test_chaos": 85,
                  "test_view": 84, "test_benchmark": 84, "test_per_frame": 83, "test_wandb": 70, "test_pod_sweep": 59,
                  "test_resilience": 56, "test_prepare": 55, "test_shards": 49, "test_model": 44,
