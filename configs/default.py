@@ -89,6 +89,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.train.grad_clip = 0.0         # clip the global gradient norm to this; 0: no clipping
   c.train.interlevel_weight = 1.0  # proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)
   c.train.distortion_weight = 0.0  # proposal sampling: weight of the distortion loss (eq. 15); 0: off
+  c.train.near_gradient_distance = 0.0  # > 0: scale the field's gradients by min(1, (distance from the ray's
+                                  # origin / this)^2), world units: fewer floaters in front of the cameras; 0: off
   c.train.pose_refine = False     # learn an SE(3) correction of each training frame's pose (nerfacto's camera
                                   # optimiser); held-out frames keep their given poses
   c.train.pose_lr_init = 1e-4     # the corrections' own learning rate at the start (after warm-up); 1e-3

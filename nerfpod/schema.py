@@ -42,6 +42,7 @@ ADDED_FIELDS = {
     "model.appearance_dim": 0, "train.pose_refine": False,                 # no per-frame appearance or poses
     "train.pose_lr_init": 1e-4, "train.pose_lr_final": 1e-5, "train.pose_weight_decay": 0.0,  # unused then
     "train.adam_b1": 0.9, "train.adam_b2": 0.999,                          # optax's Adam defaults
+    "train.near_gradient_distance": 0.0,                                   # gradients unscaled
 }
 
 
@@ -210,6 +211,7 @@ FIELDS: dict[str, Field] = {
     "train.grad_clip": number(0.0),
     "train.interlevel_weight": number(0.0, example=1.0),
     "train.distortion_weight": number(0.0, example=0.002),
+    "train.near_gradient_distance": number(0.0, example=1.0),
     "train.pose_refine": boolean(),
     "train.pose_lr_init": number(above=0.0, example=1e-3),
     "train.pose_lr_final": number(above=0.0, example=1e-4),
@@ -297,6 +299,10 @@ def _rules(c: dict) -> list[str]:
     out.append(f"render.spacing={c['render.spacing']} cannot be used with render.space=ndc: NDC rays run "
                f"from 0 at the near plane and are already even in inverse depth, so use "
                f"--config.render.spacing=linear.")
+  if c["render.space"] == "ndc" and c["train.near_gradient_distance"] > 0:
+    out.append(f"train.near_gradient_distance={c['train.near_gradient_distance']:g} cannot be used with "
+               f"render.space=ndc, whose ray parameter is no distance from the camera: use "
+               f"--config.train.near_gradient_distance=0.")
   if c["render.spacing"] == "inverse" and c["render.near"] == 0:
     out.append("render.near=0 cannot be used with render.spacing=inverse, which is even in 1 / distance: "
                "give a positive near bound (e.g. --config.render.near=0.2).")

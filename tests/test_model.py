@@ -163,3 +163,33 @@ def test_photometric_loss_reaches_only_the_nerf_and_interlevel_loss_only_the_pro
   grads = jax.jit(jax.grad(interlevel))(params)["params"]
   assert not nonzero(grads["coarse"])
   assert nonzero(grads["proposal_0"]) and nonzero(grads["proposal_1"])
+
+
+def test_near_gradient_scaling_leaves_outputs_and_scales_their_gradients_by_squared_distance():
+  rng = np.random.default_rng(0)
+  rgb, sigma = jnp.asarray(rng.uniform(size=(4, 5, 3)), jnp.float32), jnp.asarray(rng.uniform(size=(4, 5)))
+  t = jnp.asarray(np.sort(rng.uniform(0.1, 3.0, size=(4, 5)), -1), jnp.float32)
+  directions = jnp.asarray(rng.normal(size=(4, 3)), jnp.float32)  # not unit: the distance is t |d|
+  (out_rgb, out_sigma), vjp = jax.vjp(lambda a, b: nerf_model.near_gradients(a, b, t, directions, 2.0), rgb, sigma)
+  np.testing.assert_array_equal(out_rgb, rgb)
+  np.testing.assert_array_equal(out_sigma, sigma)
+  grad_rgb, grad_sigma = vjp((jnp.ones_like(rgb), jnp.ones_like(sigma)))
+  want = np.minimum(1.0, (np.asarray(t) * np.linalg.norm(directions, axis=-1, keepdims=True) / 2.0) ** 2)
+  assert 0.0 < want.min() < 0.1 and want.max() == 1.0
+  np.testing.assert_allclose(grad_sigma, want, rtol=1e-6)
+  np.testing.assert_allclose(grad_rgb, np.broadcast_to(want[..., None], rgb.shape), rtol=1e-6)
+  assert nerf_model.near_gradients(rgb, sigma, t, directions, 0.0) == (rgb, sigma)  # 0: off
+
+
+def test_near_gradient_scaling_renders_the_same_and_only_the_nerf_fields_gradients_change():
+  model, params, origins, directions = _proposal_model()
+  scaled = model.clone(near_gradient_distance=8.0)  # every sample (2 to 6 from its origin) is scaled
+  uniforms = _uniforms(model)
+  outs = [_apply(m, params, origins, directions, 2.0, 6.0, jnp.ones(3), *uniforms)[-1] for m in (model, scaled)]
+  for key in ("rgb", "depth", "acc", "weights"):
+    np.testing.assert_array_equal(outs[0][key], outs[1][key])
+  grads = [jax.jit(jax.grad(lambda p, m=m: jnp.sum(m.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3),
+                                                           *uniforms)[-1]["rgb"])))(params)["params"]
+           for m in (model, scaled)]
+  plain, near = (np.concatenate([np.ravel(g) for g in jax.tree.leaves(g["coarse"])]) for g in grads)
+  assert np.abs(near).sum() < 0.6 * np.abs(plain).sum()  # scaled by (t / 8)^2 <= 0.56

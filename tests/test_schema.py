@@ -65,6 +65,7 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
      "model.hashgrid.max_resolution=16 must be at least model.hashgrid.base_resolution=32"),
     ({"render.space": "ndc", "render.spacing": "inverse"}, "render.spacing=inverse cannot be used with render"),
     ({"render.spacing": "inverse", "render.near": 0.0, "render.far": 10.0}, "render.near=0 cannot be used"),
+    ({"render.space": "ndc", "train.near_gradient_distance": 1.0}, "train.near_gradient_distance=1 cannot be used"),
     ({"render.space": "contract"}, "model.hashgrid.bound=1.5 does not cover the contracted space"),
     ({"orbit.path": "file"}, "orbit.path=file renders the cameras of a camera_path.json, but orbit.path_file"),
 ])

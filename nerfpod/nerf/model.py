@@ -51,6 +51,7 @@ class NeRF(nn.Module):
   proposal_samples: tuple = ()
   num_frames: int = 0        # training frames: rows of the appearance codes and pose corrections
   pose_refine: bool = False  # learn a pose correction per training frame
+  near_gradient_distance: float = 0.0  # > 0: the field's gradients scaled by min(1, (distance / this)^2)
 
   def sample_counts(self) -> tuple:
     """How many uniform numbers per ray each sampling round takes, in the order __call__ takes them."""
@@ -63,8 +64,8 @@ class NeRF(nn.Module):
     points = self._points(origins, directions, t_RxS)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
-    rgb = rgb.reshape(points.shape)
-    sigma = sigma.reshape(points.shape[:-1])
+    rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(points.shape[:-1]), t_RxS,
+                                 directions, self.near_gradient_distance)
     out = compositing.composite(rgb, sigma, t_RxS, directions, last_delta=self.last_delta,
                                 background=background)
     out["t"] = t_RxS
@@ -177,10 +178,26 @@ class NeRF(nn.Module):
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
-    out = compositing.composite_intervals(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_edges,
-                                          directions, background=background)
+    rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
+                                self.near_gradient_distance)
+    out = compositing.composite_intervals(rgb, sigma, t_edges, directions, background=background)
     out.update(t=t_mids, s_edges=s_edges, proposals=proposals)
     return self._in_world_units(out, t_mids)
+
+
+def near_gradients(rgb_RxSx3, sigma_RxS, t_RxS, directions_Rx3, near_distance: float):
+  """The field's outputs, unchanged, with their gradients scaled by min(1, (d / near_distance)^2) at
+  distance d = t |direction| from the ray's origin (0: unscaled). "Floaters No More" (Philip and Deschaintre
+  2023), nerfacto's gradient scaling: space right in front of a training camera is sampled densely by that
+  camera alone, and its gradients grew floaters there that other views then look through."""
+  if not near_distance:
+    return rgb_RxSx3, sigma_RxS
+  distance = t_RxS * jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
+  scale = jax.lax.stop_gradient(jnp.minimum(1.0, jnp.square(distance / near_distance)))
+
+  def scaled(x, s):  # x itself (x s - x s is exactly 0), whose gradient is s times x's
+    return jax.lax.stop_gradient(x) + (x * s - jax.lax.stop_gradient(x * s))
+  return scaled(rgb_RxSx3, scale[..., None]), scaled(sigma_RxS, scale)
 
 
 def _per_point(codes_RxA, sample_shape) -> tuple:
@@ -220,4 +237,5 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
               proposal_samples=tuple(render.proposal_samples),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
               grid_matmul_max_rows=grid_matmul_max_rows(config, backend), num_frames=int(num_frames),
-              pose_refine=bool(config.train.pose_refine))
+              pose_refine=bool(config.train.pose_refine),
+              near_gradient_distance=float(config.train.near_gradient_distance))
