@@ -6,6 +6,11 @@ import tempfile
 
 import jax
 
+import procs  # (imports no JAX)
+
+# The test processes' XLA flags (procs.TEST_XLA_FLAGS: the same bits, compiled in less time), set before JAX
+# starts its backend, which reads them; XLA_FLAGS of the caller's own are replaced, as in every test process.
+os.environ["XLA_FLAGS"] = procs.TEST_XLA_FLAGS
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_platforms", "cpu")  # CPU only, also where libtpu (the `tpu` extra) is installed
 
