@@ -193,11 +193,19 @@ def near_gradients(rgb_RxSx3, sigma_RxS, t_RxS, directions_Rx3, near_distance: f
   if not near_distance:
     return rgb_RxSx3, sigma_RxS
   distance = t_RxS * jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
-  scale = jax.lax.stop_gradient(jnp.minimum(1.0, jnp.square(distance / near_distance)))
+  scale = jnp.minimum(1.0, jnp.square(distance / near_distance))
+  return _scale_gradient(rgb_RxSx3, scale[..., None]), _scale_gradient(sigma_RxS, scale)
 
-  def scaled(x, s):  # x itself (x s - x s is exactly 0), whose gradient is s times x's
-    return jax.lax.stop_gradient(x) + (x * s - jax.lax.stop_gradient(x * s))
-  return scaled(rgb_RxSx3, scale[..., None]), scaled(sigma_RxS, scale)
+
+@jax.custom_vjp
+def _scale_gradient(x, scale):
+  """x itself (no work where nothing is differentiated, and an infinite density stays one), whose
+  gradient is `scale` times x's; none flows to `scale`."""
+  return x
+
+
+_scale_gradient.defvjp(lambda x, scale: (x, scale),
+                       lambda scale, g: (g * scale, jnp.zeros_like(scale)))
 
 
 def _per_point(codes_RxA, sample_shape) -> tuple:
