@@ -61,6 +61,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.render = ml_collections.ConfigDict()
   c.render.num_samples = 16       # samples per ray of the NeRF field (stratified ones where no proposals)
   c.render.num_importance = 0     # extra importance samples per ray for a fine network; 0: no fine network
+  c.render.eval_samples = 0       # render.num_samples of every rendering that trains nothing (evaluation,
+                                  # previews, orbits, the viewer, exports): more than in training gives a finer
+                                  # quadrature of the same field (docs/training.md); 0: render.num_samples
   c.render.proposal_samples = (32,)  # intervals per ray of each proposal round, e.g. (64, 32): the NeRF field
                                   # then gets render.num_samples intervals drawn from the last; (): no proposals,
                                   # render.num_samples stratified samples (docs/training.md, Speed settings)

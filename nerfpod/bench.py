@@ -166,8 +166,8 @@ def weight_share(trainer, views: int = 2, chunk: int = 4096) -> dict:
   from nerfpod.nerf import cameras
   comps = trainer.comps
   split = comps.scene.split(trainer.config.eval.split)
-  apply = jax.jit(lambda p, o, d: comps.model.apply(p, o, d, comps.near, comps.far,
-                                                    jnp.asarray(comps.scene.background))[-1]["weights"])
+  apply = jax.jit(lambda p, o, d: comps.render_model.apply(p, o, d, comps.near, comps.far,
+                                                           jnp.asarray(comps.scene.background))[-1]["weights"])
   above = total = 0
   for index in range(min(views, len(split))):
     origins, directions = cameras.image_rays(split.poses[index], split.intrinsics, trainer.config.data.pixel_center)

@@ -141,9 +141,16 @@ class Program:
   batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over every mesh axis
   compiler_options: dict    # XLA options of the step and the renderer (compilation.compiler_options)
 
+  @property
+  def render_model(self) -> nerf_model.NeRF:
+    """The model of every rendering that trains nothing: render.eval_samples field samples per ray where
+    set (the same parameters: only the quadrature is finer), else the training model itself."""
+    return eval_model(self.model, self.config)
+
   def make_renderer(self, mesh: Mesh | None = None):
-    """(params, origins, directions) -> rgb/depth/acc/disparity, compiled on `mesh` (default the program's)."""
-    return render.make_renderer(self.model, self.mesh if mesh is None else mesh, self.near, self.far,
+    """(params, origins, directions) -> rgb/depth/acc/disparity of `render_model`, compiled on `mesh`
+    (default the program's)."""
+    return render.make_renderer(self.render_model, self.mesh if mesh is None else mesh, self.near, self.far,
                                 self.background, self.compiler_options)
 
 
@@ -164,6 +171,12 @@ class Components(Program):
                                distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
                                max(tc.num_steps, 1), self.config.data.shards, uses_frames(self.config))
     return data.iterator(dataset, start_step)
+
+
+def eval_model(model: nerf_model.NeRF, config) -> nerf_model.NeRF:
+  """`model` with config.render.eval_samples samples per ray where that is set (> 0), else `model`."""
+  samples = config.render.eval_samples
+  return model.clone(num_samples=samples) if samples and samples != model.num_samples else model
 
 
 def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:

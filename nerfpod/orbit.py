@@ -36,7 +36,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
 from nerfpod import archive as archives
-from nerfpod import camera_path, distributed, video
+from nerfpod import camera_path, distributed, render, video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing, paths
 
@@ -146,12 +146,10 @@ def open_for_render(path: str, attributes: dict) -> archives.Archive:
 
 
 def chunk_rays(chunk: int, num_rays: int, mesh: Mesh) -> int:
-  """Rays per call that each process feeds for one frame of `num_rays` rays: `chunk` (orbit.chunk) rounded
-  down to a multiple of this process's devices, and no more than the frame needs, as render.render_rays
-  picks them on one host."""
-  local = _local_device_count(mesh)
-  per_call = max(local, chunk - chunk % local)
-  return min(per_call, -(-num_rays // local) * local)
+  """Rays per call that each process feeds for one frame of `num_rays` rays, as render.render_rays picks
+  them on one host (render.balanced_chunk): as few calls as `chunk` (orbit.chunk) allows, of equal size,
+  a multiple of this process's devices."""
+  return render.balanced_chunk(chunk, num_rays, _local_device_count(mesh))
 
 
 def _local_device_count(mesh: Mesh) -> int:

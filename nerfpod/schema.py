@@ -43,6 +43,7 @@ ADDED_FIELDS = {
     "train.pose_lr_init": 1e-4, "train.pose_lr_final": 1e-5, "train.pose_weight_decay": 0.0,  # unused then
     "train.adam_b1": 0.9, "train.adam_b2": 0.999,                          # optax's Adam defaults
     "train.near_gradient_distance": 0.0,                                   # gradients unscaled
+    "render.eval_samples": 0,                                              # as many samples as in training
 }
 
 
@@ -191,6 +192,7 @@ FIELDS: dict[str, Field] = {
 
     "render.num_samples": integer(1, example=64),
     "render.num_importance": integer(0),
+    "render.eval_samples": integer(0, example=48),
     "render.last_delta": number(0.0, example=1e10),
     "render.proposal_samples": integers(2),
     "render.near": number(example=2.0),
@@ -284,6 +286,13 @@ def _rules(c: dict) -> list[str]:
     out.append(f"render.proposal_samples={_show(c['render.proposal_samples'])} and render.num_importance="
                f"{c['render.num_importance']} are two ways of placing samples; pick one "
                f"(e.g. --config.render.num_importance=0).")
+  if c["render.num_importance"] > 0 and 0 < c["render.eval_samples"] < 3:
+    out.append(f"render.eval_samples={c['render.eval_samples']} is too few for hierarchical sampling "
+               f"(render.num_importance={c['render.num_importance']}): use at least 3, or 0 for "
+               f"render.num_samples (e.g. --config.render.eval_samples=64).")
+  if c["render.proposal_samples"] and c["render.eval_samples"] == 1:
+    out.append("render.eval_samples=1 is too few for proposal sampling: use at least 2, or 0 for "
+               "render.num_samples (e.g. --config.render.eval_samples=48).")
   if c["render.proposal_samples"] and c["render.num_samples"] < 2:
     out.append(f"render.num_samples={c['render.num_samples']} is too few for proposal sampling: the field's "
                f"intervals are bounded by midpoints between its samples, so use at least 2 "

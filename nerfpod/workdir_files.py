@@ -20,7 +20,7 @@ from nerfpod.errors import UserError
 # Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
                      "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "mesh.", "monitor.",
-                     "data.host_memory_gib")
+                     "data.host_memory_gib", "render.eval_samples")
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:

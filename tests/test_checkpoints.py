@@ -156,15 +156,15 @@ def _config_json(**overrides):
   return json.loads(smoke_config(**overrides).to_json_best_effort())
 
 
-def test_only_step_count_cadence_checkpoint_eval_and_orbit_may_change():
+def test_only_step_count_cadence_checkpoint_eval_orbit_and_eval_samples_may_change():
   saved = _config_json()
   allowed = _config_json(**{"train.num_steps": 999, "train.log_every": 1, "train.image_every": 0,
-                            "checkpoint.every_steps": 7, "eval.max_views": 1})
+                            "checkpoint.every_steps": 7, "eval.max_views": 1, "render.eval_samples": 48})
   assert workdir_files.incompatible_fields(saved, allowed) == []
   changed = _config_json(**{"model.hashgrid.num_levels": 2, "data.image_size": 16, "train.seed": 3,
-                            "train.num_steps": 999})
+                            "train.num_steps": 999, "render.num_samples": 24})
   assert workdir_files.incompatible_fields(saved, changed) == ["data.image_size", "model.hashgrid.num_levels",
-                                                             "train.seed"]
+                                                             "render.num_samples", "train.seed"]
 
 
 def test_resuming_a_workdir_of_another_shape_names_the_fields(tmp_path):

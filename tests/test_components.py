@@ -96,6 +96,18 @@ def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_ra
     np.testing.assert_allclose(chunked[name], whole[name][:num_rays], rtol=1e-5, atol=1e-6, err_msg=name)
 
 
+@pytest.mark.parametrize("chunk,num_rays,devices,want", [
+    (4096, 10000, 1, 3334),  # 3 calls of 3,334 (2 rays padded), not 4,096 + 4,096 + 1,808 padded to 4,096
+    (4096, 10000, 8, 3336),  # multiples of the devices
+    (4096, 4096, 1, 4096), (4096, 4097, 1, 2049), (4096, 100, 8, 104),  # one call of what the rays need
+    (56, 192, 8, 48), (40, 192, 8, 40), (5, 192, 8, 8),  # a chunk below the devices: one ray each
+])
+def test_rays_are_split_into_as_few_calls_as_the_chunk_allows_of_equal_size(chunk, num_rays, devices, want):
+  got = render.balanced_chunk(chunk, num_rays, devices)
+  assert got == want and got % devices == 0 and got <= max(devices, chunk)
+  assert -(-num_rays // got) == -(-num_rays // max(devices, chunk - chunk % devices))  # no more calls
+
+
 def test_render_image_is_its_rays_in_row_major_order(smoke):
   comps = smoke
   params = comps.init_state().params
@@ -130,3 +142,27 @@ def test_the_program_without_a_scene_has_a_runs_state_and_batch_shapes(smoke):
   assert program.model == built.model  # on CPU: the gather lookup, as training uses
   tpu = components.build_program(config, mesh, backend="tpu").model
   assert tpu.grid_matmul_max_rows == config.compile.matmul_max_rows and built.model.grid_matmul_max_rows == 0
+
+
+def test_eval_samples_render_the_trained_field_with_a_finer_quadrature(smoke_on_4):
+  """render.eval_samples: every rendering that trains nothing (the renderer: evaluation, previews, orbits,
+  the viewer) queries the field at that many samples per ray, the train step at render.num_samples; the
+  parameters are the same, and 0 leaves the renderer the training model's."""
+  comps, params = smoke_on_4
+  config = comps.config
+  assert config.render.eval_samples == 0 and comps.render_model is comps.model
+  finer = components.build_program(smoke_config(**{"render.eval_samples": 3 * config.render.num_samples}),
+                                   comps.mesh, scene=comps.scene)
+  assert finer.model == comps.model  # training unchanged
+  assert finer.render_model.num_samples == 3 * config.render.num_samples
+  assert finer.render_model.clone(num_samples=config.render.num_samples) == comps.model
+  origins, directions = cameras.image_rays(comps.scene.split("test").poses[0], comps.scene.split("test").intrinsics,
+                                           0.5)
+  origins, directions = origins.reshape(-1, 3)[:64], directions.reshape(-1, 3)[:64]
+  got = render.render_rays(finer.make_renderer(), params, comps.mesh, origins, directions, 64)
+  want = finer.render_model.apply(params, origins, directions, finer.near, finer.far,
+                                  jnp.asarray(finer.background))[-1]
+  np.testing.assert_allclose(got["rgb"], want["rgb"], rtol=1e-5, atol=1e-6)
+  assert want["weights"].shape == (64, 3 * config.render.num_samples)
+  coarse = render.render_rays(comps.renderer, params, comps.mesh, origins, directions, 64)
+  assert np.abs(got["depth"] - coarse["depth"]).max() > 1e-4  # another quadrature of the same field

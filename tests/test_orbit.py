@@ -154,12 +154,13 @@ def test_a_frame_renders_as_the_chunked_renderer_renders_it_and_a_padding_round_
   comps, params = trained
   intr = cameras.Intrinsics.from_focal(16, 12, 20.0)
   pose = orbit.orbit_poses(3, -30.0, 4.0)[1]
-  frames = orbit.FrameRenderer(comps.renderer, params, comps.mesh, intr, 0.5, 56, pose)
-  assert (frames.chunk, frames.calls) == (56, 4)  # 192 rays: 3 full chunks of 56 and one padded
+  frames = orbit.FrameRenderer(comps.renderer, params, comps.mesh, intr, 0.5, 40, pose)
+  assert (frames.chunk, frames.calls) == (40, 5)  # 192 rays: 5 calls of 40, the last padded by 8 rays
   got = frames.render(pose, intr)
-  want = render.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 56)
+  want = render.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 40)
   np.testing.assert_array_equal(got["rgb"], video.to_uint8(want["rgb"]))
   for name in ("depth", "acc", "disparity"):
     np.testing.assert_array_equal(got[name], want[name])
   assert frames.render() is None
   assert orbit.chunk_rays(4096, 192, comps.mesh) == 192 and orbit.chunk_rays(5, 192, comps.mesh) == 8
+  assert orbit.chunk_rays(56, 192, comps.mesh) == 48  # 4 calls of 48 rather than 3 of 56 and one padded
