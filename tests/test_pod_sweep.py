@@ -20,9 +20,10 @@ from test_aot import _aot, needs_libtpu
 pytestmark = [pytest.mark.slow, needs_libtpu]
 
 # Generation x host-count class: one host (v4-8: 4 chips; v5e-8, v6e-8: 8 chips on one host), a few hosts,
-# v5e from 32 chips on (limited ICI routing: whole-slice programs only) up to the largest, v5p, v6e's largest.
-SWEEP = ["v4-8", "v4-32", "v5e-8", "v5e-32", "v5e-256", "v5p-16", "v6e-8", "v6e-256"]
-PROCESSES = 4  # each compiles two pods (one process start-up per two); the machine's cores do the rest
+# v5e from 32 chips on (limited ICI routing: whole-slice programs only), v5p, v6e's largest. The largest v5e
+# (v5e-256) is compiled by tests/test_aot.py, two slices of it with the default config's every program.
+SWEEP = ["v4-8", "v4-32", "v5e-8", "v5e-32", "v5p-16", "v6e-8", "v6e-256"]
+PROCESSES = 4  # each compiles one or two pods (one process start-up per two); the cores do the rest
 
 
 def _compile(pods: list[str], folder) -> tuple[subprocess.CompletedProcess, list[dict]]:
