@@ -145,7 +145,10 @@ class Program:
   def render_model(self) -> nerf_model.NeRF:
     """The model of every rendering that trains nothing: render.eval_samples field samples per ray where
     set (the same parameters: only the quadrature is finer), else the training model itself."""
-    return eval_model(self.model, self.config)
+    samples = self.config.render.eval_samples
+    if not samples or samples == self.model.num_samples:
+      return self.model
+    return self.model.clone(num_samples=samples)
 
   def make_renderer(self, mesh: Mesh | None = None):
     """(params, origins, directions) -> rgb/depth/acc/disparity of `render_model`, compiled on `mesh`
@@ -171,12 +174,6 @@ class Components(Program):
                                distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
                                max(tc.num_steps, 1), self.config.data.shards, uses_frames(self.config))
     return data.iterator(dataset, start_step)
-
-
-def eval_model(model: nerf_model.NeRF, config) -> nerf_model.NeRF:
-  """`model` with config.render.eval_samples samples per ray where that is set (> 0), else `model`."""
-  samples = config.render.eval_samples
-  return model.clone(num_samples=samples) if samples and samples != model.num_samples else model
 
 
 def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:

@@ -30,7 +30,8 @@ def balanced_chunk(chunk: int, num_rays: int, devices: int) -> int:
   4,096, a fifth less work)."""
   largest = max(devices, chunk - chunk % devices)
   calls = -(-num_rays // largest)
-  return -(-(-(-num_rays // calls)) // devices) * devices
+  per_call = -(-num_rays // calls)
+  return -(-per_call // devices) * devices
 
 
 def render_rays(renderer, params, mesh, origins_Nx3, directions_Nx3, chunk: int, cancelled=None,
