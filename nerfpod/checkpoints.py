@@ -154,6 +154,7 @@ class Checkpoints:
                                                                       cm.PreemptionCheckpointingPolicy()]))
     self._directory = checkpoint_dir(workdir)
     self._read_only = read_only
+    self._every_steps = every_steps
     self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
     if not read_only:
       self._delete_rotated()
@@ -260,6 +261,8 @@ class Checkpoints:
   def save(self, step: int, state, data_position: dict, force: bool = False) -> bool:
     """Starts an asynchronous save of `state` at `step` if due or forced (a preemption's step); returns
     whether it did."""
+    if not force and step % self._every_steps:  # (the policy's interval, without orbax's per-step work)
+      return False
     if self.manager.latest_step() == step:
       return False
     if not (force or self.manager.should_save(step)):

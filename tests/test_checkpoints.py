@@ -35,10 +35,11 @@ def _mesh(count: int) -> Mesh:
 def test_saves_every_n_steps_keeps_the_newest_and_restores_state_and_position(tmp_path):
   mesh = _mesh(8)
   with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
-    saved = [step for step in range(1, 8) if ckpt.save(step, _state(mesh, step), {"next_step": step})]
+    saved = [step for step in range(1, 8)
+             if ckpt.save(step, _state(mesh, step), {"next_step": step}, force=step == 5)]
     ckpt.manager.wait_until_finished()
-  assert saved == [2, 4, 6]  # every 2 steps, and no extra save of a run's first step
-  assert checkpoints.finished_steps(str(tmp_path)) == [4, 6]
+  assert saved == [2, 4, 5, 6]  # every 2 steps and the forced one (a preemption's), no extra save of step 1
+  assert checkpoints.finished_steps(str(tmp_path)) == [5, 6]
   with checkpoints.Checkpoints(str(tmp_path), every_steps=2, max_to_keep=2) as ckpt:
     state, position = ckpt.restore(_abstract(_state(mesh, 0)))
   assert position == {"next_step": 6}
