@@ -24,6 +24,7 @@ Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket
 """
 import dataclasses
 import errno
+import functools
 import logging
 import os
 import sys
@@ -122,6 +123,18 @@ def remove_cut_off_saves(workdir: str) -> list[str]:
   return removed
 
 
+@functools.cache
+def _save_arrays_whole_on_one_cpu_process() -> None:
+  """With one process on a CPU, orbax saves each replicated array from one replica, whole: its default
+  (replica-parallel) slices every array into one piece per replica, each an eager dispatch (and, the first
+  time in a process, a compilation per shape), to copy within one host's memory (docs/results.md has the
+  cost). Several processes, or accelerators (whose replicas copy to the host in parallel), keep orbax's
+  default. Either way the checkpoint holds the same arrays, and reads back the same."""
+  if jax.process_count() == 1 and jax.default_backend() == "cpu":
+    ocp.type_handlers.register_type_handler(
+        jax.Array, ocp.type_handlers.ArrayHandler(use_replica_parallel=False), override=True)
+
+
 @dataclasses.dataclass
 class _Pinned:
   """Orbax's preservation policy for the steps in `steps` (a set the owner changes): kept past max_to_keep."""
@@ -155,6 +168,7 @@ class Checkpoints:
     self._directory = checkpoint_dir(workdir)
     self._read_only = read_only
     self._every_steps = every_steps
+    _save_arrays_whole_on_one_cpu_process()
     self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
     if not read_only:
       self._delete_rotated()
