@@ -131,8 +131,14 @@ def _save_arrays_whole_on_one_cpu_process() -> None:
   cost). Several processes, or accelerators (whose replicas copy to the host in parallel), keep orbax's
   default. Either way the checkpoint holds the same arrays, and reads back the same."""
   if jax.process_count() == 1 and jax.default_backend() == "cpu":
-    ocp.type_handlers.register_type_handler(
-        jax.Array, ocp.type_handlers.ArrayHandler(use_replica_parallel=False), override=True)
+    absl_logger = logging.getLogger("absl")
+    level = absl_logger.level
+    absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
+    try:
+      ocp.type_handlers.register_type_handler(
+          jax.Array, ocp.type_handlers.ArrayHandler(use_replica_parallel=False), override=True)
+    finally:
+      absl_logger.setLevel(level)
 
 
 @dataclasses.dataclass
