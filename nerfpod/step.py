@@ -14,7 +14,6 @@ from jax.sharding import PartitionSpec as P
 
 from nerfpod import compilation, components, distributed
 from nerfpod.components import Program, TrainState
-from nerfpod.finite import all_finite
 from nerfpod.metrics import mse_to_psnr
 from nerfpod.nerf import stepfun
 
@@ -37,8 +36,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   summed in an order that does not depend on the processes (distributed.ordered_mean: any topology of the
   same device count gives the same bits, at log2(N) exchanges of the gradients); without, it is one
   all-reduce (jax.lax.pmean), whose summation order is the collective's own
-  (compilation.gradient_mean_is_ordered). A step whose loss, gradient or update is not finite leaves the
-  state as it was.
+  (compilation.gradient_mean_is_ordered). A step whose loss or gradient is not finite leaves the state as it
+  was (the update is computed only for steps that keep it).
   With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
   colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
   colour, which gives clean depth, opacity and disparity.
@@ -106,15 +105,24 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), mesh.axis_names, axis_sizes)
     else:
       grads, loss, mses, extra = jax.lax.pmean((grads, loss, mses, extra), axes)
-    updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-    params = optax.apply_updates(state.params, updates)
-    # A non-finite loss, gradient or update never reaches the state: the step is skipped (the parameters and
-    # Adam's moments and count stay as they were; the data moves on) and counted in metrics["skipped"].
-    finite = all_finite((loss, grads, params, opt_state))
-    params, opt_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), (params, opt_state),
-                                     (state.params, state.opt_state))
+    # A non-finite loss or gradient never reaches the state: the step is skipped (the parameters and Adam's
+    # moments and count stay as they were; the data moves on) and counted in metrics["skipped"]. The test is
+    # read before the update, off the loss and the gradients' global norm (finite only where every gradient
+    # and the sum of their squares are), so the update runs only for steps that keep it, in one pass over the
+    # parameters and moments. A finite gradient gives a finite update (Adam's eps > 0; the sum of squares
+    # bounds the second moment), so the state stays finite; checkpoints.Checkpoints.save checks it again.
+    grad_norm = optax.tree.norm(grads)
+    finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+
+    def update(operands):
+      grads, params, opt_state = operands
+      updates, opt_state = optimizer.update(grads, opt_state, params)
+      return optax.apply_updates(params, updates), opt_state
+
+    params, opt_state = jax.lax.cond(finite, update, lambda operands: operands[1:],
+                                     (grads, state.params, state.opt_state))
     metrics = {"loss": loss, "mse": mses[-1], "psnr": mse_to_psnr(mses[-1]),
-               "psnr_coarse": mse_to_psnr(mses[0]), "grad_norm": optax.tree.norm(grads),
+               "psnr_coarse": mse_to_psnr(mses[0]), "grad_norm": grad_norm,
                "skipped": 1 - finite.astype(jnp.int32), **extra}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
