@@ -86,6 +86,16 @@ def gradient_mean_is_ordered(config, backend: str | None = None) -> bool:
   return choice == "ordered"
 
 
+def update_under_cond(backend: str | None = None) -> bool:
+  """Whether the train step computes its optimizer update under `jax.lax.cond`, only for steps that keep it,
+  rather than always, selecting the old or the new state after (both skip a step whose loss or gradient is
+  not finite, with the same bits otherwise). On a CPU the conditional saves the select's pass over the
+  parameters and Adam's moments; on accelerators the state is selected, as the TPU compiler, which shards a
+  slice's weight update over its chips, moves the whole update across slices around a conditional (the pod
+  compile tool's collectives check reports it). `backend`: JAX's default unless given."""
+  return (backend or jax.default_backend()) == "cpu"
+
+
 # The share of an accelerator's memory the train step may take (runs and the pod compile tool alike).
 ACCELERATOR_MEMORY_SHARE = 0.85
 

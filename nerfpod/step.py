@@ -27,7 +27,8 @@ def per_ray_uniforms(key, ray_ids, count: int):
 def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                     random_background: bool = False, microbatches: int = 1,
                     compiler_options: dict | None = None, interlevel_weight: float = 1.0,
-                    distortion_weight: float = 0.0, ordered_mean: bool = True):
+                    distortion_weight: float = 0.0, ordered_mean: bool = True,
+                    update_under_cond: bool | None = None):
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
@@ -37,7 +38,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   same device count gives the same bits, at log2(N) exchanges of the gradients); without, it is one
   all-reduce (jax.lax.pmean), whose summation order is the collective's own
   (compilation.gradient_mean_is_ordered). A step whose loss or gradient is not finite leaves the state as it
-  was (the update is computed only for steps that keep it).
+  was: with `update_under_cond` (None: compilation.update_under_cond for JAX's backend) its update is not
+  even computed, without it the old state is selected after the update.
   With `random_background` and batches that carry alpha, each ray's target is recomposited on a random
   colour (Instant-NGP's trick): empty space must then be transparent rather than painted the background
   colour, which gives clean depth, opacity and disparity.
@@ -49,6 +51,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   weights; both are also returned as metrics.
   """
   background = jnp.asarray(background, jnp.float32)
+  if update_under_cond is None:
+    update_under_cond = compilation.update_under_cond()
   # Every axis of the mesh: DATA_AXIS on one slice; (SLICE_AXIS, DATA_AXIS) on several, where the mean runs
   # within each slice (ICI) and then across the slices (DCN): see distributed.ordered_mean, and for the
   # all-reduce, docs/scale.md#multi-slice.
@@ -108,9 +112,10 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # A non-finite loss or gradient never reaches the state: the step is skipped (the parameters and Adam's
     # moments and count stay as they were; the data moves on) and counted in metrics["skipped"]. The test is
     # read before the update, off the loss and the gradients' global norm (finite only where every gradient
-    # and the sum of their squares are), so the update runs only for steps that keep it, in one pass over the
-    # parameters and moments. A finite gradient gives a finite update (Adam's eps > 0; the sum of squares
-    # bounds the second moment), so the state stays finite; checkpoints.Checkpoints.save checks it again.
+    # and the sum of their squares are): the update then takes one pass over the parameters and moments
+    # (under a conditional, or fused with the select), where a test of the new state would take three. A
+    # finite gradient gives a finite update (Adam's eps > 0; the sum of squares bounds the second moment),
+    # so the state stays finite; checkpoints.Checkpoints.save checks it again before any save.
     grad_norm = optax.tree.norm(grads)
     finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
 
@@ -119,8 +124,12 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       updates, opt_state = optimizer.update(grads, opt_state, params)
       return optax.apply_updates(params, updates), opt_state
 
-    params, opt_state = jax.lax.cond(finite, update, lambda operands: operands[1:],
-                                     (grads, state.params, state.opt_state))
+    operands = (grads, state.params, state.opt_state)
+    if update_under_cond:
+      params, opt_state = jax.lax.cond(finite, update, lambda operands: operands[1:], operands)
+    else:
+      params, opt_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), update(operands),
+                                       (state.params, state.opt_state))
     metrics = {"loss": loss, "mse": mses[-1], "psnr": mse_to_psnr(mses[-1]),
                "psnr_coarse": mse_to_psnr(mses[0]), "grad_norm": grad_norm,
                "skipped": 1 - finite.astype(jnp.int32), **extra}
@@ -139,7 +148,8 @@ def for_program(program: Program, microbatches: int, backend: str | None = None)
   return make_train_step(program.model, program.optimizer, program.mesh, program.near, program.far,
                          program.background, tc.random_background, microbatches, program.compiler_options,
                          tc.interlevel_weight, tc.distortion_weight,
-                         compilation.gradient_mean_is_ordered(program.config, backend))
+                         compilation.gradient_mean_is_ordered(program.config, backend),
+                         compilation.update_under_cond(backend))
 
 
 def compile_fitted(program: Program, key, budget_bytes: int, backend: str | None = None):

@@ -129,7 +129,6 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
   mesh = _mesh(2)
   model, optimizer = nerf_model.from_config(config), optax.adam(1e-2)
   state = components.initial_state(model, optimizer, 0, mesh)
-  step_fn = make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3))
   rng = np.random.default_rng(0)
   batch = {"origins": np.tile([0.0, 0.0, 4.0], (64, 1)).astype(np.float32),
            "directions": rng.normal(size=(64, 3)).astype(np.float32),
@@ -138,15 +137,21 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
   before = jax.device_get(state.params)
   poisoned = dict(batch, rgb=batch["rgb"].copy())
   poisoned["rgb"][5, 1] = np.nan  # one ray's target: the loss and every gradient become NaN
-  state, metrics = step_fn(state, put(poisoned), jax.random.key(0))
-  assert int(metrics["skipped"]) == 1 and not np.isfinite(float(metrics["loss"]))
-  assert int(state.step) == 1  # the data moves on
-  jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), before)
-  assert int(jax.device_get(state.opt_state[0].count)) == 0  # Adam's moments and count untouched
-  state, metrics = step_fn(state, put(batch), jax.random.key(0))
-  assert int(metrics["skipped"]) == 0 and int(jax.device_get(state.opt_state[0].count)) == 1
-  after = jax.tree.leaves(jax.device_get(state.params))
-  assert any(not np.array_equal(a, b) for a, b in zip(after, jax.tree.leaves(before)))
+  initial, kept = state, {}
+  # The update under a conditional (CPUs) or selected after it (accelerators): the same skip, the same bits.
+  for under_cond in (True, False):
+    step_fn = make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3), update_under_cond=under_cond)
+    state, metrics = step_fn(jax.tree.map(jnp.copy, initial), put(poisoned), jax.random.key(0))
+    assert int(metrics["skipped"]) == 1 and not np.isfinite(float(metrics["loss"]))
+    assert int(state.step) == 1  # the data moves on
+    jax.tree.map(np.testing.assert_array_equal, jax.device_get(state.params), before)
+    assert int(jax.device_get(state.opt_state[0].count)) == 0  # Adam's moments and count untouched
+    state, metrics = step_fn(state, put(batch), jax.random.key(0))
+    assert int(metrics["skipped"]) == 0 and int(jax.device_get(state.opt_state[0].count)) == 1
+    after = jax.tree.leaves(jax.device_get(state.params))
+    assert any(not np.array_equal(a, b) for a, b in zip(after, jax.tree.leaves(before)))
+    kept[under_cond] = jax.device_get(state)
+  jax.tree.map(np.testing.assert_array_equal, kept[True], kept[False])
 
   class Saved:  # the checkpoints a run has saved: steps 2 and 4
     pinned = set()
