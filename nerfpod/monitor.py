@@ -144,6 +144,8 @@ class WandbRun:
     config; None, after one warning, where W&B fails."""
     wc = config.monitor.wandb
     try:
+      if wc.mode == "online":
+        _check_wandb_server()
       import wandb
       record = read_wandb_record(workdir)
       if not record:  # the id first: a run killed during wandb.init still resumes the same W&B run
@@ -248,6 +250,25 @@ class WandbRun:
         run.finish(exit_code=1)
       except Exception:  # noqa: BLE001 (already warned once)
         pass
+
+
+WANDB_CLOUD = "https://api.wandb.ai"
+WANDB_CONNECT_SECONDS = 10.0
+
+
+def _check_wandb_server() -> None:
+  """Raises OSError, naming the server, where one TCP connection to W&B's server (WANDB_BASE_URL, else W&B's
+  cloud) fails: an online run would otherwise wait out W&B's own retries (over ten seconds) for the same
+  failure."""
+  import socket
+  import urllib.parse
+  url = os.environ.get("WANDB_BASE_URL") or WANDB_CLOUD
+  parts = urllib.parse.urlsplit(url if "://" in url else "https://" + url)
+  port = parts.port or (80 if parts.scheme == "http" else 443)
+  try:
+    socket.create_connection((parts.hostname or "", port), timeout=WANDB_CONNECT_SECONDS).close()
+  except OSError as e:
+    raise OSError(f"cannot connect to its server {parts.hostname}:{port}: {e.strerror or type(e).__name__}") from None
 
 
 def _reason(error: Exception) -> str:

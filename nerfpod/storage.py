@@ -61,12 +61,14 @@ def normpath(path) -> str:
   return f"{scheme}://{posixpath.normpath(rest)}"
 
 
-def _filesystem(path):
-  """The fsspec file system for a URL's scheme; one sentence where its package is not installed."""
+def _filesystem(path, instance: bool = True):
+  """The fsspec file system for a URL's scheme (`instance`=False: only its class, which looks for no
+  credentials); one sentence where its package is not installed."""
   scheme = str(path).split("://", 1)[0]
   try:
     import fsspec
-    return fsspec.filesystem(scheme)  # fsspec keeps one instance per scheme
+    # fsspec keeps one instance per scheme; making it looks for credentials (a metadata server's retries)
+    return fsspec.filesystem(scheme) if instance else fsspec.get_filesystem_class(scheme)
   except (ImportError, ValueError) as e:
     if scheme in ("gs", "gcs"):
       raise UserError(f"cannot read {path}: gs:// needs the gcsfs package, which is not installed; install the gcs "
@@ -106,7 +108,7 @@ def check_reachable(path) -> None:
   per process and endpoint); local paths and reached endpoints return at once."""
   if not is_url(path):
     return
-  _filesystem(path)  # its client installed
+  _filesystem(path, instance=False)  # its client installed (credentials are looked for once it is reached)
   where = endpoint(path)
   if where is None:
     return

@@ -159,6 +159,18 @@ def test_no_way_to_the_storage_is_one_sentence_at_once(emulator, monkeypatch):
   assert time.monotonic() - started < 5  # not a client's minute of retries
 
 
+def test_an_unreachable_endpoint_is_refused_before_a_client_looks_for_credentials(monkeypatch):
+  """Making a gcsfs client looks for credentials (on a machine without a network, a metadata server's
+  retries: seconds); the endpoint is tried first, with the client's class only."""
+  import fsspec
+  import portpicker
+  from nerfpod import storage
+  monkeypatch.setenv("STORAGE_EMULATOR_HOST", f"http://127.0.0.1:{portpicker.pick_unused_port()}")
+  monkeypatch.setattr(fsspec, "filesystem", lambda *args, **kwargs: pytest.fail("a client was made first"))
+  with pytest.raises(UserError, match=r"^cannot reach Cloud Storage at 127.0.0.1:\d+ to read gs://nerfpod-test/run"):
+    storage.check_reachable("gs://nerfpod-test/run")
+
+
 def test_without_gcsfs_a_bucket_path_is_one_sentence_naming_the_extra(monkeypatch):
   import fsspec
 
@@ -166,6 +178,7 @@ def test_without_gcsfs_a_bucket_path_is_one_sentence_naming_the_extra(monkeypatc
     raise ImportError("Install gcsfs to access Google Storage")
 
   monkeypatch.setattr(fsspec, "filesystem", missing)
+  monkeypatch.setattr(fsspec, "get_filesystem_class", missing)  # (what is looked up before a client is made)
   want = (r"^cannot read gs://nerfpod-test/{}: gs:// needs the gcsfs package, which is not installed; install the "
           r"gcs extra \(pip install 'nerfpod\[gcs\]'\).$")
   with pytest.raises(UserError, match=want.format("scene")):

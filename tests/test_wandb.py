@@ -229,7 +229,7 @@ def test_a_wandb_failure_mid_run_is_one_warning_and_tensorboard_goes_on(tmp_path
 
 def test_wandb_without_network_is_one_warning_and_tensorboard_goes_on(tmp_path, capsys, monkeypatch):
   pytest.importorskip("wandb")
-  # A key of the right shape, and a server that refuses connections: wandb.init gives up after its timeout.
+  # A key of the right shape, and a server that refuses connections: one warning naming it, before wandb.init.
   monkeypatch.setenv("WANDB_API_KEY", "0" * 40)
   monkeypatch.setenv("WANDB_BASE_URL", "http://127.0.0.1:9")
   monkeypatch.setenv("WANDB_INIT_TIMEOUT", "2")
@@ -240,6 +240,7 @@ def test_wandb_without_network_is_one_warning_and_tensorboard_goes_on(tmp_path, 
   warnings = [l for l in capsys.readouterr().err.splitlines() if l.startswith("nerfpod: warning:")]
   assert len(warnings) == 1 and "Weights & Biases could not start" in warnings[0], warnings
   assert "TensorBoard only" in warnings[0]
+  assert "cannot connect to its server 127.0.0.1:9" in warnings[0]  # at once, not after W&B's retries
   scalars, _ = tensorboard_of(tmp_path)
   assert scalars == {("train/loss", 1): 0.5}
 
