@@ -185,6 +185,8 @@ def _run_steps(mesh, config, num_steps, optimizer, state=None, first_step=0):
 
 
 def test_eight_devices_match_one_device_with_appearance_and_pose_refinement():
+  """The default field (a hash grid with a proposal round, view directions) with per-frame appearance codes
+  and pose corrections: 8 devices against 1 (tests/test_step.py checks the other fields the same way)."""
   config = smoke_config(**BOTH, **{"model.use_viewdirs": True, "train.batch_size": 128})
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   sgd = optax.sgd(0.5)  # plain SGD: parameters differ exactly as the averaged gradients do (test_step.py)

@@ -33,11 +33,11 @@ def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_opti
   return np.array(losses), jax.device_get(state.params)
 
 
-# The default field (a hash grid with a proposal round) in the quick loop; the others, two compiles each, in the
-# full suite.
-@pytest.mark.parametrize("field,importance,proposals", [
-    pytest.param("mlp", 8, (), marks=pytest.mark.slow), pytest.param("hashgrid", 0, (), marks=pytest.mark.slow),
-    ("hashgrid", 0, (16,))])
+# Two compiles each, in the full suite. The default field (a hash grid with a proposal round) is checked the
+# same way, with per-frame appearance codes and pose corrections besides, by
+# tests/test_per_frame.py::test_eight_devices_match_one_device_with_appearance_and_pose_refinement (quick loop).
+@pytest.mark.slow
+@pytest.mark.parametrize("field,importance,proposals", [("mlp", 8, ()), ("hashgrid", 0, ())])
 def test_eight_devices_match_one_device(field, importance, proposals):
   config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
                            "model.mlp.skips": (1,), "model.use_viewdirs": True,
