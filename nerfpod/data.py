@@ -110,7 +110,9 @@ def ray_batches(split: Split, seed: int, batch_size: int, rows: slice, pixel_cen
       LocalRayBatch(split, seed, batch_size, rows, pixel_center, num_shards, with_frames))
 
 
-def iterator(dataset: grain.MapDataset, start_step: int, prefetch: int = 4):
-  """An iterator from global batch `start_step` on, prepared in a background thread."""
-  options = grain.ReadOptions(num_threads=1, prefetch_buffer_size=prefetch)
+def iterator(dataset: grain.MapDataset, start_step: int, prefetch: int = 4, background: bool = True):
+  """An iterator from global batch `start_step` on, prepared `prefetch` batches ahead in a background thread,
+  or (`background`=False) each in the caller's thread when it is asked for."""
+  options = (grain.ReadOptions(num_threads=1, prefetch_buffer_size=prefetch) if background else
+             grain.ReadOptions(num_threads=0, prefetch_buffer_size=0))
   return iter(dataset.slice(slice(start_step, None)).to_iter_dataset(options))

@@ -60,6 +60,11 @@ def test_sequence_depends_on_seed_and_step_only_and_resumes_anywhere(split):
   assert len(full) == 10 and len(resumed) == 4
   for a, b in zip(full[6:], resumed):
     np.testing.assert_array_equal(a, b)
+  # Made in the caller's thread (CPUs) or ahead in a background thread (accelerators): the same batches.
+  inline = [b["rgb"] for b in data.iterator(dataset, 0, background=False)]
+  assert len(inline) == 10
+  for a, b in zip(full, inline):
+    np.testing.assert_array_equal(a, b)
   other_seed = data.ray_batches(split, 2, 32, slice(0, 32), 0.5, 10)[0]["rgb"]
   assert not np.array_equal(other_seed, full[0])
   assert not np.array_equal(full[1], full[0])
