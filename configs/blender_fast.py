@@ -40,7 +40,7 @@ def get_config(arg: str | None = None):
     c.render.num_samples = 16
     c.model.proposal.num_levels, c.model.proposal.log2_table_size = 4, 12  # as tiny_fast: more rays/s
     c.train.num_steps = 20_000      # of 512 rays (more updates per CPU-second), with Adam's b2 = 0.99 as
-    c.train.batch_size = 512        # tiny_fast: 33.03 dB on lego's val in 10 min 07 s (docs/results.md)
+    c.train.batch_size = 512        # tiny_fast: 33.03 dB on lego's val in 9 min 40 s (docs/results.md)
     c.train.adam_b2 = 0.99
     c.train.lr_init, c.train.lr_final = 1e-2, 1e-3
     c.train.image_every = 3000
