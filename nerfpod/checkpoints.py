@@ -28,6 +28,7 @@ import functools
 import logging
 import os
 import sys
+import traceback
 
 import jax
 import numpy as np
@@ -328,12 +329,32 @@ def damage_reason(error: BaseException) -> str:
 
 
 class _AbandonedReadTasks(logging.Filter):
-  """Drops asyncio's "Task exception was never retrieved" for orbax's reads (an abandoned read that failed
-  too, reported when its task is collected: a traceback per array)."""
+  """Drops asyncio's "... exception was never retrieved" for orbax's reads (an abandoned read that failed
+  too, reported when its task, or the future gathering several, is collected: a traceback per array). A
+  task's line names the coroutine's file; a gathering future's names none, so its exception's traceback is
+  read too."""
 
   def filter(self, record):
     message = record.getMessage()
-    return not (message.startswith("Task exception was never retrieved") and f"{os.sep}orbax{os.sep}" in message)
+    if "exception was never retrieved" not in message:
+      return True
+    error = record.exc_info[1] if record.exc_info else None
+    return not (_in_orbax(message) or _raised_in_orbax(error))
+
+
+def _in_orbax(filename: str) -> bool:
+  return f"{os.sep}orbax{os.sep}" in filename
+
+
+def _raised_in_orbax(error) -> bool:
+  """Whether `error`, or an error it was raised from, passed through orbax's code."""
+  seen = set()
+  while error is not None and id(error) not in seen:
+    seen.add(id(error))
+    if any(_in_orbax(frame.filename) for frame in traceback.extract_tb(error.__traceback__)):
+      return True
+    error = error.__cause__ or error.__context__
+  return False
 
 
 def quiet_abandoned_reads(hook):
@@ -351,7 +372,7 @@ def quiet_abandoned_reads(hook):
     closed_loop = (isinstance(error, RuntimeError) and str(error) == "Event loop is closed" and trace is not None
                    and trace.tb_frame.f_code.co_name == "call_soon_threadsafe")  # called from no Python frame
     code = getattr(unraisable.object, "cr_code", None)
-    abandoned_read = code is not None and f"{os.sep}orbax{os.sep}" in code.co_filename
+    abandoned_read = code is not None and _in_orbax(code.co_filename)
     if not (closed_loop or abandoned_read):
       hook(unraisable)
   return quiet

@@ -244,3 +244,24 @@ def test_abandoned_orbax_reads_are_quiet_and_other_reports_are_not(caplog):
       logging.getLogger("asyncio").error(f"Task exception was never retrieved\nfuture: <Task finished "
                                          f"coro=<async_deserialize() done, defined at {where}:394>>")
   assert [r.getMessage().count("mine.py") for r in caplog.records] == [1]
+  # A future gathering several reads names no file: its exception's traceback (orbax re-raises tensorstore's
+  # error from its own code) tells whose it was.
+  caplog.clear()
+  def raised_in(filename):
+    namespace = {}
+    exec(compile("def read():\n  raise Exception('Encountered error while reading array index')", filename,
+                 "exec"), namespace)
+    try:
+      try:
+        raise ValueError("OUT_OF_RANGE: Requested byte range is not valid")
+      except ValueError as cause:
+        raise namespace["read"]() from cause
+    except Exception as error:  # pylint: disable=broad-except
+      return error
+  with caplog.at_level(logging.ERROR, logger="asyncio"):
+    for where in (orbax_file, "/home/me/mine.py"):
+      error = raised_in(where)
+      logging.getLogger("asyncio").error(
+          f"_GatheringFuture exception was never retrieved\nfuture: <_GatheringFuture finished "
+          f"exception={error!r}>", exc_info=(type(error), error, error.__traceback__))
+  assert [r.exc_info[2].tb_next.tb_frame.f_code.co_filename for r in caplog.records] == ["/home/me/mine.py"]
