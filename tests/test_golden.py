@@ -13,6 +13,9 @@ The tolerance, rtol 1e-5, from measurements (2-core x86 CPU, jax 0.8, the code o
 So 1e-5 is 40x what round-off gave between topologies and at least 10x below those changes. Another CPU or
 jaxlib may round differently; if this fails where nothing meant to change numerics did, compare with a run
 on 1 and 8 devices of the previous commit and re-record (the values are printed on failure).
+
+The test processes compile with tests/procs.py's TEST_XLA_FLAGS; the last test runs the same job under XLA's
+default flags, as users' runs compile, against the same values.
 """
 import pytest
 
@@ -32,5 +35,29 @@ def test_smoke_job_gives_the_recorded_losses_and_metrics(smoke_run):
   got = {step: smoke_run.losses[step] for step in LOSSES}
   got_eval = {k: smoke_run.metrics["mean"][k] for k in EVAL}
   message = f"recorded {LOSSES} {EVAL}\n     got {got} {got_eval}"
+  assert got == pytest.approx(LOSSES, rel=RTOL, abs=0), message
+  assert got_eval == pytest.approx(EVAL, rel=RTOL, abs=0), message
+
+
+@pytest.mark.slow  # a whole job in a process of its own, compiled under XLA's default flags
+def test_under_users_own_compiler_flags_the_smoke_job_gives_the_same_recorded_values(tmp_path):
+  """Every test process compiles with procs.TEST_XLA_FLAGS (less compile time; a fused reduction may add in
+  another order). A user's run compiles with XLA's defaults: the same job, as `nerfpod train` runs it on 8
+  devices with no XLA_FLAGS, gives the recorded values too."""
+  import json
+  import procs
+  from tensorboard.backend.event_processing import event_accumulator
+  flags = [f"--config.{key}={value}" for key, value in SMOKE_RUN_OVERRIDES.items()]
+  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *flags,
+                          devices_per_process=8, env={"XLA_FLAGS": ""})
+  assert result.returncode == 0, result.stderr[-3000:]
+  events = event_accumulator.EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})
+  events.Reload()
+  losses = {e.step: e.value for e in events.Scalars("train/loss")}
+  metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+  got = {step: losses[step] for step in LOSSES}
+  got_eval = {k: metrics["mean"][k] for k in EVAL}
+  message = f"recorded {LOSSES} {EVAL}\n     got {got} {got_eval}"
+  assert sorted(losses) == list(range(1, 21)), message
   assert got == pytest.approx(LOSSES, rel=RTOL, abs=0), message
   assert got_eval == pytest.approx(EVAL, rel=RTOL, abs=0), message
