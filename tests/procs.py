@@ -74,6 +74,56 @@ def run_main(*args: str, devices_per_process: int = 1, timeout: float = 300,
                         timeout=timeout)
 
 
+# Runs nerfpod.main.run() once per argv (JSON on stdin) in a child forked from one interpreter that has
+# imported nerfpod.main (absl, ml_collections, the schema; not JAX): each child parses its flags from scratch,
+# as `python -m nerfpod.main` would, without paying for the interpreter and the imports again.
+_FORKED_MAIN = r"""
+import json, os, sys, tempfile
+from nerfpod import main
+results = []
+for argv in json.loads(sys.stdin.read()):
+  with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+    sys.stdout.flush()
+    pid = os.fork()
+    if pid == 0:
+      os.dup2(out.fileno(), 1)
+      os.dup2(err.fileno(), 2)
+      sys.argv = [main.__file__, *argv]
+      code = 0
+      try:
+        main.run()
+      except SystemExit as e:
+        if isinstance(e.code, str):
+          print(e.code, file=sys.stderr)
+        code = e.code if isinstance(e.code, int) else int(e.code is not None)
+      except BaseException:
+        import traceback
+        traceback.print_exc()
+        code = 1
+      sys.stdout.flush()
+      sys.stderr.flush()
+      os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    out.seek(0)
+    err.seek(0)
+    results.append([os.waitstatus_to_exitcode(status), out.read().decode(), err.read().decode()])
+print(json.dumps(results))
+"""
+
+
+def run_main_each(argvs: list[list[str]], timeout: float = 300) -> list[subprocess.CompletedProcess]:
+  """What run_main(*argv) gives for each argv, for commands refused before any JAX work (bad flags or config
+  values): one interpreter imports nerfpod.main and forks a child per argv (_FORKED_MAIN). Not for --help
+  and its kin: absl lists the `__main__` module's flags, which here is the forking script."""
+  import json
+  done = subprocess.run([sys.executable, "-c", _FORKED_MAIN], input=json.dumps(argvs), cwd=REPO,
+                        env=environment(1), capture_output=True, text=True, timeout=timeout)
+  if done.returncode != 0:
+    raise RuntimeError(f"the forking interpreter failed (exit {done.returncode}): {done.stderr[-3000:]}")
+  return [subprocess.CompletedProcess(["nerfpod.main", *argv], code, out, err)
+          for argv, (code, out, err) in zip(argvs, json.loads(done.stdout.strip().splitlines()[-1]), strict=True)]
+
+
 class Run:
   """One run of `num_processes` processes; a context manager that kills whatever still runs on exit."""
 

@@ -1,5 +1,4 @@
 """The config schema: every field of every config is checked before any work, one sentence per mistake."""
-import concurrent.futures
 import json
 
 import ml_collections
@@ -145,23 +144,22 @@ def test_a_workdir_written_before_fields_were_added_still_matches_the_default_co
   assert workdir_files.incompatible_fields(saved, with_proposals) == ["render.proposal_samples"]
 
 
-def _run_bad(name: str, value) -> tuple[str, object, object]:
+def _bad_argv(name: str, value) -> list[str]:
   shown = schema._show(value).strip("'")
-  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir=/nonexistent/{name}",
-                          f"--config.{name}={shown}", timeout=120)
-  return name, value, result
+  return ["--config=configs/default.py:smoke", f"--workdir=/nonexistent/{name}", f"--config.{name}={shown}"]
 
 
 @pytest.mark.slow
 def test_the_command_refuses_every_bad_value_of_every_field_before_any_work(tmp_path):
-  """Exit 2, one `nerfpod: error:` line naming the field, no traceback, nothing trained or written."""
+  """Exit 2, one `nerfpod: error:` line naming the field, no traceback, nothing trained or written. (Each
+  command runs `python -m nerfpod.main`'s entry point in a process forked from one that imported it:
+  procs.run_main_each; test_an_unknown_config_argument_is_one_sentence starts the command itself.)"""
   cases = [(name, value) for name, field in schema.FIELDS.items() for value in field.bad]
   # Every field but the booleans and data.path (any string; an empty one is a rule's, tested above), whose
   # wrong values a command line cannot give: ml_collections refuses those itself.
   assert {n for n, _ in cases} == {n for n, f in schema.FIELDS.items() if f.bad} and len(cases) > 60
-  with concurrent.futures.ThreadPoolExecutor(4) as pool:
-    results = list(pool.map(lambda case: _run_bad(*case), cases))
-  for name, value, result in results:
+  results = procs.run_main_each([_bad_argv(name, value) for name, value in cases])
+  for (name, value), result in zip(cases, results, strict=True):
     errors = [l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]
     assert result.returncode == 2, (name, value, result.stderr[-2000:])
     assert len(errors) == 1 and name in errors[0], (name, value, result.stderr)
