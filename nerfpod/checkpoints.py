@@ -330,12 +330,14 @@ def damage_reason(error: BaseException) -> str:
 
 class _AbandonedReadTasks(logging.Filter):
   """Drops asyncio's "... exception was never retrieved" for orbax's reads (an abandoned read that failed
-  too, reported when its task, or the future gathering several, is collected: a traceback per array). A
-  task's line names the coroutine's file; a gathering future's names none, so its exception's traceback is
-  read too."""
+  too, reported when its task, or the future gathering several, is collected: a traceback per array), and
+  its "Task was destroyed but it is pending" for those still under way at exit. A task's line names the
+  coroutine's file; a gathering future's names none, so its exception's traceback is read too."""
 
   def filter(self, record):
     message = record.getMessage()
+    if message.startswith("Task was destroyed but it is pending"):  # one cut off before it failed
+      return not _in_orbax(message)
     if "exception was never retrieved" not in message:
       return True
     error = record.exc_info[1] if record.exc_info else None
