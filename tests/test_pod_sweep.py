@@ -19,10 +19,11 @@ from test_aot import _aot, needs_libtpu
 
 pytestmark = [pytest.mark.slow, needs_libtpu]
 
-# Generation x host-count class: one host (v4-8: 4 chips; v5e-8, v6e-8: 8 chips on one host), a few hosts,
-# v5e from 32 chips on (limited ICI routing: whole-slice programs only), v5p, v6e's largest. The largest v5e
-# (v5e-256) is compiled by tests/test_aot.py, two slices of it with the default config's every program.
-SWEEP = ["v4-8", "v4-32", "v5e-8", "v5e-32", "v5p-16", "v6e-8", "v6e-256"]
+# Generation x host-count class: one host (v4-8: 4 chips; v5e-8, v6e-8: 8 chips on one host), a few hosts
+# (v4-16: 8 chips on 2 hosts, whose report is also checked in detail below), v5e from 32 chips on (limited ICI
+# routing: whole-slice programs only), v5p, v6e's largest. The largest v5e (v5e-256) is compiled by
+# tests/test_aot.py, two slices of it with the default config's every program.
+SWEEP = ["v4-8", "v4-16", "v5e-8", "v5e-32", "v5p-16", "v6e-8", "v6e-256"]
 PROCESSES = 4  # each compiles one or two pods (one process start-up per two); the cores do the rest
 
 
@@ -60,10 +61,30 @@ def test_every_program_compiles_for_a_pod_of_every_generation_and_host_class(tmp
     assert [c["op"] for c in report["step"]["collectives"]] == ["all-reduce"], name
     assert all(c["group"] == pod.num_chips for c in report["step"]["collectives"]), name
     assert report["step"]["unexpected_collectives"] == [] and report["host_rows_contiguous"], name
+  for out, _ in results:
+    assert "Failed to find host bounds" not in out.stderr + out.stdout  # libtpu's start-up noise kept out
+  v4_16_out = next(out for pods, (out, _) in zip(groups, results) if "v4-16" in pods)
+  _check_a_multi_host_pod_in_detail(reports[chips.lookup("v4-16").name], v4_16_out)
   each = {n: sum(reports[chips.lookup(n).name][p]["compile_seconds"] for p in ("step", "eval", "orbit"))
           for n in SWEEP}
   print(f"\nsweep: {len(SWEEP)} pods x 3 programs in {PROCESSES} processes: {seconds:.0f} s (compiling: "
         f"{', '.join(f'{n} {t:.0f} s' for n, t in each.items())})")
+
+
+def _check_a_multi_host_pod_in_detail(report, out):
+  """v4-16 (8 chips, megacore, on 2 hosts): memory, the step's one all-reduce of the gradients and the figures
+  the tool prints."""
+  assert (report["chips"], report["hosts"]) == (8, 2)
+  assert report["host_rows_contiguous"]  # each host's chips hold the rows that host loads
+  for name in ("step", "eval", "orbit"):
+    assert 0 < report[name]["memory"]["peak_bytes"] <= 32 * 2**30, name
+  step = report["step"]
+  # A data-parallel step's only cross-chip traffic: one all-reduce of the gradients and a few scalars.
+  reduced = sum(c["bytes"] * c["count"] for c in step["collectives"])
+  assert report["param_bytes"] <= reduced <= report["param_bytes"] + 64
+  assert step["run_seconds"] == pytest.approx(step["seconds"] * report["num_steps"])
+  assert "v4-16 (v4:2x2x2, 8 chips of TPU v4 on 2 hosts)" in out.stdout
+  assert "step collectives: the gradient all-reduce and scalars only" in out.stdout
 
 
 PROBE = r"""
