@@ -239,17 +239,16 @@ def test_abandoned_orbax_reads_are_quiet_and_other_reports_are_not(caplog):
   mine = types.SimpleNamespace(exc_value=None, exc_traceback=None, object=coroutine_of("/home/me/mine.py"))
   hook(mine)
   assert seen == [mine]
-  with caplog.at_level(logging.ERROR, logger="asyncio"):
-    for where in (orbax_file, "/home/me/mine.py"):
-      logging.getLogger("asyncio").error(f"Task exception was never retrieved\nfuture: <Task finished "
-                                         f"coro=<async_deserialize() done, defined at {where}:394>>")
-  assert [r.getMessage().count("mine.py") for r in caplog.records] == [1]
-  caplog.clear()
-  with caplog.at_level(logging.ERROR, logger="asyncio"):
-    for where in (orbax_file, "/home/me/mine.py"):
-      logging.getLogger("asyncio").error(f"Task was destroyed but it is pending!\ntask: <Task pending "
-                                         f"coro=<async_deserialize() running at {where}:400>>")
-  assert [r.getMessage().count("mine.py") for r in caplog.records] == [1]
+  # A task that failed, and one still pending at exit: each line names its coroutine's file.
+  for report in ("Task exception was never retrieved\nfuture: <Task finished coro=<async_deserialize() done, "
+                 "defined at {where}:394>>",
+                 "Task was destroyed but it is pending!\ntask: <Task pending coro=<async_deserialize() running "
+                 "at {where}:400>>"):
+    caplog.clear()
+    with caplog.at_level(logging.ERROR, logger="asyncio"):
+      for where in (orbax_file, "/home/me/mine.py"):
+        logging.getLogger("asyncio").error(report.format(where=where))
+    assert [r.getMessage().count("mine.py") for r in caplog.records] == [1], report
   # A future gathering several reads names no file: its exception's traceback (orbax re-raises tensorstore's
   # error from its own code) tells whose it was.
   caplog.clear()
