@@ -150,7 +150,7 @@ def _bad_argv(name: str, value) -> list[str]:
 
 
 @pytest.mark.slow
-def test_the_command_refuses_every_bad_value_of_every_field_before_any_work(tmp_path):
+def test_the_command_refuses_every_bad_value_of_every_field_before_any_work():
   """Exit 2, one `nerfpod: error:` line naming the field, no traceback, nothing trained or written. (Each
   command runs `python -m nerfpod.main`'s entry point in a process forked from one that imported it:
   procs.run_main_each; test_an_unknown_config_argument_is_one_sentence starts the command itself.)"""
