@@ -332,7 +332,8 @@ class _AbandonedReadTasks(logging.Filter):
   """Drops asyncio's "... exception was never retrieved" for orbax's reads (an abandoned read that failed
   too, reported when its task, or the future gathering several, is collected: a traceback per array), and
   its "Task was destroyed but it is pending" for those still under way at exit. A task's line names the
-  coroutine's file; a gathering future's names none, so its exception's traceback is read too."""
+  coroutine's file; a gathering future's names none, so its exception's traceback is read too; a future
+  tensorstore itself failed has no traceback: its status-code message tells."""
 
   def filter(self, record):
     message = record.getMessage()
@@ -341,7 +342,21 @@ class _AbandonedReadTasks(logging.Filter):
     if "exception was never retrieved" not in message:
       return True
     error = record.exc_info[1] if record.exc_info else None
-    return not (_in_orbax(message) or _raised_in_orbax(error))
+    return not (_in_orbax(message) or _raised_in_orbax(error) or _tensorstore_status(error))
+
+
+# absl status codes, which begin the message of an error raised in tensorstore's C++ code.
+_STATUS_CODES = ("CANCELLED", "UNKNOWN", "INVALID_ARGUMENT", "DEADLINE_EXCEEDED", "NOT_FOUND", "ALREADY_EXISTS",
+                 "PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "FAILED_PRECONDITION", "ABORTED", "OUT_OF_RANGE",
+                 "UNIMPLEMENTED", "INTERNAL", "UNAVAILABLE", "DATA_LOSS", "UNAUTHENTICATED")
+
+
+def _tensorstore_status(error) -> bool:
+  """Whether `error` is one tensorstore set on a future from its C++ code (no Python frame, a status-code
+  message): a read orbax started and abandoned, where nothing else in a process awaits tensorstore futures
+  without their results."""
+  return (error is not None and error.__traceback__ is None
+          and str(error).split(":", 1)[0] in _STATUS_CODES)
 
 
 def _in_orbax(filename: str) -> bool:
@@ -364,7 +379,10 @@ def quiet_abandoned_reads(hook):
   damaged step): orbax stops at the first failed read and closes its event loop with the other reads still
   under way, so each of those later reports "Event loop is closed" (from tensorstore's thread) or, at exit,
   an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened.
-  Also quiets asyncio's log of those reads that failed in turn (a logging filter, installed once)."""
+  Also quiets asyncio's log of those reads that failed in turn (a logging filter, installed once). A hook
+  that is already one of these is returned as it is."""
+  if getattr(hook, "quiets_abandoned_reads", False):
+    return hook
   asyncio_log = logging.getLogger("asyncio")
   if not any(isinstance(f, _AbandonedReadTasks) for f in asyncio_log.filters):
     asyncio_log.addFilter(_AbandonedReadTasks())
@@ -377,6 +395,7 @@ def quiet_abandoned_reads(hook):
     abandoned_read = code is not None and _in_orbax(code.co_filename)
     if not (closed_loop or abandoned_read):
       hook(unraisable)
+  quiet.quiets_abandoned_reads = True
   return quiet
 
 

@@ -40,6 +40,14 @@ def require(path: pathlib.Path):
   return path
 
 
+def damage_checkpoint(step_dir: pathlib.Path):
+  """Truncates the largest file of a checkpoint step's train state to half its size (a disk or a copy cut
+  off): the step no longer reads back whole."""
+  largest = max((p for p in (step_dir / "state").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+  with open(largest, "r+b") as f:
+    f.truncate(largest.stat().st_size // 2)
+
+
 def smoke_config(**overrides):
   """configs/default.py:smoke with dotted overrides, e.g. smoke_config(**{"train.num_steps": 5})."""
   from nerfpod.config_util import override

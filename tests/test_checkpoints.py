@@ -270,3 +270,12 @@ def test_abandoned_orbax_reads_are_quiet_and_other_reports_are_not(caplog):
           f"_GatheringFuture exception was never retrieved\nfuture: <_GatheringFuture finished "
           f"exception={error!r}>", exc_info=(type(error), error, error.__traceback__))
   assert [r.exc_info[2].tb_next.tb_frame.f_code.co_filename for r in caplog.records] == ["/home/me/mine.py"]
+  # A future tensorstore failed from its C++ code has no traceback: a status-code message is one of its reads.
+  caplog.clear()
+  with caplog.at_level(logging.ERROR, logger="asyncio"):
+    for error in (ValueError('OUT_OF_RANGE: Error reading "params.w/0.0" in OCDBT database'),
+                  ValueError("could not convert 'x'"), raised_in("/home/me/mine.py")):
+      logging.getLogger("asyncio").error(f"Future exception was never retrieved\nfuture: <Future finished "
+                                         f"exception={error!r}>", exc_info=(type(error), error, error.__traceback__))
+  assert [str(r.exc_info[1]) for r in caplog.records] == [
+      "could not convert 'x'", "Encountered error while reading array index"]

@@ -387,6 +387,30 @@ def test_mesh_and_point_cloud_lie_on_the_procedural_scenes_true_surfaces(tmp_pat
   assert np.median(gaps) < 0.04, np.median(gaps)
 
 
+def test_a_workdir_whose_every_checkpoint_is_damaged_is_one_sentence_and_nothing_after_it(smoke_workdir, tmp_path):
+  """The command on a workdir none of whose checkpoints reads back whole: exit 2, one sentence naming each step,
+  and none of the reports of the reads orbax abandoned when the restore failed (a traceback per array)."""
+  import shutil
+  import subprocess
+  import sys
+  from conftest import REPO, damage_checkpoint
+  from procs import environment
+  workdir = tmp_path / "damaged"
+  shutil.copytree(smoke_workdir, workdir)
+  steps = sorted(p for p in (workdir / "checkpoints").iterdir() if p.name.isdigit())
+  for step in steps:
+    damage_checkpoint(step)
+  done = subprocess.run([sys.executable, "-m", "nerfpod.export", "pointcloud", f"--workdir={workdir}",
+                         "--num_points=100"], cwd=REPO, env=environment(1), capture_output=True, text=True,
+                        timeout=300)
+  assert done.returncode == 2, done.stderr[-3000:]
+  (error,) = [line for line in done.stderr.splitlines() if "error:" in line]
+  assert error.startswith(f"nerfpod export: error: no checkpoint in {workdir / 'checkpoints'} reads back whole")
+  assert all(f"step {step.name}: " in error for step in steps), error
+  for noise in ("Traceback", "never retrieved", "Task was destroyed", "Exception ignored", "Event loop is closed"):
+    assert noise not in done.stderr, done.stderr[-3000:]
+
+
 def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_path):
   """`nerfpod export KIND ...` as the console script runs it, in a process of its own (one CPU device)."""
   import os

@@ -17,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import LEGO, REPO, SMOKE_RUN_OVERRIDES, TINY_NPZ, require, smoke_config
+from conftest import LEGO, REPO, SMOKE_RUN_OVERRIDES, TINY_NPZ, damage_checkpoint, require, smoke_config
 from nerfpod import workdir_files
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -124,14 +124,6 @@ def test_a_missing_workdir_is_named_with_the_way_out(tmp_path):
   assert not missing.exists()
 
 
-def _damage(step_dir: pathlib.Path):
-  """Truncates the largest file of a checkpoint step's train state to half its size (a disk or a copy cut
-  off): the step no longer reads back whole."""
-  largest = max((p for p in (step_dir / "state").rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
-  with open(largest, "r+b") as f:
-    f.truncate(largest.stat().st_size // 2)
-
-
 def _files(directory: pathlib.Path) -> dict[str, bytes]:
   return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
 
@@ -150,7 +142,7 @@ def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_pl
   ckpts = workdir / "checkpoints"
   for newer in set(checkpoints.finished_steps(str(workdir))) - {10, 20}:  # one written by the page test
     shutil.rmtree(ckpts / str(newer))
-  _damage(ckpts / "20")
+  damage_checkpoint(ckpts / "20")
   damaged = _files(ckpts / "20")
   capsys.readouterr()
   viewer = view.Viewer(str(workdir), port=0, poll_seconds=3600)  # polled by hand below
@@ -167,7 +159,7 @@ def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_pl
 
     # A new step that is damaged: the page keeps step 10 and says why; it is read once, not at every poll.
     shutil.copytree(ckpts / "10", ckpts / "30")
-    _damage(ckpts / "30")
+    damage_checkpoint(ckpts / "30")
     assert not viewer.poll() and viewer.step == 10
     (line,) = _warnings(capsys)
     assert "the checkpoint of step 30" in line
@@ -376,7 +368,7 @@ def test_bad_workdirs_and_a_busy_port_are_one_sentence(trained_workdir, tmp_path
   shutil.copytree(trained_workdir, damaged)
   steps = sorted(int(p.name) for p in (damaged / "checkpoints").iterdir())
   for step in steps:
-    _damage(damaged / "checkpoints" / str(step))
+    damage_checkpoint(damaged / "checkpoints" / str(step))
   result = _view(f"--workdir={damaged}", "--port=0")
   _assert_one_sentence(result, f"no checkpoint in {damaged / 'checkpoints'} reads back whole",
                        *(f"step {step}: " for step in steps), "train again")

@@ -60,7 +60,9 @@ def export(args) -> list[str] | dict:
   if args.kind == "video":
     return module.export(args)
   module.check(args)
-  from nerfpod import distributed  # imports JAX: only for the kinds that need it
+  from nerfpod import checkpoints, distributed  # import JAX: only for the kinds that need it
+  # A damaged checkpoint's failed restore leaves orbax's other reads to report themselves at exit.
+  sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
   distributed.keep_off_absent_tpu()
   distributed.initialize()  # several hosts (a TPU pod, JAX_* variables) render together; else one process
   from nerfpod.export import trained as trained_lib
