@@ -359,8 +359,9 @@ def _tensorstore_status(error) -> bool:
           and str(error).split(":", 1)[0] in _STATUS_CODES)
 
 
-def _in_orbax(filename: str) -> bool:
-  return f"{os.sep}orbax{os.sep}" in filename
+def _in_orbax(text: str) -> bool:
+  """Whether `text` (a file name, or a report naming one) names a file of orbax's."""
+  return f"{os.sep}orbax{os.sep}" in text
 
 
 def _raised_in_orbax(error) -> bool:

@@ -48,6 +48,12 @@ def damage_checkpoint(step_dir: pathlib.Path):
     f.truncate(largest.stat().st_size // 2)
 
 
+# What orbax's reads, abandoned by a failed restore, would print after a command's one sentence (a report per
+# array) where nerfpod did not quiet them (checkpoints.quiet_abandoned_reads).
+ABANDONED_READ_REPORTS = ("Traceback", "Event loop is closed", "Exception ignored", "never retrieved",
+                          "Task was destroyed")
+
+
 def smoke_config(**overrides):
   """configs/default.py:smoke with dotted overrides, e.g. smoke_config(**{"train.num_steps": 5})."""
   from nerfpod.config_util import override

@@ -47,8 +47,8 @@ def test_under_users_own_compiler_flags_the_smoke_job_gives_the_same_recorded_va
   import json
   import procs
   from tensorboard.backend.event_processing import event_accumulator
-  flags = [f"--config.{key}={value}" for key, value in SMOKE_RUN_OVERRIDES.items()]
-  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *flags,
+  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}",
+                          *procs.overrides_to_flags(SMOKE_RUN_OVERRIDES),
                           devices_per_process=8, env={"XLA_FLAGS": ""})
   assert result.returncode == 0, result.stderr[-3000:]
   events = event_accumulator.EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})

@@ -17,7 +17,8 @@ import time
 import numpy as np
 import pytest
 
-from conftest import LEGO, REPO, SMOKE_RUN_OVERRIDES, TINY_NPZ, damage_checkpoint, require, smoke_config
+from conftest import (ABANDONED_READ_REPORTS, LEGO, REPO, SMOKE_RUN_OVERRIDES, TINY_NPZ, damage_checkpoint, require,
+                      smoke_config)
 from nerfpod import workdir_files
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -374,7 +375,7 @@ def test_bad_workdirs_and_a_busy_port_are_one_sentence(trained_workdir, tmp_path
                        *(f"step {step}: " for step in steps), "train again")
   warnings = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: warning:")]
   assert len(warnings) == len(steps), result.stderr
-  for noise in ("Event loop is closed", "Exception ignored", "never retrieved", "Task was destroyed"):
+  for noise in ABANDONED_READ_REPORTS:
     assert noise not in result.stderr, result.stderr
   # No network here: one sentence at once (before a bucket client's minute of retries), naming the workdir.
   _assert_one_sentence(_view("--workdir=gs://nerfpod-no-such-bucket-for-tests/run", "--port=0"),
