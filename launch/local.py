@@ -6,7 +6,8 @@
 
 Everything after `--` goes to `python -m nerfpod.main` unchanged; the launcher adds
 --coordinator_address=127.0.0.1:<free port>, --num_processes and --process_id, and sets JAX_NUM_CPU_DEVICES
-and JAX_PLATFORMS=cpu. Process 0's output streams here; the others' goes to --log_dir.
+and JAX_PLATFORMS=cpu (with --platform=gpu instead: JAX_PLATFORMS=cuda and each process its own GPUs, through
+CUDA_VISIBLE_DEVICES). Process 0's output streams here; the others' goes to --log_dir.
 
 SIGTERM, and a first Ctrl-C, reach every process as SIGTERM, which is what a TPU VM gets before
 maintenance: the processes agree on a step, checkpoint it and exit with the preempted status (75 unless
@@ -50,6 +51,9 @@ def parse(argv: list[str]) -> tuple[argparse.Namespace, list[str]]:
                       "new temporary folder")
   parser.add_argument("--grace_s", type=float, default=30.0, help="seconds the other processes get to "
                       "stop by themselves after one failed, before they are killed")
+  parser.add_argument("--platform", choices=("cpu", "gpu"), default="cpu", help="cpu: simulated CPU devices "
+                      "(--devices_per_process each); gpu: process i sees the machine's GPUs i*M .. i*M+M-1 "
+                      "(M = --devices_per_process), through CUDA_VISIBLE_DEVICES")
   parser.add_argument("--module", default="nerfpod.main", help="Python module each process runs")
   parser.add_argument("--preempted_exit_code", type=int, default=75, help="the processes' exit status after "
                       "stopping at a checkpoint (their checkpoint.preempted_exit_code): not a failure; the "
@@ -64,8 +68,14 @@ def commands(args: argparse.Namespace, forwarded: list[str], port: int) -> list[
   """(argv, environment) of each process."""
   out = []
   for index in range(args.num_processes):
-    env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(args.devices_per_process), JAX_PLATFORMS="cpu",
-               PYTHONUNBUFFERED="1")
+    if args.platform == "cpu":
+      env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(args.devices_per_process), JAX_PLATFORMS="cpu",
+                 PYTHONUNBUFFERED="1")
+    else:
+      first = index * args.devices_per_process
+      env = dict(os.environ, JAX_PLATFORMS="cuda", PYTHONUNBUFFERED="1", CUDA_VISIBLE_DEVICES=",".join(
+          str(first + i) for i in range(args.devices_per_process)))
+      env.pop("JAX_NUM_CPU_DEVICES", None)
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [REPO, os.environ.get("PYTHONPATH", "")]))
     for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
       env.pop(name, None)  # the flags below say it all; stale variables would only confuse

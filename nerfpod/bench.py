@@ -35,6 +35,8 @@ _QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20
 _MAX_SECONDS = flags.DEFINE_float("max_seconds", 600.0, "Quality mode: stop after this much wall time.")
 _EVAL_EVERY = flags.DEFINE_integer("eval_every", 250, "Quality mode: steps between held-out evaluations.")
 _OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file.")
+_PEAK_SIZE = flags.DEFINE_integer("peak_matmul_size", 2048, "Throughput mode: n of the n x n x n matmul whose "
+                                  "FLOP/s is the peak (a large accelerator needs a larger one to be busy).")
 _TARGETS = flags.DEFINE_list("targets", [], "Quality mode: more held-out PSNRs (dB) to time, beside 20, 25, 28 "
                              "and 30, e.g. --targets=31,33.")
 THRESHOLDS = (20.0, 25.0, 28.0, 30.0)
@@ -110,7 +112,7 @@ class _Trainer:
                           for index, out in evaluate.render_views(self.comps, self.state.params)]))
 
 
-def throughput(config, steps: int) -> dict:
+def throughput(config, steps: int, peak_size: int | None = None) -> dict:
   import jax
   from nerfpod import compilation
   trainer = _Trainer(config)
@@ -127,7 +129,8 @@ def throughput(config, steps: int) -> dict:
     t2 = time.perf_counter()
     data_s, step_s = data_s + t1 - t0, step_s + t2 - t1
   options = compilation.compiler_options(config)
-  peak = matmul_peak_flops(options)
+  size = {} if peak_size is None else {"n": peak_size}  # None: matmul_peak_flops's own default
+  peak = matmul_peak_flops(options, **size)
   rays = steps * config.train.batch_size
   samples = samples_per_ray(config)
   achieved = flops_per_step * steps / step_s / trainer.comps.mesh.size  # per device, as the peak is
@@ -136,16 +139,16 @@ def throughput(config, steps: int) -> dict:
           "step_ms": 1e3 * step_s / steps, "data_ms": 1e3 * data_s / steps,
           "data_fraction": data_s / (data_s + step_s), "flops_per_step": flops_per_step,
           "achieved_flops": achieved, "matmul_peak_flops": peak, "fraction_of_peak": achieved / peak,
-          **_compute_dtype_peak(config, options, achieved), **_peak_memory()}
+          **_compute_dtype_peak(config, options, achieved, size), **_peak_memory()}
 
 
-def _compute_dtype_peak(config, options: dict, achieved: float) -> dict:
+def _compute_dtype_peak(config, options: dict, achieved: float, size: dict | None = None) -> dict:
   """With mixed precision, also the peak of matmuls in the compute dtype (e.g. bfloat16 on TPU/GPU, where
   it is several times the float32 one) and the ratio to it."""
   dtype = config.model.compute_dtype
   if dtype == "float32":
     return {}
-  peak = matmul_peak_flops(options, dtype=dtype)
+  peak = matmul_peak_flops(options, dtype=dtype, **(size or {}))
   return {f"matmul_peak_flops_{dtype}": peak, f"fraction_of_{dtype}_peak": achieved / peak}
 
 
@@ -273,7 +276,7 @@ def main(argv):
     result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value,
                                         thresholds=THRESHOLDS + tuple(targets))
   else:
-    result["throughput"] = throughput(config, _STEPS.value)
+    result["throughput"] = throughput(config, _STEPS.value, _PEAK_SIZE.value)
   line = json.dumps(result)
   print(line)
   if _OUT.value:

@@ -275,7 +275,10 @@ def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
   _barrier("nerfpod_orbit_frames_written")
   files = []
   if me == 0:
-    files, sheet = archive.export(fps=attributes["fps"], formats=("mp4", "png"))
+    formats = ("mp4", "png") if video.mp4_available() else ("gif", "png")
+    if "gif" in formats:
+      print("orbit: no ffmpeg for mp4s (pip install imageio-ffmpeg): writing gifs instead", flush=True)
+    files, sheet = archive.export(fps=attributes["fps"], formats=formats)
     shown = [f.removeprefix(str(workdir)).lstrip("/") if archives.is_url(f) else os.path.relpath(f, workdir)
              for f in files]
     print(f"orbit: wrote {', '.join(shown)}", flush=True)

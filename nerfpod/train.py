@@ -103,6 +103,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
       write_config(workdir, json.loads(config.to_json_best_effort()))
       write_scene(workdir, comps.scene.description())
       slices = distributed.num_slices(comps.mesh)
+      print(f"nerfpod: JAX {jax.__version__} on {jax.default_backend()}: {jax.device_count()} x "
+            f"{jax.devices()[0].device_kind}", flush=True)
       print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
             f"{jax.process_count()} process(es), {jax.device_count()} device(s)"
             f"{f' in {slices} slices' if slices > 1 else ''}, "

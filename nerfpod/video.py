@@ -15,6 +15,17 @@ from nerfpod.nerf import compositing
 
 FORMATS = ("mp4", "gif", "png")
 
+
+def mp4_available() -> bool:
+  """Whether imageio finds an ffmpeg to write mp4s with (imageio-ffmpeg's own binary, or IMAGEIO_FFMPEG_EXE):
+  a machine given nerfpod's code without its dependencies (an accelerator image, packages carried by hand)
+  may have none."""
+  try:
+    import imageio_ffmpeg
+    return os.path.exists(imageio_ffmpeg.get_ffmpeg_exe())
+  except (ImportError, RuntimeError):
+    return False
+
 # Polynomial fit of Google's turbo colour map (Anton Mikhailov, 2019), per channel: coefficients of
 # 1, x, ..., x^5. It follows the map closely except below x = 0.02, where it turns grey.
 _TURBO_FIT_START = 0.02

