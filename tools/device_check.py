@@ -85,10 +85,11 @@ class Check:
 
 def _commit() -> str | None:
   try:
-    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
-                          timeout=10).stdout.strip() or None
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True,
+                            timeout=10).stdout.strip()
   except (OSError, subprocess.SubprocessError):
-    return os.environ.get("NERFPOD_COMMIT")
+    commit = ""
+  return commit or os.environ.get("NERFPOD_COMMIT")  # a copy of the tree without .git: the caller says
 
 
 def _last_json(output: str) -> dict | None:
