@@ -69,16 +69,35 @@ def wait_for_all(name: str, timeout_s: float = 600.0) -> None:
     client.wait_at_barrier(name, timeout_in_ms=int(timeout_s * 1000))
 
 
+def pjrt_plugins() -> set[str]:
+  """The PJRT plugins JAX will load when its backends start (e.g. 'xla_cuda13' from jax-cuda13-plugin), found
+  where JAX itself looks for them: modules of the `jax_plugins` namespace package and `jax_plugins` entry
+  points."""
+  import importlib.metadata
+  import pkgutil
+  names = {entry.name for entry in importlib.metadata.entry_points(group="jax_plugins")}
+  try:
+    import jax_plugins
+    names |= {module.name for module in pkgutil.iter_modules(jax_plugins.__path__)}
+  except ImportError:
+    pass
+  return names
+
+
 def keep_off_absent_tpu() -> bool:
   """Leaves the TPU runtime alone where it is installed but no TPU chip is: returns whether it did so.
 
   With libtpu installed (the `tpu` extra, for the pod compile tool), JAX would try to start a TPU backend
   on every run, printing pages of TPU initialisation errors on a machine without one before it falls back
-  to the CPU. Where no TPU chip is attached, no platform was chosen (JAX_PLATFORMS) and the CPU is the only
-  other backend, this picks the CPU, so that a CPU run with the extra behaves exactly as one without it.
-  Must run before the first JAX computation.
+  to the CPU. Where no TPU chip is attached, no platform was chosen (JAX_PLATFORMS), no other plugin (a GPU's)
+  is installed and the CPU is the only other backend, this picks the CPU, so that a CPU run with the extra
+  behaves exactly as one without it. Must run before the first JAX computation.
   """
   if os.environ.get("JAX_PLATFORMS") or jax.config.jax_platforms:
+    return False
+  if pjrt_plugins():
+    # A GPU (or other) plugin registers its backend only when JAX starts its backends, after this runs: the
+    # factories below would list only the CPU and the TPU, and this would keep a GPU machine on its CPU.
     return False
   try:
     from jax._src import hardware_utils, xla_bridge  # no public way to list the backends before they start

@@ -155,7 +155,7 @@ def _has_ffmpeg(check: Check) -> bool:
 
 
 def stage_bench(check: Check, config: list[str], batch_size: int, steps: int, timeout: float,
-                peak_size: int) -> dict:
+                peak_size: int, backend: str | None) -> dict:
   args = [PYTHON, "-m", "nerfpod.bench", *config, f"--config.train.batch_size={batch_size}", f"--steps={steps}",
           f"--peak_matmul_size={peak_size}"]
   code, output, seconds = check.run(args, timeout)
@@ -165,11 +165,14 @@ def stage_bench(check: Check, config: list[str], batch_size: int, steps: int, ti
   t = result["throughput"]
   keep = ("rays_per_s", "samples_per_s", "step_ms", "data_ms", "data_fraction", "flops_per_step", "achieved_flops",
           "matmul_peak_flops", "fraction_of_peak", "device_peak_mib", "host_peak_rss_mib")
-  return {"status": "ok", "seconds": seconds, "batch_size": batch_size, "steps": steps,
-          **{k: t[k] for k in keep if k in t}, "machine": result.get("machine")}
+  ran_on = (result.get("machine") or {}).get("backend")
+  return {"status": "ok" if backend in (None, ran_on) else f"ran on {ran_on}, not {backend}", "seconds": seconds,
+          "batch_size": batch_size, "steps": steps, **{k: t[k] for k in keep if k in t},
+          "machine": result.get("machine")}
 
 
-def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips: bool) -> dict:
+def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips: bool,
+                  backend: str | None) -> dict:
   shutil.rmtree(workdir, ignore_errors=True)
   args = [PYTHON, "-m", "nerfpod.main", f"--config={config}", f"--workdir={workdir}"]
   if not lpips:
@@ -180,6 +183,8 @@ def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips
   first = [line for line in output.splitlines() if line.startswith("nerfpod: ")]
   if first:
     result["first_line"] = first[0]
+    if backend and f" on {backend}:" not in first[0] and result["status"] == "ok":
+      result["status"] = f"not on {backend}"
   try:
     with open(os.path.join(workdir, "eval", "metrics.json")) as f:
       metrics = json.load(f)
@@ -266,7 +271,7 @@ def markdown(report: dict) -> str:
       figures = (f"flax {r.get('flax')}, optax {r.get('optax')}, orbax {r.get('orbax-checkpoint')}, "
                  f"grain {r.get('grain')}, tensorstore {r.get('tensorstore')}; device memory "
                  f"{_fmt(r.get('device_memory_gib'), 1)} GiB; ffmpeg {'yes' if r.get('ffmpeg') else 'no'}")
-    elif name.startswith("bench") and r.get("status") == "ok":
+    elif name.startswith("bench") and "rays_per_s" in r:
       figures = (f"{r['batch_size']:,} rays/step: {_fmt(r.get('rays_per_s'))} rays/s, step {_fmt(r.get('step_ms'), 2)} ms "
                  f"(data {_fmt(r.get('data_ms'), 2)} ms), {_fmt(r.get('achieved_flops', 0) / 1e12, 2)} TFLOP/s = "
                  f"{_fmt(100 * r.get('fraction_of_peak', 0), 1)}% of the f32 matmul peak "
@@ -338,10 +343,11 @@ def main(argv=None) -> int:
         check.record(name, {"status": "skipped", "seconds": 0, "reason": "lego_400 not found (--data)"})
         continue
       check.record(name, stage_bench(check, bench_config, batch_size, steps, min(limits["bench"], left()),
-                                           256 if args.tiny else 8192))
+                                           256 if args.tiny else 8192, env.get("backend")))
   if "default" in stages:
     check.record("default", stage_default(check, default_config, os.path.join(work, "default"),
-                                          min(limits["default"], left()), bool(env.get("lpips_weights"))))
+                                          min(limits["default"], left()), bool(env.get("lpips_weights")),
+                                          env.get("backend")))
   if "quality" in stages:
     if quality_config is None:
       check.record("quality", {"status": "skipped", "seconds": 0, "reason": "lego_400 not found (--data)"})
