@@ -89,7 +89,7 @@ def _commit() -> str | None:
                             timeout=10).stdout.strip()
   except (OSError, subprocess.SubprocessError):
     commit = ""
-  return commit or os.environ.get("NERFPOD_COMMIT")  # a copy of the tree without .git: the caller says
+  return os.environ.get("NERFPOD_COMMIT") or commit  # a copy of the tree whose .git is not its own: the caller says
 
 
 def _last_json(output: str) -> dict | None:
