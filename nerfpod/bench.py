@@ -71,6 +71,11 @@ def _peak_memory() -> dict:
   return out
 
 
+def _first(cost):
+  """XLA's cost analysis as one dict (older JAX gave a list of one)."""
+  return cost[0] if isinstance(cost, (list, tuple)) and cost else cost
+
+
 class _Trainer:
   """A config's components (nerfpod.components), its train step and a batch stream from step 0."""
 
@@ -100,9 +105,11 @@ class _Trainer:
   def flops_per_step(self, batch) -> float:
     """The whole step's FLOPs over all devices as XLA counts them (2 per multiply-add), whatever the
     micro-batching. (XLA's cost analysis of a sharded step counts one device's share.)"""
-    cost = self.unlooped_step_fn.lower(self.state, batch, self.key).cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    return float(cost.get("flops", float("nan"))) * self.comps.mesh.size
+    lowered = self.unlooped_step_fn.lower(self.state, batch, self.key)
+    cost = _first(lowered.cost_analysis())
+    if not cost:  # a GPU's lowered program has none (JAX 0.11, an H200): the compiled one's
+      cost = _first(lowered.compile().cost_analysis())
+    return float((cost or {}).get("flops", float("nan"))) * self.comps.mesh.size
 
   def heldout_psnr(self) -> float:
     import numpy as np

@@ -51,6 +51,19 @@ def test_throughput_report_and_flops_that_count_every_micro_batch():
   assert 1.0 <= four["flops_per_step"] / by_hand < 1.15, (four["flops_per_step"], by_hand)
 
 
+def test_flops_come_from_the_compiled_step_where_the_lowered_one_has_no_cost_analysis(monkeypatch):
+  """On a GPU (JAX 0.11, an H200) a lowered program's cost_analysis() is None: the report took it for a
+  dict and failed. The compiled step's count is the same program's."""
+  import jax
+  config = smoke_config(**MLP)
+  trainer = benchmark._Trainer(config)
+  batch = trainer.next_batch()
+  lowered_count = trainer.flops_per_step(batch)
+  monkeypatch.setattr(jax.stages.Lowered, "cost_analysis", lambda self: None)
+  compiled_count = trainer.flops_per_step(batch)
+  assert compiled_count > 0 and compiled_count == pytest.approx(lowered_count, rel=0.05)
+
+
 def test_mixed_precision_is_also_measured_against_the_bfloat16_peak():
   config = smoke_config(**{"train.batch_size": 64, "model.compute_dtype": "bfloat16"})
   result = benchmark.throughput(config, steps=1)

@@ -232,7 +232,7 @@ def stage_pod(check: Check, gpus: int, workdir: str, timeout: float, tiny: bool)
             "--platform=gpu", *forwarded]
     how = "2 processes x 1 GPU"
   else:
-    per = 2 if tiny else 4
+    per = 1 if tiny else 4
     args = [PYTHON, os.path.join(REPO, "launch", "local.py"), "--num_processes=2", f"--devices_per_process={per}",
             *forwarded]
     how = f"2 processes x {per} simulated CPU devices" + (" (one GPU: two processes cannot each have one)"

@@ -1,0 +1,46 @@
+"""tools/device_check.sh --tiny: the accelerator check's every stage, run here on the CPU, so it never rots."""
+import json
+import math
+import os
+import subprocess
+
+import pytest
+
+from conftest import REPO
+
+pytestmark = pytest.mark.slow
+
+
+def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_path):
+  out = tmp_path / "report"
+  env = {k: v for k, v in os.environ.items() if k != "OUT"}
+  done = subprocess.run(["bash", str(REPO / "tools" / "device_check.sh"), "--tiny", f"--out={out}"], cwd=tmp_path,
+                        env=env, capture_output=True, text=True, timeout=600)
+  log = (out / "device_check.log").read_text() if (out / "device_check.log").exists() else ""
+  assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:] + log[-3000:]
+  report = json.loads((out / "device_check.json").read_text())
+  stages = report["stages"]
+  assert list(stages) == ["env", "bench_64", "bench_128", "default", "quality", "pod"]
+  assert all(stage["status"] == "ok" for stage in stages.values()), stages
+  env_stage = stages["env"]
+  assert env_stage["backend"] == "cpu" and env_stage["device_count"] >= 1 and env_stage["jax"]
+  for size in (64, 128):
+    bench = stages[f"bench_{size}"]
+    assert bench["batch_size"] == size and bench["rays_per_s"] > 0 and bench["step_ms"] > 0
+    assert bench["flops_per_step"] > 0 and 0 < bench["fraction_of_peak"]
+    assert bench["machine"]["backend"] == env_stage["backend"]  # the run is on the machine's own backend
+  default = stages["default"]
+  assert default["step"] == 20 and default["views"] == 2 and math.isfinite(default["psnr"])
+  assert default["first_line"].startswith("nerfpod: JAX ") and " on cpu: " in default["first_line"]
+  assert "orbit.zarr" in default["renders"] and "orbit_sheet.png" in default["renders"]
+  quality = stages["quality"]
+  best = max(h["psnr"] for h in quality["history"])
+  for target in (8.0, 9.0, 20.0):  # reached exactly where the held-out PSNR got there
+    assert (quality[f"seconds_to_{target:g}db"] is not None) == (best >= target), quality
+  assert quality["final_step"] == 40
+  pod = stages["pod"]
+  assert pod["how"].startswith("2 processes") and math.isfinite(pod["psnr"])
+  table = (out / "device_check.md").read_text()
+  for name in stages:
+    assert f"| {name} | ok |" in table
+  assert f"PSNR {default['psnr']:.2f} dB" in table
