@@ -385,3 +385,59 @@ def test_a_data_mistake_leaves_no_new_workdir_and_no_lock_behind(tmp_path):
   with pytest.raises(UserError, match="no-such-scene"):
     modes.train_and_evaluate(config, str(existing))
   assert existing.is_dir() and list(existing.iterdir()) == []  # a folder the user made stays; no lock.json
+
+
+# A second Ctrl-C while training stops the process at once (os._exit), so it runs in a process of its own.
+_SECOND_CTRL_C = r"""
+import os, signal, sys, time
+from nerfpod import preemption
+watch = preemption.Watch(0)
+os.kill(os.getpid(), signal.SIGINT)   # the first: a preemption, the step in hand is saved
+assert watch.reached(1)
+os.kill(os.getpid(), signal.SIGINT)   # the second: stop now, without saving
+time.sleep(30)
+sys.exit(0)
+"""
+
+
+def test_a_second_ctrl_c_in_training_stops_at_once_with_status_130():
+  import subprocess
+  import sys
+  from conftest import REPO
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+  done = subprocess.run([sys.executable, "-c", _SECOND_CTRL_C], env=env, capture_output=True, text=True,
+                        timeout=60)
+  assert done.returncode == 130, done.stderr
+  assert "saving the current step" in done.stderr
+  assert done.stderr.strip().endswith("nerfpod: interrupted again: stopping now, without saving")
+
+
+@pytest.mark.parametrize("mode", ["eval", "render", "train"])
+def test_ctrl_c_outside_training_steps_exits_130_in_one_sentence(mode, monkeypatch, capsys, tmp_path):
+  """Ctrl-C in start-up, the evaluation or the orbit (a KeyboardInterrupt there): status 130, one sentence."""
+  from absl import flags
+  from nerfpod import main
+
+  def interrupted(config, workdir):
+    raise KeyboardInterrupt
+
+  for name in ("train_and_evaluate", "evaluate_workdir", "render_workdir"):
+    monkeypatch.setattr(modes, name, interrupted)
+  import sys
+  from nerfpod import compilation
+  monkeypatch.setattr(distributed, "initialize", lambda *a, **k: None)  # this process's JAX is started
+  monkeypatch.setattr(compilation, "tune_host", lambda config: None)  # process-wide: not in the test process
+  monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # main() wraps it: given back afterwards
+  argv = ["nerfpod", "--config=configs/default.py:smoke", f"--workdir={tmp_path}", f"--mode={mode}"]
+  from conftest import REPO
+  monkeypatch.chdir(REPO)
+  flags.FLAGS.unparse_flags()
+  try:
+    main._parse_flags(argv)
+    with pytest.raises(SystemExit) as exit_:
+      main.main([argv[0]])
+  finally:
+    flags.FLAGS.unparse_flags()
+  assert exit_.value.code == 130
+  err = capsys.readouterr().err.strip().splitlines()
+  assert err == ["nerfpod: interrupted; the same command resumes from the newest checkpoint"]
