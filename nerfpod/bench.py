@@ -77,10 +77,11 @@ def _first(cost):
 
 
 class _Trainer:
-  """A config's components (nerfpod.components), its train step and a batch stream from step 0."""
+  """A config's components (nerfpod.run.components), its train step and a batch stream from step 0."""
 
   def __init__(self, config):
-    from nerfpod import components, distributed, step
+    from nerfpod import distributed
+    from nerfpod.run import components, step
     self.config = config
     self.comps = components.build(config)
     compiling = step.start_compiling(self.comps)  # as a run starts: the step compiles during the init
@@ -113,7 +114,8 @@ class _Trainer:
 
   def heldout_psnr(self) -> float:
     import numpy as np
-    from nerfpod import evaluate, metrics
+    from nerfpod.render import metrics
+    from nerfpod.run import evaluate
     split = self.comps.scene.split(self.config.eval.split)
     return float(np.mean([metrics.psnr(np.clip(out["rgb"], 0, 1), split.image(index))
                           for index, out in evaluate.render_views(self.comps, self.state.params)]))
@@ -121,7 +123,7 @@ class _Trainer:
 
 def throughput(config, steps: int, peak_size: int | None = None) -> dict:
   import jax
-  from nerfpod import compilation
+  from nerfpod.run import compilation
   trainer = _Trainer(config)
   flops_per_step = trainer.flops_per_step(trainer.next_batch())
   for _ in range(3):  # warm-up
@@ -261,7 +263,8 @@ def main(argv):
       print(f"nerfpod bench: error: {message}", file=sys.stderr, flush=True)
     sys.exit(2)
   import jax
-  from nerfpod import compilation, distributed
+  from nerfpod import distributed
+  from nerfpod.run import compilation
   distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU
   compilation.tune_host(config)  # process-wide, as a training process sets it
   result = {"config": {"field": config.model.field, "samples": config.render.num_samples,

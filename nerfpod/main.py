@@ -1,7 +1,7 @@
 """nerfpod's entry point: `python -m nerfpod.main --config=configs/default.py --workdir=DIR`.
 
 Parses flags, checks the whole config (nerfpod.schema) before JAX starts, starts the multi-host runtime where
-there is one, and runs the mode (nerfpod.modes): `train` (the default: train_and_evaluate, which trains,
+there is one, and runs the mode (nerfpod.run.modes): `train` (the default: train_and_evaluate, which trains,
 evaluates and renders the orbit), `eval` or `render` (from the workdir's newest checkpoint). A user's
 mistake is printed as one sentence per problem with exit code 2. Exit codes: 0 finished; 2 bad input (or
 training diverged); checkpoint.preempted_exit_code (75) stopped early at a saved step (SIGTERM, preemption, a
@@ -69,7 +69,8 @@ def main(argv):
     distributed.initialize(_COORDINATOR.value, _NUM_PROCESSES.value, _PROCESS_ID.value,
                            heartbeat_timeout_seconds=_HEARTBEAT.value,
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
-    from nerfpod import checkpoints, compilation, modes
+    from nerfpod.run import compilation, modes
+    from nerfpod.workdir import checkpoints
     # A damaged checkpoint's failed restore leaves orbax's other reads to report themselves at exit.
     sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
     compilation.tune_host(config)  # process-wide (glibc's malloc on a CPU): here, where the process starts

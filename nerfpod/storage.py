@@ -13,7 +13,7 @@ through gcsfs (the `gcs` extra; gcsfs reads STORAGE_EMULATOR_HOST, for an emulat
 credentials as gcloud does). What a loader needs from a bucket is only listing and reading: objects,
 and the "folders" their names' slashes make. A folder's listing is kept once made (checking that a
 thousand images exist is one request), until forget_listings(): scenes.load calls it before each scene, which
-does not change while it loads; nerfpod.checkpoints before it lists a workdir's steps.
+does not change while it loads; nerfpod.workdir.checkpoints before it lists a workdir's steps.
 
 Errors on a URL: a missing object is FileNotFoundError, as for a local file, so the loaders' sentences name
 it the same way; anything else (no network, no credentials, no access) is one UserError sentence naming the

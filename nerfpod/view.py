@@ -26,7 +26,7 @@ a full render is abandoned between chunks as soon as the camera moves again. Eve
 to the renderer has the same number of rays (the last chunk padded), so it compiles once.
 
 Camera paths: "Add keyframe" records the browser's camera; "Save path" writes the keyframes' path
-(nerf/keyframes.py) as nerfstudio's camera_path.json (nerfpod.camera_path) into `paths_dir`, a local
+(nerf/keyframes.py) as nerfstudio's camera_path.json (nerfpod.render.camera_path) into `paths_dir`, a local
 folder (default ./camera_paths; never the workdir, which belongs to the training job).
 
 Viewer cameras are viser's (OpenCV: looking down +z, +y down); nerfpod's poses are OpenGL (looking down -z,
@@ -43,8 +43,11 @@ import time
 import numpy as np
 from absl import logging
 
-from nerfpod import camera_path as camera_paths
-from nerfpod import checkpoints, compilation, components, distributed, render, video, workdir_files
+from nerfpod.render import camera_path as camera_paths
+from nerfpod import distributed
+from nerfpod.render import renderer, video
+from nerfpod.run import compilation, components
+from nerfpod.workdir import checkpoints, files as workdir_files
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 
@@ -230,7 +233,7 @@ class Viewer:
     params = self.params if params is None else params
     origins, directions = cameras.image_rays(np.asarray(pose_4x4, np.float64), intr,
                                              self.config.data.pixel_center)
-    rays = render.render_rays(self.comps.renderer, params, self.comps.mesh, origins.reshape(-1, 3),
+    rays = renderer.render_rays(self.comps.renderer, params, self.comps.mesh, origins.reshape(-1, 3),
                               directions.reshape(-1, 3), self.chunk, cancelled=cancelled, fixed_chunk=True)
     if rays is None:
       return None

@@ -77,12 +77,13 @@ SMOKE_RUN_EVAL = {"eval.lpips_net": "alex"}
 @pytest.fixture(scope="session")
 def smoke_run(tmp_path_factory):
   """The smoke job (configs/default.py:smoke: 20 steps on the 8 devices) trained and evaluated once per
-  session through nerfpod.modes.train_and_evaluate with SMOKE_RUN_OVERRIDES: a namespace of `workdir` (its
+  session through nerfpod.run.modes.train_and_evaluate with SMOKE_RUN_OVERRIDES: a namespace of `workdir` (its
   checkpoints, config.json, scene.json, eval/metrics.json, events), `losses` ({step: training loss} of
   every step) and `metrics` (what eval/metrics.json holds). Tests that write into the workdir copy it first."""
   import types
 
-  from nerfpod import modes, monitor
+  from nerfpod import monitor
+  from nerfpod.run import modes
   losses = {}
 
   class Recording(monitor.Monitor):

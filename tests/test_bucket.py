@@ -16,8 +16,9 @@ from PIL import Image
 import gcs
 import procs
 from conftest import smoke_config
-from nerfpod import archive as archives
-from nerfpod import checkpoints, scenes, storage
+from nerfpod.render import archive as archives
+from nerfpod import scenes, storage
+from nerfpod.workdir import checkpoints
 from nerfpod.errors import UserError
 from nerfpod.scenes import procedural
 from test_captures import CAPTURE_KINDS as CAPTURES, data_config as _config, write_capture_kinds, write_images
@@ -223,7 +224,7 @@ def test_a_bucket_that_refuses_access_is_one_sentence(emulator, monkeypatch):
 
 
 def test_a_camera_path_file_is_read_from_a_bucket(emulator, tmp_path):
-  from nerfpod import camera_path
+  from nerfpod.render import camera_path
   from nerfpod.nerf import cameras
   poses = np.stack([cameras.spherical_pose(a, -30, 4) for a in (0, 120, 240)])
   camera_path.write(tmp_path / "path.json", camera_path.CameraPath(poses, np.array([40.0, 50.0, 60.0]), 80, 60,

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from nerfpod import camera_path
+from nerfpod.render import camera_path
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
 

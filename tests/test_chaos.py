@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 import procs
-from nerfpod import archive as archives
-from nerfpod import checkpoints
+from nerfpod.render import archive as archives
+from nerfpod.workdir import checkpoints
 
 pytestmark = pytest.mark.slow
 

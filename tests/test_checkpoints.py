@@ -12,7 +12,9 @@ import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import checkpoints, distributed, preemption, workdir_files
+from nerfpod import distributed
+from nerfpod.run import preemption
+from nerfpod.workdir import checkpoints, files as workdir_files
 from nerfpod.errors import UserError
 
 

@@ -9,7 +9,9 @@ import pytest
 from jax.sharding import Mesh
 
 from conftest import smoke_config
-from nerfpod import components, distributed, render
+from nerfpod import distributed
+from nerfpod.render import renderer
+from nerfpod.run import components
 from nerfpod.nerf import cameras, compositing
 
 
@@ -87,7 +89,7 @@ def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_ra
   origins = rng.normal(size=(num_rays, 3)).astype(np.float32)
   origins = 4.0 * origins / np.linalg.norm(origins, axis=-1, keepdims=True)
   directions = (-origins + rng.normal(scale=0.3, size=origins.shape)).astype(np.float32)
-  chunked = render.render_rays(comps.renderer, params, mesh, origins, directions, chunk)
+  chunked = renderer.render_rays(comps.renderer, params, mesh, origins, directions, chunk)
   padded = -(-num_rays // 4) * 4  # one call: every ray at once (padded to split over the 4 devices)
   pad = lambda x: np.concatenate([x, np.repeat(x[-1:], padded - num_rays, 0)])
   whole = jax.device_get(comps.renderer(params, *distributed.to_global(mesh, (pad(origins), pad(directions)))))
@@ -103,7 +105,7 @@ def test_chunked_rendering_equals_one_call_when_the_chunk_does_not_divide_the_ra
     (56, 192, 8, 48), (40, 192, 8, 40), (5, 192, 8, 8),  # a chunk below the devices: one ray each
 ])
 def test_rays_are_split_into_as_few_calls_as_the_chunk_allows_of_equal_size(chunk, num_rays, devices, want):
-  got = render.balanced_chunk(chunk, num_rays, devices)
+  got = renderer.balanced_chunk(chunk, num_rays, devices)
   assert got == want and got % devices == 0 and got <= max(devices, chunk)
   assert -(-num_rays // got) == -(-num_rays // max(devices, chunk - chunk % devices))  # no more calls
 
@@ -113,9 +115,9 @@ def test_render_image_is_its_rays_in_row_major_order(smoke):
   params = comps.init_state().params
   intr = cameras.Intrinsics.from_focal(6, 5, 8.0)
   pose = cameras.look_at(np.array([0.0, -4.0, 1.0]))
-  image = render.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 16)
+  image = renderer.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 16)
   origins, directions = cameras.image_rays(pose, intr, 0.5)
-  rays = render.render_rays(comps.renderer, params, comps.mesh, origins.reshape(-1, 3),
+  rays = renderer.render_rays(comps.renderer, params, comps.mesh, origins.reshape(-1, 3),
                             directions.reshape(-1, 3), 16)
   assert image["rgb"].shape == (5, 6, 3) and image["depth"].shape == (5, 6)
   np.testing.assert_array_equal(image["rgb"].reshape(-1, 3), rays["rgb"])
@@ -159,10 +161,10 @@ def test_eval_samples_render_the_trained_field_with_a_finer_quadrature(smoke_on_
   origins, directions = cameras.image_rays(comps.scene.split("test").poses[0], comps.scene.split("test").intrinsics,
                                            0.5)
   origins, directions = origins.reshape(-1, 3)[:64], directions.reshape(-1, 3)[:64]
-  got = render.render_rays(finer.make_renderer(), params, comps.mesh, origins, directions, 64)
+  got = renderer.render_rays(finer.make_renderer(), params, comps.mesh, origins, directions, 64)
   want = jax.jit(finer.render_model.apply, static_argnums=(3, 4))(  # one program, not op by op
       params, origins, directions, finer.near, finer.far, jnp.asarray(finer.background))[-1]
   np.testing.assert_allclose(got["rgb"], want["rgb"], rtol=1e-5, atol=1e-6)
   assert want["weights"].shape == (64, 3 * config.render.num_samples)
-  coarse = render.render_rays(comps.renderer, params, comps.mesh, origins, directions, 64)
+  coarse = renderer.render_rays(comps.renderer, params, comps.mesh, origins, directions, 64)
   assert np.abs(got["depth"] - coarse["depth"]).max() > 1e-4  # another quadrature of the same field

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from conftest import SMOKE_RUN_EVAL, SMOKE_RUN_OVERRIDES, smoke_config
-from nerfpod import evaluate, lpips, metrics, modes, render
+from nerfpod.render import lpips, metrics, renderer
+from nerfpod.run import evaluate, modes
 from nerfpod.errors import UserError
 
 OVERRIDES = dict(SMOKE_RUN_OVERRIDES, **SMOKE_RUN_EVAL)  # the session's smoke run (conftest.smoke_run): 20 steps,
@@ -59,11 +60,11 @@ def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
   config = smoke_config(**OVERRIDES)
   comps, params, step = modes.restore_trained(config, str(directory))
   assert step == STEP
-  renderer = render.make_renderer(comps.model, comps.mesh, 2.0, 6.0, comps.scene.background)
+  plain = renderer.make_renderer(comps.model, comps.mesh, 2.0, 6.0, comps.scene.background)
   split = comps.scene.split("test")
   for view in written["views"]:
-    out = render.render_image(renderer, params, comps.mesh, split.poses[view["index"]], split.intrinsics,
-                              config.data.pixel_center, 512)
+    out = renderer.render_image(plain, params, comps.mesh, split.poses[view["index"]], split.intrinsics,
+                                config.data.pixel_center, 512)
     rgb = np.clip(out["rgb"], 0, 1)
     assert view["psnr"] == pytest.approx(metrics.psnr(rgb, split.images[view["index"]]), abs=1e-4)
     assert view["ssim"] == pytest.approx(metrics.ssim(rgb, split.images[view["index"]]), abs=1e-5)
@@ -111,7 +112,7 @@ def test_lpips_is_null_with_one_sentence_where_it_cannot_be_computed(workdir, mo
 
 @pytest.mark.skipif(not lpips.available(), reason=lpips.MISSING)
 def test_views_too_small_for_the_network_get_null_lpips_with_a_reason(workdir, tmp_path):
-  from nerfpod import components
+  from nerfpod.run import components
   directory, _ = workdir
   _, params, step = modes.restore_trained(smoke_config(**OVERRIDES), str(directory))
   small = components.build(smoke_config(**dict(OVERRIDES, **{"data.image_size": 24})))  # AlexNet takes >= 31

@@ -5,8 +5,9 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 
-from nerfpod import archive as archives
-from nerfpod import orbit, video
+from nerfpod.render import archive as archives
+from nerfpod.render import video
+from nerfpod.run import orbit
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing
 from nerfpod import export as export_tool

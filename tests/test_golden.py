@@ -1,5 +1,5 @@
 """Golden values: the smoke job (configs/default.py:smoke) on 8 simulated CPU devices, trained through
-nerfpod.modes.train_and_evaluate, must give the training losses and held-out metrics recorded here, so that a
+nerfpod.run.modes.train_and_evaluate, must give the training losses and held-out metrics recorded here, so that a
 change that shifts results everywhere (a model, sampling, optimiser or data change) no longer passes unseen.
 
 The tolerance, rtol 1e-5, from measurements (2-core x86 CPU, jax 0.8, the code of 2025-11):

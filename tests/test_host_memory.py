@@ -15,7 +15,7 @@ pytestmark = pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc
 _PROBE = """
 import ctypes, sys
 sys.path.insert(0, {repo!r})
-from nerfpod import compilation
+from nerfpod.run import compilation
 applied = compilation.reuse_host_memory() if {apply} else False
 libc = ctypes.CDLL(None)
 class Info(ctypes.Structure):

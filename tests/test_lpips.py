@@ -9,7 +9,8 @@ import pickle
 import numpy as np
 import pytest
 
-from nerfpod import distributed, lpips
+from nerfpod import distributed
+from nerfpod.render import lpips
 from nerfpod.nerf import cameras
 from nerfpod.scenes import procedural
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from nerfpod import metrics
+from nerfpod.render import metrics
 
 
 def test_psnr_closed_form():

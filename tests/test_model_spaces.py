@@ -109,7 +109,7 @@ def test_inverse_spacing_is_even_in_inverse_distance(monkeypatch):
 
 
 def test_ndc_is_refused_for_a_scene_not_framed_as_a_forward_facing_capture():
-  from nerfpod import components
+  from nerfpod.run import components
   from nerfpod.errors import UserError
   with pytest.raises(UserError, match="render.space=ndc needs a forward-facing capture framed as LLFF"):
     components.build(smoke_config(**{"render.space": "ndc"}))

@@ -16,7 +16,9 @@ import pytest
 
 import procs
 from conftest import smoke_config
-from nerfpod import checkpoints, data, distributed, modes, scenes
+from nerfpod import data, distributed, scenes
+from nerfpod.run import modes
+from nerfpod.workdir import checkpoints
 from nerfpod.errors import UserError
 
 pytestmark = pytest.mark.slow

@@ -9,7 +9,8 @@ import pytest
 from jax.sharding import NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import components, data, distributed, schema, scenes, step
+from nerfpod import data, distributed, schema, scenes
+from nerfpod.run import components, step
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from conftest import smoke_config
-from nerfpod import archive as archives
-from nerfpod import components, orbit, render, video
+from nerfpod.render import archive as archives
+from nerfpod.render import renderer, video
+from nerfpod.run import components, orbit
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
 
@@ -63,7 +64,7 @@ def _reference_frames(comps, params):
   intr = orbit.orbit_intrinsics(config.orbit, comps.scene.split(config.eval.split).intrinsics)
   frames = []
   for pose in orbit.orbit_poses(config.orbit.num_frames, config.orbit.elevation, config.orbit.radius):
-    out = render.render_image(comps.renderer, params, comps.mesh, pose, intr, config.data.pixel_center, 256)
+    out = renderer.render_image(comps.renderer, params, comps.mesh, pose, intr, config.data.pixel_center, 256)
     out["rgb"] = np.round(np.clip(out["rgb"], 0, 1) * 255).astype(np.uint8)
     frames.append(out)
   return frames
@@ -150,14 +151,14 @@ def test_a_missing_archive_is_a_user_error(tmp_path):
 
 def test_a_frame_renders_as_the_chunked_renderer_renders_it_and_a_padding_round_renders_nothing(trained):
   """orbit.FrameRenderer (one call per chunk over every device, each process feeding its own frame) gives
-  the bits of render.render_image with the same chunk, also where the last chunk is padded."""
+  the bits of renderer.render_image with the same chunk, also where the last chunk is padded."""
   comps, params = trained
   intr = cameras.Intrinsics.from_focal(16, 12, 20.0)
   pose = orbit.orbit_poses(3, -30.0, 4.0)[1]
   frames = orbit.FrameRenderer(comps.renderer, params, comps.mesh, intr, 0.5, 40, pose)
   assert (frames.chunk, frames.calls) == (40, 5)  # 192 rays: 5 calls of 40, the last padded by 8 rays
   got = frames.render(pose, intr)
-  want = render.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 40)
+  want = renderer.render_image(comps.renderer, params, comps.mesh, pose, intr, 0.5, 40)
   np.testing.assert_array_equal(got["rgb"], video.to_uint8(want["rgb"]))
   for name in ("depth", "acc", "disparity"):
     np.testing.assert_array_equal(got[name], want[name])

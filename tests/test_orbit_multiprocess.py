@@ -10,8 +10,8 @@ import pytest
 import compiles
 import procs
 from conftest import smoke_config
-from nerfpod import archive as archives
-from nerfpod import modes
+from nerfpod.render import archive as archives
+from nerfpod.run import modes
 
 pytestmark = pytest.mark.slow
 OVERRIDES = {"train.num_steps": 2, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 1,

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 from conftest import DATA, load_config, require, smoke_config
-from nerfpod import archive as archives
-from nerfpod import camera_path, components, orbit, render
+from nerfpod.render import archive as archives
+from nerfpod.render import camera_path, renderer
+from nerfpod.run import components, orbit
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, paths
 
@@ -59,7 +60,7 @@ def test_a_path_file_is_rendered_into_the_archive_with_each_frames_camera(tmp_pa
   for index in (0, 2):
     intr = camera_path.read(file).intrinsics(index)
     assert archive.frame_intrinsics(index) == intr
-    want = render.render_image(comps.renderer, params, comps.mesh, poses[index], intr, 0.5, 256)
+    want = renderer.render_image(comps.renderer, params, comps.mesh, poses[index], intr, 0.5, 256)
     got = archive.read_frame(index)
     assert got["rgb"].shape == (14, 20, 3)
     np.testing.assert_allclose(got["depth"], want["depth"], rtol=1e-5, atol=1e-5)

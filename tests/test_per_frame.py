@@ -9,7 +9,9 @@ import pytest
 from jax.sharding import Mesh
 
 from conftest import smoke_config
-from nerfpod import checkpoints, components, data, distributed, scenes, step
+from nerfpod import data, distributed, scenes
+from nerfpod.run import components, step
+from nerfpod.workdir import checkpoints
 from nerfpod.nerf import cameras, pose_correction
 from nerfpod.nerf import model as nerf_model
 

@@ -615,6 +615,6 @@ def test_a_horns_video_prepares_into_a_capture_llff_trains_on(tmp_path, capsys):
   losses = {e.step: e.value for e in events.Scalars("train/loss")}
   print(f"horns video: losses {losses}, held-out PSNR {metrics['mean']['psnr']:.2f} dB")
   assert losses[10] < losses[1], losses
-  from nerfpod import archive as archives
+  from nerfpod.render import archive as archives
   orbit = archives.Archive.open(str(workdir / "renders" / "orbit.zarr"))
   assert orbit.num_frames == 3 and orbit.missing_frames() == []

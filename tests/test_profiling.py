@@ -3,7 +3,8 @@ tab (and xprof) read it."""
 import pytest
 
 from conftest import SMOKE_RUN_OVERRIDES, smoke_config
-from nerfpod import modes, schema
+from nerfpod import schema
+from nerfpod.run import modes
 from nerfpod.errors import UserError
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conftest import DATA, require
-from nerfpod import archive as archives
+from nerfpod.render import archive as archives
 from procs import run_main
 
 pytestmark = pytest.mark.slow  # whole jobs on real images

@@ -16,9 +16,11 @@ import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import checkpoints, distributed, evaluate, modes, preemption, train, workdir_files
-from nerfpod.step import make_train_step
-from nerfpod.components import TrainState
+from nerfpod import distributed
+from nerfpod.run import evaluate, modes, preemption, train
+from nerfpod.workdir import checkpoints, files as workdir_files
+from nerfpod.run.step import make_train_step
+from nerfpod.run.components import TrainState
 from nerfpod.errors import UserError
 
 # A restore that fails half way leaves orbax an asyncio callback that fires after its loop closed: noise.
@@ -124,7 +126,7 @@ def test_a_non_finite_state_is_never_saved_and_a_saved_one_counts_as_damaged(tmp
 def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in_a_row():
   config = smoke_config(**{"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
                            "model.mlp.skips": (), "train.batch_size": 64})
-  from nerfpod import components
+  from nerfpod.run import components
   from nerfpod.nerf import model as nerf_model
   mesh = _mesh(2)
   model, optimizer = nerf_model.from_config(config), optax.adam(1e-2)
@@ -390,7 +392,7 @@ def test_a_data_mistake_leaves_no_new_workdir_and_no_lock_behind(tmp_path):
 # A second Ctrl-C while training stops the process at once (os._exit), so it runs in a process of its own.
 _SECOND_CTRL_C = r"""
 import os, signal, sys, time
-from nerfpod import preemption
+from nerfpod.run import preemption
 watch = preemption.Watch(0)
 os.kill(os.getpid(), signal.SIGINT)   # the first: a preemption, the step in hand is saved
 assert watch.reached(1)
@@ -412,32 +414,44 @@ def test_a_second_ctrl_c_in_training_stops_at_once_with_status_130():
   assert done.stderr.strip().endswith("nerfpod: interrupted again: stopping now, without saving")
 
 
-@pytest.mark.parametrize("mode", ["eval", "render", "train"])
-def test_ctrl_c_outside_training_steps_exits_130_in_one_sentence(mode, monkeypatch, capsys, tmp_path):
-  """Ctrl-C in start-up, the evaluation or the orbit (a KeyboardInterrupt there): status 130, one sentence."""
-  from absl import flags
-  from nerfpod import main
+# Ctrl-C in start-up, the evaluation or the orbit (a KeyboardInterrupt there), through nerfpod.main in a process
+# of its own (absl's flags are the process's): each mode's exit status and stderr, as JSON.
+_CTRL_C_OUTSIDE_STEPS = r"""
+import contextlib, io, json, sys
+from absl import flags
+from nerfpod import distributed, main
+from nerfpod.run import compilation, modes
 
-  def interrupted(config, workdir):
-    raise KeyboardInterrupt
+def interrupted(config, workdir):
+  raise KeyboardInterrupt
 
-  for name in ("train_and_evaluate", "evaluate_workdir", "render_workdir"):
-    monkeypatch.setattr(modes, name, interrupted)
-  import sys
-  from nerfpod import compilation
-  monkeypatch.setattr(distributed, "initialize", lambda *a, **k: None)  # this process's JAX is started
-  monkeypatch.setattr(compilation, "tune_host", lambda config: None)  # process-wide: not in the test process
-  monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)  # main() wraps it: given back afterwards
-  argv = ["nerfpod", "--config=configs/default.py:smoke", f"--workdir={tmp_path}", f"--mode={mode}"]
-  from conftest import REPO
-  monkeypatch.chdir(REPO)
+for name in ("train_and_evaluate", "evaluate_workdir", "render_workdir"):
+  setattr(modes, name, interrupted)
+distributed.initialize = lambda *a, **k: None
+out = {}
+for mode in ("eval", "render", "train"):
   flags.FLAGS.unparse_flags()
-  try:
-    main._parse_flags(argv)
-    with pytest.raises(SystemExit) as exit_:
-      main.main([argv[0]])
-  finally:
-    flags.FLAGS.unparse_flags()
-  assert exit_.value.code == 130
-  err = capsys.readouterr().err.strip().splitlines()
-  assert err == ["nerfpod: interrupted; the same command resumes from the newest checkpoint"]
+  main._parse_flags(["nerfpod", "--config=configs/default.py:smoke", "--workdir=" + sys.argv[1], "--mode=" + mode])
+  err = io.StringIO()
+  with contextlib.redirect_stderr(err):
+    try:
+      main.main(["nerfpod"])
+      code = 0
+    except SystemExit as e:
+      code = e.code
+  out[mode] = [code, err.getvalue()]
+print(json.dumps(out))
+"""
+
+
+def test_ctrl_c_outside_training_steps_exits_130_in_one_sentence(tmp_path):
+  import subprocess
+  import sys
+  from conftest import REPO
+  env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]))
+  done = subprocess.run([sys.executable, "-c", _CTRL_C_OUTSIDE_STEPS, str(tmp_path)], cwd=REPO, env=env,
+                        capture_output=True, text=True, timeout=120)
+  assert done.returncode == 0, done.stderr[-3000:]
+  for mode, (code, err) in json.loads(done.stdout.strip().splitlines()[-1]).items():
+    assert code == 130, (mode, code, err)
+    assert err.strip().splitlines() == ["nerfpod: interrupted; the same command resumes from the newest checkpoint"]

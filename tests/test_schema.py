@@ -131,7 +131,7 @@ def _default_json(**values) -> dict:
 
 
 def test_a_workdir_written_before_fields_were_added_still_matches_the_default_config():
-  from nerfpod import workdir_files
+  from nerfpod.workdir import files as workdir_files
   earlier_default = _default_json(**CHANGED_DEFAULTS)
   flat = schema.flatten(earlier_default)
   assert {k: flat[k] for k in schema.ADDED_FIELDS} == schema.ADDED_FIELDS  # what the default did then
@@ -218,7 +218,7 @@ def test_a_workdir_of_the_earlier_release_resumes_with_todays_default_but_its_sa
   """Each field added since is either in ADDED_FIELDS (read as what the earlier release did) or one that may
   change on resume: the earlier workdir resumes with today's default and its own sampling (the default's
   since changed to proposal sampling, which the refusal names)."""
-  from nerfpod import workdir_files
+  from nerfpod.workdir import files as workdir_files
   earlier_default = _default_json(**CHANGED_DEFAULTS)
   flat = schema.flatten(earlier_default)
   earlier = {k: v for k, v in flat.items() if k in EARLIER_RELEASE_FIELDS}

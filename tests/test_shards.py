@@ -14,7 +14,9 @@ from PIL import Image
 
 import procs
 from conftest import LEGO, require, smoke_config
-from nerfpod import checkpoints, components, data, distributed, modes, schema, scenes, workdir_files
+from nerfpod import data, distributed, schema, scenes
+from nerfpod.run import components, modes
+from nerfpod.workdir import checkpoints, files as workdir_files
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
 from nerfpod.scenes import Shards, blender, procedural

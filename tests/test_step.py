@@ -8,7 +8,8 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import compilation, components, data, distributed, scenes, step
+from nerfpod import data, distributed, scenes
+from nerfpod.run import compilation, components, step
 from nerfpod.nerf import model as nerf_model
 
 

@@ -19,7 +19,7 @@ import pytest
 
 from conftest import (ABANDONED_READ_REPORTS, LEGO, REPO, SMOKE_RUN_OVERRIDES, TINY_NPZ, damage_checkpoint, require,
                       smoke_config)
-from nerfpod import workdir_files
+from nerfpod.workdir import files as workdir_files
 
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 CHROMEDRIVER = shutil.which("chromedriver")
@@ -36,10 +36,10 @@ def _wait(predicate, timeout: float, what: str):
 
 
 def _reference(viewer, client, frame, params=None):
-  """nerfpod's own rendering (render.render_image, the evaluator's path) of the frame's camera, as uint8,
+  """nerfpod's own rendering (renderer.render_image, the evaluator's path) of the frame's camera, as uint8,
   after checking that camera is the page's (converted here independently of the viewer)."""
   import viser.transforms as tf
-  from nerfpod import render, video
+  from nerfpod.render import renderer, video
   camera = client.camera
   pose = np.eye(4)
   pose[:3, :3] = tf.SO3(np.asarray(camera.wxyz)).as_matrix() @ np.diag([1.0, -1.0, -1.0])  # OpenCV -> OpenGL
@@ -48,7 +48,7 @@ def _reference(viewer, client, frame, params=None):
   intr = frame.intrinsics
   np.testing.assert_allclose(intr.fy, 0.5 * intr.height / np.tan(0.5 * camera.fov), rtol=1e-6)
   assert (intr.cx, intr.cy) == (intr.width / 2, intr.height / 2)
-  out = render.render_image(viewer.comps.renderer, viewer.params if params is None else params,
+  out = renderer.render_image(viewer.comps.renderer, viewer.params if params is None else params,
                             viewer.comps.mesh, frame.pose, intr, viewer.config.data.pixel_center, 512)
   return video.to_uint8(out["rgb"])
 
@@ -135,7 +135,8 @@ def _warnings(capsys) -> list[str]:
 
 def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_place(trained_workdir, tmp_path,
                                                                                      capsys, monkeypatch):
-  from nerfpod import checkpoints, view
+  from nerfpod import view
+  from nerfpod.workdir import checkpoints
   # What `nerfpod view` does (view.run): orbax's reads abandoned by a failed restore report nothing.
   monkeypatch.setattr(sys, "unraisablehook", checkpoints.quiet_abandoned_reads(sys.unraisablehook))
   workdir = tmp_path / "run"
@@ -264,11 +265,11 @@ def test_camera_set_through_viser_gives_that_view_and_the_other_channels(page):
   np.testing.assert_allclose(frame.pose[:3, 3], [0.5, -3.5, 2.0], atol=1e-6)
   _assert_shows(_canvas(client, frame), frame, _reference(viewer, client, frame))
   # Depth through the page's dropdown is what the orbit videos would show for that camera.
-  from nerfpod import render, video
+  from nerfpod.render import renderer, video
   viewer._channel.value = "depth"
   depth = _wait(lambda: (f := viewer.browsers()[client.client_id].last).full and f.channel == "depth" and f,
                 60, "a depth frame")
-  out = render.render_image(viewer.comps.renderer, viewer.params, viewer.comps.mesh, depth.pose,
+  out = renderer.render_image(viewer.comps.renderer, viewer.params, viewer.comps.mesh, depth.pose,
                             depth.intrinsics, viewer.config.data.pixel_center, 512)
   want = video.ChannelStyle.fit([out], viewer.comps.near, viewer.comps.far).image("depth", out)
   assert np.abs(depth.image.astype(int) - want).max() <= 2
@@ -279,7 +280,7 @@ def test_camera_set_through_viser_gives_that_view_and_the_other_channels(page):
 def test_a_checkpoint_written_while_the_page_is_open_appears(page, trained_workdir):
   import jax
   from selenium.webdriver.common.by import By
-  from nerfpod import checkpoints
+  from nerfpod.workdir import checkpoints
   viewer, driver, client = page
   viewer._set_cameras_visible(False)  # the canvas shows the rendered frame alone (also when run by itself)
   old = _full_frame(viewer, client)
@@ -301,7 +302,7 @@ def test_a_checkpoint_written_while_the_page_is_open_appears(page, trained_workd
 @pytest.mark.slow
 def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
   import viser.transforms as tf
-  from nerfpod import camera_path
+  from nerfpod.render import camera_path
   from nerfpod.nerf import keyframes
   viewer, driver, client = page
   placed = []
@@ -331,7 +332,8 @@ def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
                              [p for p, _ in placed], atol=1e-6)
 
   # --mode=render renders the saved path into the archive: its cameras are the file's.
-  from nerfpod import archive, modes
+  from nerfpod.render import archive
+  from nerfpod.run import modes
   config = smoke_config(**dict(SMOKE_RUN_OVERRIDES, **{"orbit.path": "file", "orbit.path_file": str(saved)}))
   modes.render_workdir(config, str(viewer.workdir))
   rendered = archive.Archive.open(f"{viewer.workdir}/renders/orbit.zarr")
@@ -406,7 +408,7 @@ def test_nerfpod_view_serves_the_page_and_stops_on_ctrl_c(trained_workdir):
     lines = []
     while not lines or (lines[-1] and not lines[-1].startswith("nerfpod: view:")):
       lines.append(proc.stdout.readline())  # '' at the end of the output
-    from nerfpod import checkpoints
+    from nerfpod.workdir import checkpoints
     step = checkpoints.latest_step(str(trained_workdir))  # 20, or 30 after the test that writes one
     assert f"step {step} of {trained_workdir} at http://127.0.0.1:{port}" in lines[-1], "".join(lines)
     page = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10).read().decode()
@@ -442,7 +444,8 @@ def _signal_state(pid: int) -> str:
 
 def _workdir_of(config, workdir):
   """A workdir as training writes it, of `config`'s initial state (step 0): config.json and a checkpoint."""
-  from nerfpod import checkpoints, components
+  from nerfpod.run import components
+  from nerfpod.workdir import checkpoints
   comps = components.build(config)
   state = comps.init_state()
   workdir_files.write_config(str(workdir), json.loads(config.to_json_best_effort()))
@@ -454,7 +457,8 @@ def _workdir_of(config, workdir):
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["procedural", "tiny", "blender"])
 def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_path):
-  from nerfpod import render, video, view
+  from nerfpod import view
+  from nerfpod.render import renderer, video
   from nerfpod.nerf import cameras
   from conftest import load_config
   if kind == "procedural":
@@ -472,7 +476,7 @@ def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_pat
     split = comps.scene.split(config.eval.split)
     intr = cameras.intrinsics_from_fov(cameras.fov_y(split.intrinsics), 24, 20)
     got = viewer.render(split.poses[0], intr, "rgb")
-    want = render.render_image(comps.renderer, params, comps.mesh, split.poses[0], intr, config.data.pixel_center,
+    want = renderer.render_image(comps.renderer, params, comps.mesh, split.poses[0], intr, config.data.pixel_center,
                                256)
     assert got.shape == (20, 24, 3)
     assert np.abs(got.astype(int) - video.to_uint8(want["rgb"])).max() <= 1

@@ -21,7 +21,8 @@ import pytest
 
 import procs
 from conftest import smoke_config
-from nerfpod import checkpoints, monitor, schema, workdir_files
+from nerfpod import monitor, schema
+from nerfpod.workdir import checkpoints, files as workdir_files
 
 OFFLINE = {"monitor.wandb.mode": "offline"}
 
@@ -260,7 +261,7 @@ def test_images_become_uint8_as_tensorboard_shows_them():
 def test_an_offline_run_holds_what_tensorboard_holds_and_wandb_sync_would_upload_it(tmp_path):
   pytest.importorskip("wandb")
   pytest.importorskip("tensorboard")
-  from nerfpod import modes
+  from nerfpod.run import modes
   config = smoke_config(**OFFLINE, **{"monitor.wandb.tags": ("smoke", "test")})
   result = modes.train_and_evaluate(config, str(tmp_path))
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import procs
-from nerfpod import checkpoints, workdir_lock
+from nerfpod.workdir import checkpoints, lock as workdir_lock
 from nerfpod.errors import UserError
 
 

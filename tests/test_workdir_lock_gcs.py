@@ -15,7 +15,7 @@ import urllib.parse
 
 import pytest
 
-from nerfpod import workdir_lock
+from nerfpod.workdir import lock as workdir_lock
 from nerfpod.errors import UserError
 
 BUCKET = "nerfpod-test"

@@ -62,7 +62,7 @@ def main(argv: list[str]) -> None:
     losses = re.findall(r"step +\d+/\d+ \| loss ([\d.]+)", out)
     metrics = json.load(open(os.path.join(args.out_dir, name, "eval", "metrics.json")))
     result[name] = {"last_loss": losses[-1] if losses else None, "eval_mean": metrics["mean"]}
-  from nerfpod import checkpoints
+  from nerfpod.workdir import checkpoints
   params = {name: checkpoints.read_numpy(os.path.join(args.out_dir, name))[0]["params"] for name in runs}
   result["leaves"] = compare(params["1x8"], params["2x4"])
   leaves = result["leaves"].values()

@@ -9,7 +9,8 @@
 video reads the orbit archive; the others restore the workdir's newest checkpoint read-only (local or gs://,
 training may still run) and render or query it on every device of every host (on a pod, run the command on
 every host, as training; process 0 writes). Their outputs default to DIR/exports/. Each kind is a module
-here (video, pointcloud, mesh, cameras, depth) with ABOUT, add_arguments(parser), check(args) and export().
+here (video, pointcloud, mesh, cameras, depth) with ABOUT, add_arguments(parser), check(args) and export();
+trained restores a workdir for them, ply writes PLY files.
 """
 import argparse
 import importlib
@@ -60,7 +61,8 @@ def export(args) -> list[str] | dict:
   if args.kind == "video":
     return module.export(args)
   module.check(args)
-  from nerfpod import checkpoints, distributed  # import JAX: only for the kinds that need it
+  from nerfpod import distributed  # import JAX: only for the kinds that need it
+  from nerfpod.workdir import checkpoints
   # A damaged checkpoint's failed restore leaves orbax's other reads to report themselves at exit.
   sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
   distributed.keep_off_absent_tpu()

@@ -20,7 +20,7 @@ import numpy as np
 from etils import epath
 from PIL import Image
 
-from nerfpod import workdir_files
+from nerfpod.workdir import files as workdir_files
 from nerfpod.errors import UserError
 from nerfpod.export import trained as trained_lib
 from nerfpod.nerf import pose_correction

@@ -18,7 +18,10 @@ import numpy as np
 from etils import epath
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import checkpoints, compilation, components, distributed, render, workdir_files
+from nerfpod import distributed
+from nerfpod.render import renderer
+from nerfpod.run import compilation, components
+from nerfpod.workdir import checkpoints, files as workdir_files
 from nerfpod.errors import UserError
 from nerfpod.nerf import coord, fields
 from nerfpod.nerf import poses as pose_math
@@ -166,9 +169,9 @@ def hit_points(out: dict, origins_Nx3, directions_Nx3, space: str, min_opacity: 
 
 
 def render_rays(trained: Trained, origins_Nx3, directions_Nx3, chunk: int) -> dict:
-  """render.render_rays of the run's renderer over every device of every host."""
+  """renderer.render_rays of the run's renderer over every device of every host."""
   comps = trained.comps
-  return render.render_rays(comps.renderer, trained.params, comps.mesh, np.asarray(origins_Nx3, np.float32),
+  return renderer.render_rays(comps.renderer, trained.params, comps.mesh, np.asarray(origins_Nx3, np.float32),
                             np.asarray(directions_Nx3, np.float32), chunk)
 
 

@@ -9,7 +9,7 @@ PREFIX_{rgb,depth,acc,disparity}.{mp4,gif} and PREFIX_sheet.png, PREFIX being th
 import argparse
 import os
 
-from nerfpod import archive, video
+from nerfpod.render import archive, video
 from nerfpod.errors import UserError
 
 ABOUT = "the orbit archive (renders/orbit.zarr) to videos and a contact sheet"

@@ -1,1 +1,17 @@
-"""Pure NeRF math: cameras and rays, sampling, encodings, fields, volume rendering."""
+"""Pure NeRF math, one topic a module, each tested against a brute-force or analytic reference.
+
+    cameras          pinhole cameras with lens distortion: pixels -> rays, points -> pixels (NumPy)
+    sampling         where along each ray the field is queried: stratified samples, box clipping, distance warps
+    stepfun          step functions (edges, weights): resampling, outer bounds, the interlevel and distortion losses
+    coord            NDC rays (forward-facing scenes), scene contraction (unbounded ones), ray-distance warps
+    encodings        positional (Fourier) encoding, the multiresolution hash grid, spherical harmonics
+    fields           radiance fields: flax modules from points (and directions) to colour and density
+    compositing      volume rendering: alpha compositing of colours and densities along rays
+    model            the NeRF model: sample, query the field(s), composite; coarse-to-fine or proposal sampling
+    poses            similarity transforms that bring a capture's cameras into the field's frame
+    pose_correction  per-frame SE(3) pose corrections (pose refinement)
+    paths            camera paths from a capture's own cameras (spiral, ellipse)
+    keyframes        camera paths through keyframes a user placed
+
+No JAX device, mesh, file or config here: plain arrays and flax modules in, arrays out.
+"""

@@ -11,7 +11,7 @@ with the batch's sharding: no data is loaded), and compiles the very functions a
 builder a run uses (components.build_program): the train step (step.compile_fitted, micro-batches fitted to
 85% of a chip's HBM where train.microbatches=0, as a run on the pod fits them), the evaluation renderer over
 the whole pod (eval.chunk rays) and the orbit renderer, also over the whole pod (orbit.chunk rays from each
-host: every host feeds its own frame's rays, nerfpod.orbit). Every program spans every chip of the pod, as
+host: every host feeds its own frame's rays, nerfpod.run.orbit). Every program spans every chip of the pod, as
 every program of a run does (TPU v5e refuses a program on some of a slice's chips). It reports
 per-chip memory against the chip's HBM, FLOPs and bytes per step, the estimated step time (hlo_cost's
 roofline; XLA's own figures beside it where they are sane), rays/s per chip and for the pod, every
@@ -253,7 +253,8 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   program spans every chip of every slice) and reports on them (see the module's docstring)."""
   import jax
   import numpy as np
-  from nerfpod import compilation, components, distributed, step
+  from nerfpod import distributed
+  from nerfpod.run import compilation, components, step
 
   check_slices(slices)
   num_chips = pod.num_chips * slices
@@ -304,7 +305,7 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
                               num_chips, chunk, slices)
   if "orbit" in what:
     # The orbit's call: every host feeds orbit.chunk rays (rounded to its chips) of its own frame, on its
-    # own chips, into the one renderer over the whole pod (nerfpod.orbit).
+    # own chips, into the one renderer over the whole pod (nerfpod.run.orbit).
     per_host = num_chips // len(hosts)
     chunk = max(per_host, config.orbit.chunk - config.orbit.chunk % per_host) * len(hosts)
     orbit_rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))

@@ -1,4 +1,17 @@
-"""Scene loaders. `load(config.data)` returns a Scene whatever the format."""
+"""Scene loaders. `load(config.data)` returns a Scene whatever the format.
+
+    base        the one Scene type (splits of images, per-frame cameras, bounds, space), shards per host
+    procedural  the built-in scene (no download)
+    tiny        the Tiny NeRF npz
+    blender     the NeRF synthetic scenes (transforms_{train,val,test}.json)
+    capture     what real captures share: normalised poses, bounds, the held-out frames
+    llff        LLFF's poses_bounds.npy
+    colmap      a COLMAP sparse model (pycolmap)
+    nerfstudio  a nerfstudio / instant-ngp transforms.json
+
+Everything format-specific stays in its loader: cameras are converted to one convention at load time, so
+that everything downstream is format-blind.
+"""
 import dataclasses
 
 from absl import logging

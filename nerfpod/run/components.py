@@ -22,7 +22,9 @@ import numpy as np
 import optax
 from jax.sharding import Mesh
 
-from nerfpod import camera_path, compilation, data, distributed, render, scenes
+from nerfpod import data, distributed, scenes
+from nerfpod.render import camera_path, renderer
+from nerfpod.run import compilation
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 from nerfpod.nerf import pose_correction
@@ -153,7 +155,7 @@ class Program:
   def make_renderer(self, mesh: Mesh | None = None):
     """(params, origins, directions) -> rgb/depth/acc/disparity of `render_model`, compiled on `mesh`
     (default the program's)."""
-    return render.make_renderer(self.render_model, self.mesh if mesh is None else mesh, self.near, self.far,
+    return renderer.make_renderer(self.render_model, self.mesh if mesh is None else mesh, self.near, self.far,
                                 self.background, self.compiler_options)
 
 

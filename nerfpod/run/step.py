@@ -12,9 +12,10 @@ import jax.numpy as jnp
 import optax
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import compilation, components, distributed
-from nerfpod.components import Program, TrainState
-from nerfpod.metrics import mse_to_psnr
+from nerfpod import distributed
+from nerfpod.run import compilation, components
+from nerfpod.run.components import Program, TrainState
+from nerfpod.render.metrics import mse_to_psnr
 from nerfpod.nerf import stepfun
 
 

@@ -5,7 +5,7 @@
     render_workdir(config, workdir)       --mode=render: its orbit -> renders/orbit.zarr and the videos
 
 Each checks the whole config first (nerfpod.schema; a mistake is a UserError before any work) and builds
-the shared pieces once (nerfpod.components). Calls flow one way: this module calls train, evaluate and
+the shared pieces once (nerfpod.run.components). Calls flow one way: this module calls train, evaluate and
 orbit, which call the components below them, and none of them calls back up here.
 
 What a run shows goes through one monitor.Writer (process 0): TensorBoard, and W&B where
@@ -19,7 +19,9 @@ import os
 
 import jax
 
-from nerfpod import checkpoints, components, evaluate, monitor, orbit, schema, train, workdir_files, workdir_lock
+from nerfpod import monitor, schema
+from nerfpod.run import components, evaluate, orbit, train
+from nerfpod.workdir import checkpoints, files as workdir_files, lock as workdir_lock
 from nerfpod.errors import UserError
 
 

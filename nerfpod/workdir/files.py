@@ -6,7 +6,7 @@
     write_json         whole or not at all (PATH.tmp, then renamed); also eval/metrics.json
 
 Paths go through etils.epath, so a workdir may be a gs:// bucket. The checkpoints themselves are
-nerfpod.checkpoints'.
+nerfpod.workdir.checkpoints'.
 """
 import json
 import os

@@ -8,7 +8,7 @@
 with one chunk per frame in every array, so a frame is written without touching any other. A frame's
 written_by entry is written only once its four data chunks are committed, so a render cut off mid-frame
 leaves that frame incomplete. `Archive.export` turns a complete archive into videos and a contact sheet
-(nerfpod.video); the videos are made locally and copied where the archive is.
+(nerfpod.render.video); the videos are made locally and copied where the archive is.
 """
 import functools
 import json
@@ -19,7 +19,7 @@ import numpy as np
 import tensorstore as ts
 from etils import epath
 
-from nerfpod import video
+from nerfpod.render import video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing
 
@@ -162,7 +162,7 @@ class Archive:
 
   def export(self, out_dir: str | None = None, fps: float | None = None, formats=("mp4", "png")):
     """Videos and contact sheet of a complete archive, named after it (orbit_rgb.mp4, ...); see
-    nerfpod.video.write_media. Returns (paths written, contact sheet image)."""
+    nerfpod.render.video.write_media. Returns (paths written, contact sheet image)."""
     self.check_complete()
     parent, name = str(self.path).rstrip("/").rsplit("/", 1) if is_url(self.path) else os.path.split(
         os.path.abspath(os.path.normpath(self.path)))

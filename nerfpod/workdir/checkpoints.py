@@ -19,7 +19,7 @@ Damage: a finished step that does not read back whole (a file emptied or deleted
 non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
 deleted), and the restore falls back to the newest step before it that reads back whole.
 
-When to stop for a preemption is nerfpod.preemption's; the workdir's other files are nerfpod.workdir's.
+When to stop for a preemption is nerfpod.run.preemption's; the workdir's other files are nerfpod.workdir's.
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
 import dataclasses
@@ -37,7 +37,7 @@ from etils import epath
 
 from nerfpod import storage
 from nerfpod.errors import UserError
-from nerfpod.finite import all_finite
+from nerfpod.workdir.finite import all_finite
 
 def checkpoint_dir(workdir: str) -> epath.Path:
   workdir = str(workdir)
@@ -97,7 +97,7 @@ def disk_full(error: BaseException | None) -> bool:
 
 class _DiskFullIsReported(logging.Filter):
   """Drops orbax's error logs (each with its traceback, up to 24 of them) of a save that failed on a full disk:
-  the run stops on it with one sentence (nerfpod.modes)."""
+  the run stops on it with one sentence (nerfpod.run.modes)."""
 
   def filter(self, record: logging.LogRecord) -> bool:
     if record.levelno < logging.ERROR:

@@ -2,10 +2,10 @@
 
 The path is `orbit.path`: 'orbit', the Tiny NeRF tutorial's circle around the origin; 'spiral', the original
 NeRF's forward-facing spiral, and 'ellipse', mip-NeRF 360's path, both drawn from the scene's own cameras
-(nerf/paths.py); 'file', a user's nerfstudio camera_path.json (`orbit.path_file`, nerfpod.camera_path),
+(nerf/paths.py); 'file', a user's nerfstudio camera_path.json (`orbit.path_file`, nerfpod.render.camera_path),
 whose cameras, size and frame rate are used as they are.
 
-The archive (nerfpod.archive) is renders/orbit.zarr in the workdir, a local folder or a gs:// URL.
+The archive (nerfpod.render.archive) is renders/orbit.zarr in the workdir, a local folder or a gs:// URL.
 
 Work split: frame i belongs to process i % P, which alone renders and writes it. The rendering itself is
 one program over every device of every host: the run's renderer (comps.renderer, compiled once on the
@@ -35,8 +35,9 @@ from absl import logging
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
-from nerfpod import archive as archives
-from nerfpod import camera_path, distributed, render, video
+from nerfpod.render import archive as archives
+from nerfpod import distributed
+from nerfpod.render import camera_path, renderer, video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing, paths
 
@@ -146,10 +147,10 @@ def open_for_render(path: str, attributes: dict) -> archives.Archive:
 
 
 def chunk_rays(chunk: int, num_rays: int, mesh: Mesh) -> int:
-  """Rays per call that each process feeds for one frame of `num_rays` rays, as render.render_rays picks
-  them on one host (render.balanced_chunk): as few calls as `chunk` (orbit.chunk) allows, of equal size,
+  """Rays per call that each process feeds for one frame of `num_rays` rays, as renderer.render_rays picks
+  them on one host (renderer.balanced_chunk): as few calls as `chunk` (orbit.chunk) allows, of equal size,
   a multiple of this process's devices."""
-  return render.balanced_chunk(chunk, num_rays, _local_device_count(mesh))
+  return renderer.balanced_chunk(chunk, num_rays, _local_device_count(mesh))
 
 
 def _local_device_count(mesh: Mesh) -> int:

@@ -1,6 +1,6 @@
 """Rendered channels to viewable media: a colour map, mp4 and gif writers, a PNG contact sheet.
 
-Everything here takes plain NumPy frames; nerfpod.archive reads them from an archive. Depth and disparity
+Everything here takes plain NumPy frames; nerfpod.render.archive reads them from an archive. Depth and disparity
 are colour-mapped with turbo, near things warm and far things cold, over one value range for the whole
 video (so colours do not flicker from frame to frame).
 """

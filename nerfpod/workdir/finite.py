@@ -1,6 +1,6 @@
 """Whether a pytree's values are all finite: the last check before a train state is saved or after it is
 restored (a NaN must never replace a good checkpoint). The train step tests its loss and gradient norm instead
-(nerfpod/step.py), before its update."""
+(nerfpod/run/step.py), before its update."""
 import jax
 import jax.numpy as jnp
 

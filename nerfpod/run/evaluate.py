@@ -4,7 +4,8 @@ import jax
 import numpy as np
 from etils import epath
 
-from nerfpod import lpips, metrics, render, video, workdir_files
+from nerfpod.render import lpips, metrics, renderer, video
+from nerfpod.workdir import files as workdir_files
 
 METRICS = ("psnr", "ssim", "lpips")  # per view and their means, in eval/metrics.json and TensorBoard
 
@@ -15,7 +16,7 @@ def render_views(comps, params):
   split = comps.scene.split(config.eval.split)
   count = len(split) if config.eval.max_views <= 0 else min(len(split), config.eval.max_views)
   for index in range(count):
-    yield index, render.render_image(comps.renderer, params, comps.mesh, split.poses[index], split.cameras[index],
+    yield index, renderer.render_image(comps.renderer, params, comps.mesh, split.poses[index], split.cameras[index],
                                      config.data.pixel_center, config.eval.chunk)
 
 

@@ -1,14 +1,17 @@
-"""Training: the loop (resume, steps, checkpoints, preemption, previews, logging); the step is nerfpod.step."""
+"""Training: the loop (resume, steps, checkpoints, preemption, previews, logging); the step is nerfpod.run.step."""
 import json
 import sys
 
 import jax
 from absl import logging
 
-from nerfpod import checkpoints, components, distributed, preemption, profiling, render, video
-from nerfpod import step as train_step
-from nerfpod.workdir_files import write_config, write_scene
-from nerfpod.components import TrainState
+from nerfpod import distributed
+from nerfpod.render import renderer, video
+from nerfpod.run import components, preemption, profiling
+from nerfpod.workdir import checkpoints
+from nerfpod.run import step as train_step
+from nerfpod.workdir.files import write_config, write_scene
+from nerfpod.run.components import TrainState
 from nerfpod.errors import UserError
 
 
@@ -154,7 +157,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
                 f"stopped; the same command resumes from there.", flush=True)
         return None
       if tc.image_every and done % tc.image_every == 0:
-        out = render.render_image(comps.renderer, state.params, comps.mesh, preview.poses[0],
+        out = renderer.render_image(comps.renderer, state.params, comps.mesh, preview.poses[0],
                                   preview.cameras[0], config.data.pixel_center, config.eval.chunk)
         monitor.images(done, {"preview/rgb": out["rgb"],
                               "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})

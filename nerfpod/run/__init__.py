@@ -1,0 +1,17 @@
+"""What a run does, from a config and a workdir to a trained, evaluated and rendered scene.
+
+    modes        train_and_evaluate (train, then evaluate, then render the orbit), evaluate_workdir,
+                 render_workdir, and restore_trained: the set-up of a trained workdir
+    components   the one set-up value (Program without a scene, Components with one): model, optimiser,
+                 schedule, TrainState, mesh, ray bounds, batches and renderer, resolved once from the config
+    train        the loop: resume, steps, checkpoints, preemption, previews, one log line
+    step         the train step: jax.shard_map over the mesh, gradient means, skip of non-finite updates
+    evaluate     held-out views -> eval/metrics.json (PSNR, SSIM, LPIPS)
+    orbit        the camera path's frames, split over hosts and devices, into the render archive and videos
+    preemption   the step all processes agree to stop at after SIGTERM or a first Ctrl-C
+    profiling    jax.profiler traces of chosen steps
+    compilation  the backend's compiler options and host settings (CPU-only ones stay on the CPU)
+
+Calls flow downward: run uses workdir/, render/, scenes/, nerf/ and the shared modules; nothing below it
+imports it (bench, view, export and pod, above it, do).
+"""
