@@ -62,9 +62,9 @@ def _half(image):
 def local_scenes(tmp_path_factory):
   """One small scene in each format in a local folder: blender/, tiny.npz, and the captures (with images_2/)."""
   root = tmp_path_factory.mktemp("scenes")
-  scene = procedural.load(SIZE, num_train=8, num_val=2, num_test=2)
+  scene = procedural.make(SIZE, num_train=8, num_val=2, num_test=2)
   write_blender(root / "blender", scene)
-  many = procedural.load(8, num_train=101, num_val=1, num_test=1).split("train")  # the npz holds > 100 frames
+  many = procedural.make(8, num_train=101, num_val=1, num_test=1).split("train")  # the npz holds > 100 frames
   np.savez(root / "tiny.npz", images=np.stack([many.image(i) for i in range(len(many))]), poses=many.poses,
            focal=np.float64(many.cameras.fx[0]))
   train = scene.split("train")
@@ -265,7 +265,7 @@ def _final(workdir):
 @pytest.mark.slow
 def test_the_smoke_job_from_and_into_a_bucket_is_killed_resumes_and_ends_as_a_local_run(emulator, tmp_path):
   scene = tmp_path / "smoke"  # the scene is named after its folder, here and in the bucket
-  write_blender(scene, procedural.load(smoke_config().data.image_size))
+  write_blender(scene, procedural.make(smoke_config().data.image_size))
   url = emulator.upload(scene, "scenes/smoke")
   workdir = f"gs://{emulator.bucket}/runs/smoke"
   logs = tmp_path / "logs"

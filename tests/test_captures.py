@@ -155,7 +155,7 @@ def lego(tmp_path_factory):
                "frames": [{"file_path": f"./train/r_{i}", "transform_matrix": p.tolist()}
                           for i, p in enumerate(poses)]}, f)
   write_capture_kinds(root, poses, focal, images, names, SIZE)
-  reference = blender.load(str(root / "blender")).split("train")
+  reference = blender.read(str(root / "blender")).split("train")
   return {"root": root, "reference": reference, "poses": poses, "focal": focal, "names": names, "images": images}
 
 

@@ -7,7 +7,7 @@ from nerfpod.scenes import procedural
 
 @pytest.fixture(scope="module")
 def split():
-  return procedural.load(image_size=16).split("train")
+  return procedural.make(image_size=16).split("train")
 
 
 def _global_batch(split, step, processes, batch_size=64, seed=3):

@@ -24,7 +24,7 @@ def test_a_path_files_cameras_are_its_matrices_and_fovs(tmp_path):
   file, poses = _path_file(tmp_path)
   config = smoke_config(**{"orbit.path": "file", "orbit.path_file": str(file)})
   from nerfpod.scenes import procedural
-  cams = orbit.path_cameras(config, procedural.load(16))
+  cams = orbit.path_cameras(config, procedural.make(16))
   np.testing.assert_allclose(cams.poses, poses, rtol=1e-6, atol=1e-7)
   assert cams.fps == 12.0 and len(cams.intrinsics) == 3
   for intr, fov in zip(cams.intrinsics, (40.0, 55.0, 70.0)):
@@ -35,7 +35,7 @@ def test_a_path_files_cameras_are_its_matrices_and_fovs(tmp_path):
 @pytest.mark.parametrize("path", ["spiral", "ellipse"])
 def test_spiral_and_ellipse_are_drawn_from_the_scenes_cameras(path):
   from nerfpod.scenes import procedural
-  scene = procedural.load(16)
+  scene = procedural.make(16)
   config = smoke_config(**{"orbit.path": path, "orbit.num_frames": 12})
   cams = orbit.path_cameras(config, scene)
   names = {}

@@ -13,7 +13,7 @@ from nerfpod.scenes import blender, procedural, tiny
 
 
 def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
-  a, b = procedural.load(image_size=24), procedural.load(image_size=24)
+  a, b = procedural.make(image_size=24), procedural.make(image_size=24)
   for name, n in (("train", 100), ("val", 8), ("test", 8)):
     np.testing.assert_array_equal(a.splits[name].images, b.splits[name].images)
     assert a.splits[name].images.shape == (n, 24, 24, 3)
@@ -39,7 +39,7 @@ def test_procedural_ray_tracing_is_exact_for_a_ray_onto_the_sphere_top():
 
 
 def test_tiny_nerf_loader_on_the_real_file():
-  scene = tiny.load(str(require(TINY_NPZ)))
+  scene = tiny.read(str(require(TINY_NPZ)))
   train, test = scene.split("train"), scene.split("test")
   assert train.images.shape == (100, 100, 100, 3) and test.images.shape == (6, 100, 100, 3)
   assert train.intrinsics.fx == pytest.approx(138.8889, rel=1e-5)
@@ -49,7 +49,7 @@ def test_tiny_nerf_loader_on_the_real_file():
 
 
 def test_blender_loader_on_real_lego_with_downscale():
-  scene = blender.load(str(require(LEGO)), downscale=4)
+  scene = blender.read(str(require(LEGO)), downscale=4)
   train = scene.split("train")
   assert train.images.shape == (100, 100, 100, 3)
   with open(LEGO / "transforms_train.json") as f:
@@ -107,7 +107,7 @@ def test_blender_bad_input_gets_one_clear_sentence(tmp_path, corrupt, message):
     meta["frames"][1]["transform_matrix"][0][3] = float("nan")
     (root / "transforms_train.json").write_text(json.dumps(meta))
   with pytest.raises(UserError, match=message):
-    blender.load(str(root))
+    blender.read(str(root))
 
 
 def test_dispatch_refuses_unknown_kinds_and_missing_paths():
@@ -145,3 +145,28 @@ def test_split_keeps_frames_of_any_size_as_uint8_and_gives_them_back_as_float():
     np.asarray(split.images)
   with pytest.raises(UserError, match="frame b is 5x2 pixels but its camera is 4x3"):
     Split.from_images(images, np.tile(np.eye(4), (2, 1, 1)), Intrinsics.from_focal(4, 3, 5.0), ["a", "b"])
+
+
+def test_every_loader_has_the_one_signature_and_a_new_format_is_one_table_entry(monkeypatch, tmp_path):
+  import importlib
+  import inspect
+  import sys
+  import types
+  for kind, loader in scenes.LOADERS.items():
+    parameters = list(inspect.signature(importlib.import_module(f"nerfpod.scenes.{loader.module}").load).parameters)
+    assert len(parameters) == 3 and parameters[1:] == ["data_config", "shards"], (kind, parameters)
+  assert scenes.KINDS == tuple(scenes.LOADERS) + ("auto",)
+  assert scenes.CAPTURE_KINDS == ("llff", "colmap", "nerfstudio")
+  assert scenes.HAS_ALPHA == {"procedural": True, "tiny": False, "blender": True, "llff": False, "colmap": False,
+                              "nerfstudio": False}
+  # A format nerfpod has never seen: its module and one LOADERS entry, and scenes.load reads it.
+  made = procedural.make(image_size=8, num_train=3, num_val=1, num_test=1)
+  fake = types.ModuleType("nerfpod.scenes.pretend")
+  calls = []
+  fake.load = lambda path, data_config, shards=None: calls.append((path, data_config.downscale, shards)) or made
+  monkeypatch.setitem(sys.modules, "nerfpod.scenes.pretend", fake)
+  monkeypatch.setitem(scenes.LOADERS, "pretend", scenes.Loader("pretend"))
+  data = ml_collections.ConfigDict({"kind": "pretend", "path": str(tmp_path), "downscale": 2})
+  assert scenes.load(data) is made and calls == [(str(tmp_path), 2, None)]
+  with pytest.raises(UserError, match=r"data.kind='pretend' needs a data path"):
+    scenes.load(ml_collections.ConfigDict({"kind": "pretend", "path": "", "downscale": 1}))

@@ -24,7 +24,7 @@ from nerfpod.scenes import Shards, blender, procedural
 
 @pytest.fixture(scope="module")
 def scene():
-  return procedural.load(image_size=12, num_train=10, num_val=2, num_test=2)
+  return procedural.make(image_size=12, num_train=10, num_val=2, num_test=2)
 
 
 def _host_split(full, count, host, hosts):
@@ -100,7 +100,7 @@ def test_the_blender_loader_reads_only_the_frames_of_the_hosts_shards(tmp_path, 
   read = []
   original = blender._read_image
   monkeypatch.setattr(blender, "_read_image", lambda path, *a: read.append(path) or original(path, *a))
-  scene = blender.load(str(tmp_path), shards=Shards(3, (1,)))
+  scene = blender.read(str(tmp_path), shards=Shards(3, (1,)))
   train = scene.split("train")
   assert sorted(p.rsplit("/", 2)[-2] + "/" + p.rsplit("/", 1)[-1] for p in read) == [
       "train/r_1.png", "train/r_4.png", "val/r_0.png", "val/r_1.png"]
@@ -114,15 +114,15 @@ def test_a_shard_that_would_not_fit_is_refused_before_reading_naming_the_hosts_t
   frame = 4 * 4 * 4  # RGBA bytes of one 4x4 frame
   budget = 2 * frame + 2 * frame  # two val frames and two training frames
   with pytest.raises(UserError) as e:
-    blender.load(str(tmp_path), shards=Shards(2, (0,), 0, 2, budget))
+    blender.read(str(tmp_path), shards=Shards(2, (0,), 0, 2, budget))
   message = str(e.value)
   assert message.count(". ") == 0 and message.endswith(".")
   assert "host 0 would hold 4 of 8 training images" in message and "memory budget" in message
   assert "run on 4 hosts (data.shards=4, a multiple of 4;" in message
   with pytest.raises(UserError, match=r"run on these 2 hosts \(data.shards=2, a multiple of 2;"):
-    blender.load(str(tmp_path), shards=Shards(1, (0,), 0, 2, budget + 2 * frame))  # one shard, held by both
+    blender.read(str(tmp_path), shards=Shards(1, (0,), 0, 2, budget + 2 * frame))  # one shard, held by both
   with pytest.raises(UserError, match="not even one image per host would fit"):
-    blender.load(str(tmp_path), shards=Shards(2, (0,), 0, 2, 2 * frame))
+    blender.read(str(tmp_path), shards=Shards(2, (0,), 0, 2, 2 * frame))
 
 
 def test_the_budget_comes_from_the_config_and_in_memory_scenes_are_checked_too():

@@ -13,6 +13,7 @@ Everything format-specific stays in its loader: cameras are converted to one con
 that everything downstream is format-blind.
 """
 import dataclasses
+import importlib
 
 from absl import logging
 
@@ -20,11 +21,35 @@ from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.scenes.base import SPACES, Scene, Shards, Split
 
-__all__ = ["CAPTURE_KINDS", "KINDS", "SPACES", "Scene", "Shards", "Split", "detect", "load"]
+__all__ = ["CAPTURE_KINDS", "KINDS", "LOADERS", "Loader", "SPACES", "Scene", "Shards", "Split", "detect", "load"]
 
-CAPTURE_KINDS = ("llff", "colmap", "nerfstudio")  # real captures: normalised poses, data.orient/center/scale
-KINDS = ("procedural", "tiny", "blender") + CAPTURE_KINDS + ("auto",)
-IN_MEMORY_KINDS = ("procedural", "tiny")  # made whole in memory: cut to a host's shard after loading
+
+@dataclasses.dataclass(frozen=True)
+class Loader:
+  """A scene format: its module here, imported only when a scene of the format is loaded (so that an optional
+  extra, pycolmap, is needed only then), whose `load(path, data_config, shards) -> Scene` is the one loader
+  signature; and what the rest of nerfpod knows of the format without loading a scene."""
+  module: str               # nerfpod.scenes.<module>
+  has_alpha: bool = False   # its images carry alpha (then training batches do): the pod tool's batch shapes
+  capture: bool = False     # a real capture: poses normalised by data.orient/center/scale, data.llffhold
+  in_memory: bool = False   # made whole in memory, then cut to a host's shard (else only its frames are read)
+  needs_path: bool = True   # read from data.path
+
+
+# data.kind -> its loader: adding a format is an entry here and its module (docs/architecture.md).
+LOADERS = {
+    "procedural": Loader("procedural", has_alpha=True, in_memory=True, needs_path=False),
+    "tiny": Loader("tiny", in_memory=True),
+    "blender": Loader("blender", has_alpha=True),
+    "llff": Loader("llff", capture=True),
+    "colmap": Loader("colmap", capture=True),
+    "nerfstudio": Loader("nerfstudio", capture=True),
+}
+KINDS = tuple(LOADERS) + ("auto",)  # data.kind's values ('auto': told by data.path's files, detect())
+CAPTURE_KINDS = tuple(kind for kind, loader in LOADERS.items() if loader.capture)
+IN_MEMORY_KINDS = tuple(kind for kind, loader in LOADERS.items() if loader.in_memory)
+# Whether a format's images carry alpha: what the pod compile tool needs to know of a scene without loading it.
+HAS_ALPHA = {kind: loader.has_alpha for kind, loader in LOADERS.items()}
 
 
 def detect(path: str) -> str:
@@ -69,12 +94,6 @@ def detect(path: str) -> str:
                   f"{', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
 
 
-# Whether a format's images carry alpha (then training batches do too): what the pod compile tool needs to
-# know of a scene without loading it. Captures are opaque (their loaders drop alpha).
-HAS_ALPHA = {"procedural": True, "tiny": False, "blender": True, "llff": False, "colmap": False,
-             "nerfstudio": False}
-
-
 def load(data_config, shards: Shards | None = None) -> Scene:
   """The scene that `config.data` names: kind 'procedural', 'tiny' (npz), 'blender' (a scene folder), a real
   capture ('llff', 'colmap', 'nerfstudio'), or 'auto' (detected from data.path, and printed).
@@ -99,33 +118,18 @@ def load(data_config, shards: Shards | None = None) -> Scene:
 
 
 def _load(data_config, shards: Shards | None) -> Scene:
-  kind = data_config.kind
-  if kind not in KINDS:
-    raise UserError(f"unknown data.kind {kind!r}; use one of {', '.join(KINDS)}.")
-  if kind == "procedural":
-    from nerfpod.scenes import procedural
-    return procedural.load(data_config.image_size, pixel_center=data_config.pixel_center)
-  if not data_config.path:
+  kind, path = data_config.kind, data_config.path
+  if kind != "auto" and kind not in LOADERS:
+    raise UserError(f"unknown data.kind {kind!r}; use one of {', '.join((*LOADERS, 'auto'))}.")
+  if (kind == "auto" or LOADERS[kind].needs_path) and not path:
     raise UserError(f"data.kind={kind!r} needs a data path; pass --config.data.path=...")
-  path = data_config.path
   if kind == "auto":
     kind = detect(path)
     import jax  # started by now; only process 0 talks
     if jax.process_index() == 0:
       print(f"data.kind=auto: {path} holds a scene of kind {kind!r}", flush=True)
-  if kind == "tiny":
-    from nerfpod.scenes import tiny
-    return tiny.load(path)
-  if kind == "blender":
-    from nerfpod.scenes import blender
-    return blender.load(path, data_config.downscale, shards=shards)
-  if not storage.exists(path):
+  loader = LOADERS[kind]
+  if loader.capture and not storage.exists(path):
     raise UserError(f"data.path {path!r} not found; set --config.data.path to the {kind} capture's folder.")
-  if kind == "llff":
-    from nerfpod.scenes import llff
-    return llff.load(path, data_config, shards)
-  if kind == "colmap":
-    from nerfpod.scenes import colmap
-    return colmap.load(path, data_config, shards)
-  from nerfpod.scenes import nerfstudio
-  return nerfstudio.load(path, data_config, shards)
+  module = importlib.import_module(f"nerfpod.scenes.{loader.module}")
+  return module.load(path, data_config, shards)

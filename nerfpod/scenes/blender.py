@@ -114,7 +114,12 @@ def _listed(root: str, split: str, downscale: int = 1) -> _Listed:
   return _Listed(path, names, files, poses, intr, downscale)
 
 
-def load(root: str, downscale: int = 1, splits=SPLITS, shards: Shards | None = None) -> Scene:
+def load(path: str, data_config, shards: Shards | None = None) -> Scene:
+  """The loader's signature (nerfpod.scenes.LOADERS): the scene folder at data.path, data.downscale."""
+  return read(path, data_config.downscale, shards=shards)
+
+
+def read(root: str, downscale: int = 1, splits=SPLITS, shards: Shards | None = None) -> Scene:
   """Every split whose transforms file exists; train must exist. With `shards`, only this host's training
   frames are read, after checking that they and the held-out splits fit its budget."""
   if not storage.isdir(root):

@@ -108,7 +108,12 @@ def hemisphere_poses(n: int, seed: int, min_elevation=10.0, max_elevation=75.0) 
   return np.stack([look_at(e) for e in eyes]).astype(np.float32)
 
 
-def load(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test: int = 8,
+def load(path: str, data_config, shards=None) -> Scene:
+  """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file."""
+  return make(data_config.image_size, pixel_center=data_config.pixel_center)
+
+
+def make(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test: int = 8,
          pixel_center: float = 0.5) -> Scene:
   """The procedural scene; the same arguments always give the same pixels."""
   focal = 0.5 * image_size / np.tan(0.5 * CAMERA_ANGLE_X)

@@ -12,7 +12,12 @@ from nerfpod.scenes.base import Scene, Split, check_split
 NUM_TRAIN = 100  # frames 0-99 train, the rest are held out (the tutorial validates on frame 101)
 
 
-def load(path: str) -> Scene:
+def load(path: str, data_config, shards=None) -> Scene:
+  """The loader's signature (nerfpod.scenes.LOADERS): the npz at data.path, whole (cut to a shard after)."""
+  return read(path)
+
+
+def read(path: str) -> Scene:
   if not storage.isfile(path):
     raise UserError(f"Tiny NeRF data file {path!r} not found; set --config.data.path to tiny_nerf_data.npz.")
   try:
