@@ -256,7 +256,6 @@ def main(argv):
   try:
     config = _CONFIG.value
     config.keys()
-    schema.migrate(config)
     schema.validate(config)
   except UserError as e:
     for message in getattr(e, "messages", None) or [str(e)]:

@@ -58,8 +58,6 @@ def main(argv):
       config.keys()  # the value is a lazy proxy until first touched
     except OSError as e:  # ml_collections reports a config file that failed to load on first access
       raise UserError(f"could not load the --config file ({' '.join(str(e).split())}).") from None
-    for old in schema.migrate(config):  # a config file of an earlier version
-      print(f"nerfpod: note: config field {old} is now {schema.LEGACY_NAMES[old]}", file=sys.stderr)
     schema.validate(config)  # every mistake, before JAX starts: no process waits for a peer in vain
     missing = schema.package_rules(schema.flatten(config))  # an optional extra the config asks for
     if missing:
@@ -87,9 +85,7 @@ def main(argv):
 
 
 def _parse_flags(argv):
-  """absl's parsing, with a bad --config or override (unknown key, wrong type) reported in one sentence.
-  Overrides that use an earlier name of a field (LEGACY_NAMES) are renamed first."""
-  argv = schema.rewrite_legacy_flags(argv)
+  """absl's parsing, with a bad --config or override (unknown key, wrong type) reported in one sentence."""
   sys.argv[:] = argv  # ml_collections reads the overrides off sys.argv when it parses --config
   try:
     return flags.FLAGS(argv)
@@ -106,12 +102,7 @@ def _parse_flags(argv):
 
 
 def run():
-  """`python -m nerfpod.main ...` and `nerfpod train|eval|render ...` (nerfpod.cli); `python -m nerfpod.main
-  view ...` is the viewer's (nerfpod.view), with its own flags."""
-  if len(sys.argv) > 1 and sys.argv[1] == "view":
-    from nerfpod import view
-    view.run(sys.argv[2:])
-    return
+  """`python -m nerfpod.main ...` and `nerfpod train|eval|render ...` (nerfpod.cli)."""
   app.run(main, flags_parser=_parse_flags)
 
 

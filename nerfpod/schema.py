@@ -5,9 +5,6 @@ ConfigError listing every mistake, one sentence each, naming the field and a val
 runs it before JAX starts (a mistake costs nobody a device), and again with the device count once JAX runs.
 No module checks config fields on its own; a config that passed here is used as it is.
 
-Renamed fields: `LEGACY_NAMES` maps the names of earlier versions to today's, so that old overrides
-(`--config.model.num_frequencies=0`), users' own config files and old workdirs' config.json keep working.
-
 This module imports no JAX (nor anything that does): checking a config takes milliseconds.
 """
 import dataclasses
@@ -16,36 +13,6 @@ from typing import Any, Callable
 
 from nerfpod import scenes
 from nerfpod.errors import UserError
-
-# Earlier names of fields, and where they live now. The MLP's settings moved under model.mlp.
-LEGACY_NAMES = {f"model.{name}": f"model.mlp.{name}" for name in (
-    "num_frequencies", "depth", "width", "skips", "viewdir_frequencies", "density_activation")}
-
-
-# Fields added since earlier versions, with the value that does what those versions did: an earlier
-# workdir's config.json that lacks them reads as having these (so that it still resumes, evaluates, renders).
-ADDED_FIELDS = {
-    "render.proposal_samples": [],  # no proposal sampling (JSON keeps tuples as lists)
-    "model.proposal.num_levels": 5, "model.proposal.log2_table_size": 17, "model.proposal.base_resolution": 16,
-    "model.proposal.max_resolution": 128, "model.proposal.hidden_width": 16,  # unused without proposals
-    "train.interlevel_weight": 1.0, "train.distortion_weight": 0.0,       # likewise
-    "render.space": "euclidean", "render.spacing": "linear",               # the world, samples even in distance
-    "data.llffhold": 8, "data.orient": "auto", "data.center": "auto",      # captures only: earlier versions
-    "data.scale": 0.0, "data.space": "auto",                               # loaded none
-    "compile.cpu_reuse_host_memory": False,                                # glibc's defaults
-    "monitor.wandb.mode": "disabled", "monitor.wandb.project": "",         # TensorBoard only
-    "monitor.wandb.entity": "", "monitor.wandb.name": "", "monitor.wandb.tags": [],
-    "eval.lpips_net": "none",                                              # PSNR and SSIM only
-    "train.profile_steps": [],                                             # no profile
-    "data.shards": 1, "data.host_memory_gib": 0.0,                         # every host held every frame
-    "mesh.slices": 0,                                                      # the slices the devices report
-    "model.appearance_dim": 0, "train.pose_refine": False,                 # no per-frame appearance or poses
-    "train.pose_lr_init": 1e-4, "train.pose_lr_final": 1e-5, "train.pose_weight_decay": 0.0,  # unused then
-    "train.adam_b1": 0.9, "train.adam_b2": 0.999,                          # optax's Adam defaults
-    "train.near_gradient_distance": 0.0,                                   # gradients unscaled
-    "render.eval_samples": 0,                                              # as many samples as in training
-}
-
 
 class ConfigError(UserError):
   """Every mistake found in a config, one sentence each."""
@@ -375,54 +342,6 @@ def flatten(tree, prefix: str = "") -> dict:
       out.update(flatten(value, f"{prefix}{key}."))
     else:
       out[f"{prefix}{key}"] = value
-  return out
-
-
-def migrate_flat(flat: dict) -> dict:
-  """A flattened config (e.g. an old workdir's config.json) with earlier names renamed to today's and the
-  fields added since filled in with what the earlier version did (ADDED_FIELDS)."""
-  return {**ADDED_FIELDS, **{LEGACY_NAMES.get(k, k): v for k, v in flat.items()}}
-
-
-def migrate(config) -> list[str]:
-  """Moves fields of `config` (a ConfigDict) that carry an earlier name to today's, in place; returns the
-  earlier names found. (A user's own config file may still set e.g. c.model.depth.)"""
-  flat = flatten(config)
-  moved = [old for old in LEGACY_NAMES if old in flat]
-  if not moved:
-    return []
-  locked = config.is_locked
-  if locked:
-    config.unlock()
-  for old in moved:
-    *parents, leaf = old.split(".")
-    node = config
-    for p in parents:
-      node = node[p]
-    value = node[leaf]
-    del node[leaf]
-    *new_parents, new_leaf = LEGACY_NAMES[old].split(".")
-    node = config
-    for p in new_parents:
-      if p not in node:
-        node[p] = type(config)()
-      node = node[p]
-    node[new_leaf] = value
-  if locked:
-    config.lock()
-  return moved
-
-
-def rewrite_legacy_flags(argv: list[str]) -> list[str]:
-  """Command-line overrides with earlier field names (--config.model.depth=3) renamed to today's."""
-  out = []
-  for arg in argv:
-    for old, new in LEGACY_NAMES.items():
-      flag = f"--config.{old}"
-      if arg == flag or arg.startswith(flag + "="):
-        arg = f"--config.{new}" + arg[len(flag):]
-        break
-    out.append(arg)
   return out
 
 

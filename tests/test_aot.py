@@ -19,10 +19,9 @@ needs_libtpu = pytest.mark.skipif(not HAS_LIBTPU, reason="libtpu is not installe
 
 
 AOT = ["-m", "nerfpod.pod.aot"]
-# The ways in: `nerfpod aot` (run with the program's name as argv[0]), python -m nerfpod.pod.aot, and
-# python -m tools.aot, kept for existing scripts.
+# The ways in: `nerfpod aot` (run with the program's name as argv[0]) and python -m nerfpod.pod.aot.
 ENTRY_POINTS = {"run": ["-c", "import sys; from nerfpod.pod import aot; aot.run(['nerfpod aot'] + sys.argv[1:])"],
-                "module": AOT, "tools.aot": ["-m", "tools.aot"]}
+                "module": AOT}
 
 
 def _aot(*args, timeout=600, entry=AOT) -> subprocess.CompletedProcess:

@@ -110,14 +110,12 @@ def test_missing_or_partial_archives_are_refused_naming_the_missing_frames(tmp_p
   with pytest.raises(UserError, match="no orbit archive"):
     export_tool.write_files(str(tmp_path))
   _archive(tmp_path / "orbit.zarr", 5, 8, 8, frames=[0, 2, 4])
-  for run, argv in ((export_tool.run, ["video", f"--workdir={tmp_path / 'orbit.zarr'}"]),
-                    (export_tool.run_video_alias, [str(tmp_path / "orbit.zarr")])):  # nerfpod-export's spelling
-    with pytest.raises(SystemExit) as exit_info:
-      run(argv)
-    assert exit_info.value.code == 2
-    message = capsys.readouterr().err
-    assert message.count("\n") == 1 and message.startswith(("nerfpod export: error: ", "nerfpod-export: error: "))
-    assert "incomplete: 2 of 5 frames are missing (1, 3)" in message and "--mode=render" in message
+  with pytest.raises(SystemExit) as exit_info:
+    export_tool.run(["video", f"--workdir={tmp_path / 'orbit.zarr'}"])
+  assert exit_info.value.code == 2
+  message = capsys.readouterr().err
+  assert message.count("\n") == 1 and message.startswith("nerfpod export: error: ")
+  assert "incomplete: 2 of 5 frames are missing (1, 3)" in message and "--mode=render" in message
   assert not list(tmp_path.glob("orbit_*"))
   with pytest.raises(UserError, match="unknown export format"):
     export_tool.write_files(str(tmp_path / "orbit.zarr"), formats=["avi"])

@@ -53,8 +53,6 @@ def test_a_users_own_malloc_settings_win():
   assert _probe(True, MALLOC_ARENA_MAX="2")[0] is False
 
 
-def test_the_default_config_asks_for_it_and_an_earlier_workdir_did_not():
-  from nerfpod import schema
+def test_the_default_config_asks_for_it():
   from conftest import smoke_config
   assert smoke_config().compile.cpu_reuse_host_memory is True
-  assert schema.ADDED_FIELDS["compile.cpu_reuse_host_memory"] is False

@@ -102,48 +102,6 @@ def test_the_schema_knows_every_scene_kind():
     assert schema.FIELDS["data.kind"].accepts(kind)
 
 
-def test_earlier_field_names_still_work_in_overrides_config_files_and_saved_configs():
-  assert schema.rewrite_legacy_flags(["--config.model.num_frequencies=0", "--config.model.depth", "3",
-                                      "--config.model.depthwise=1", "--workdir=w"]) == [
-      "--config.model.mlp.num_frequencies=0", "--config.model.mlp.depth", "3", "--config.model.depthwise=1",
-      "--workdir=w"]
-  config = smoke_config()
-  with config.model.ignore_type():
-    config.model.depth = 5  # what a user's config file written for an earlier version sets
-  assert schema.migrate(config) == ["model.depth"]
-  assert config.model.mlp.depth == 5 and "depth" not in config.model
-  assert schema.problems(config) == []
-  assert schema.migrate_flat({"model.width": 64, "train.seed": 1}) == {
-      **schema.ADDED_FIELDS, "model.mlp.width": 64, "train.seed": 1}
-
-
-# Fields whose value in configs/default.py changed after they were added, with the value the default had
-# then: proposal sampling became the default (32 proposal intervals, 16 for the field) once measured.
-CHANGED_DEFAULTS = {"render.proposal_samples": [], "render.num_samples": 48,
-                    "compile.cpu_reuse_host_memory": False, "eval.lpips_net": "none"}
-
-
-def _default_json(**values) -> dict:
-  """configs/default.py as JSON (a workdir's config.json), with dotted fields set to `values`."""
-  from nerfpod.config_util import override
-  return override(json.loads(load_config("default").to_json_best_effort()),
-                  **values)
-
-
-def test_a_workdir_written_before_fields_were_added_still_matches_the_default_config():
-  from nerfpod.workdir import files as workdir_files
-  earlier_default = _default_json(**CHANGED_DEFAULTS)
-  flat = schema.flatten(earlier_default)
-  assert {k: flat[k] for k in schema.ADDED_FIELDS} == schema.ADDED_FIELDS  # what the default did then
-  saved = json.loads(json.dumps(earlier_default))
-  del saved["render"]["proposal_samples"], saved["model"]["proposal"], saved["train"]["interlevel_weight"]
-  del saved["train"]["distortion_weight"]
-  assert workdir_files.incompatible_fields(saved, earlier_default) == []
-  with_proposals = json.loads(json.dumps(earlier_default))
-  with_proposals["render"]["proposal_samples"] = [32]
-  assert workdir_files.incompatible_fields(saved, with_proposals) == ["render.proposal_samples"]
-
-
 def _bad_argv(name: str, value) -> list[str]:
   shown = schema._show(value).strip("'")
   return ["--config=configs/default.py:smoke", f"--workdir=/nonexistent/{name}", f"--config.{name}={shown}"]
@@ -177,12 +135,12 @@ def test_an_unknown_config_argument_is_one_sentence(tmp_path):
 @pytest.mark.slow  # a run of the command (no steps, but the evaluation's compiles)
 def test_config_json_of_a_run_holds_exactly_the_schemas_fields(tmp_path):
   result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}",
-                          "--config.train.num_steps=0", "--config.model.num_frequencies=0",
+                          "--config.train.num_steps=0", "--config.model.mlp.num_frequencies=0",
                           "--config.orbit.render_after_training=false", timeout=300)
   assert result.returncode == 0, result.stderr[-2000:]
   saved = json.loads((tmp_path / "config.json").read_text())
   assert set(schema.flatten(saved)) == set(schema.FIELDS)
-  assert saved["model"]["mlp"]["num_frequencies"] == 0  # given by its earlier name
+  assert saved["model"]["mlp"]["num_frequencies"] == 0
 
 
 def test_config_error_lists_every_mistake():
@@ -192,44 +150,3 @@ def test_config_error_lists_every_mistake():
   with pytest.raises(schema.ConfigError) as error:
     schema.validate(config)
   assert [m.split("=")[0] for m in error.value.messages] == ["train.log_every", "orbit.fps"]
-
-
-# Every field of configs/default.py in the release before the real captures, proposal sampling, the pod
-# compile tool and the resilience work (commit 56b18de): a workdir written then has exactly these.
-EARLIER_RELEASE_FIELDS = (
-    "checkpoint.every_steps", "checkpoint.max_to_keep", "compile.cpu_ynnpack", "data.downscale",
-    "data.image_size", "data.kind", "data.path", "data.pixel_center",
-    "eval.chunk", "eval.max_views", "eval.split", "model.compute_dtype",
-    "model.field", "model.hashgrid.base_resolution", "model.hashgrid.bound", "model.hashgrid.features_per_level",
-    "model.hashgrid.geo_features", "model.hashgrid.hidden_width", "model.hashgrid.log2_table_size", "model.hashgrid.max_resolution",
-    "model.hashgrid.num_levels", "model.mlp.density_activation", "model.mlp.depth", "model.mlp.num_frequencies",
-    "model.mlp.skips", "model.mlp.viewdir_frequencies", "model.mlp.width", "model.use_viewdirs",
-    "orbit.chunk", "orbit.elevation", "orbit.focal", "orbit.fps",
-    "orbit.height", "orbit.num_frames", "orbit.radius", "orbit.render_after_training",
-    "orbit.width", "render.far", "render.last_delta", "render.near",
-    "render.num_importance", "render.num_samples", "train.adam_eps", "train.batch_size",
-    "train.grad_clip", "train.image_every", "train.log_every", "train.lr_final",
-    "train.lr_init", "train.lr_warmup_steps", "train.microbatches", "train.num_steps",
-    "train.random_background", "train.seed",
-)
-
-
-def test_a_workdir_of_the_earlier_release_resumes_with_todays_default_but_its_sampling():
-  """Each field added since is either in ADDED_FIELDS (read as what the earlier release did) or one that may
-  change on resume: the earlier workdir resumes with today's default and its own sampling (the default's
-  since changed to proposal sampling, which the refusal names)."""
-  from nerfpod.workdir import files as workdir_files
-  earlier_default = _default_json(**CHANGED_DEFAULTS)
-  flat = schema.flatten(earlier_default)
-  earlier = {k: v for k, v in flat.items() if k in EARLIER_RELEASE_FIELDS}
-  assert len(earlier) == len(EARLIER_RELEASE_FIELDS)
-  saved = {}
-  for dotted, value in earlier.items():
-    node = saved
-    *parents, leaf = dotted.split(".")
-    for p in parents:
-      node = node.setdefault(p, {})
-    node[leaf] = value
-  assert workdir_files.incompatible_fields(saved, earlier_default) == []
-  assert workdir_files.incompatible_fields(saved, _default_json()) == ["render.num_samples",
-                                                                     "render.proposal_samples"]

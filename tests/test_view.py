@@ -343,7 +343,7 @@ def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
 
 def _view(*args, timeout=120):
   from procs import environment
-  return subprocess.run([sys.executable, "-m", "nerfpod.main", "view", *args], cwd=REPO, env=environment(1),
+  return subprocess.run([sys.executable, "-m", "nerfpod.view", *args], cwd=REPO, env=environment(1),
                         capture_output=True, text=True, timeout=timeout)
 
 

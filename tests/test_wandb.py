@@ -136,8 +136,7 @@ def test_a_workdir_written_before_the_monitor_fields_resumes_with_wandb_on():
   saved = json.loads(smoke_config().to_json_best_effort())
   del saved["monitor"]  # a config.json of a version without W&B
   now = json.loads(override(smoke_config(), **OFFLINE, **{"monitor.wandb.tags": ("a",)}).to_json_best_effort())
-  assert workdir_files.incompatible_fields(saved, now) == []
-  assert schema.migrate_flat(schema.flatten(saved))["monitor.wandb.mode"] == "disabled"
+  assert workdir_files.incompatible_fields(saved, now) == []  # monitor.* may change on resume
 
 
 def test_asking_for_wandb_without_the_package_is_one_sentence_naming_the_extra(tmp_path, monkeypatch):

@@ -96,19 +96,5 @@ def run(argv=None) -> None:
       print(path)
 
 
-def run_video_alias(argv=None) -> None:
-  """The console script `nerfpod-export WORKDIR_OR_ARCHIVE [...]`: `nerfpod export video`'s earlier name."""
-  from nerfpod.export import video
-  parser = argparse.ArgumentParser(prog="nerfpod-export", description=KINDS["video"])
-  video.add_arguments(parser, positional=True)
-  try:
-    files = video.export(parser.parse_args(sys.argv[1:] if argv is None else argv))
-  except UserError as e:
-    print(f"nerfpod-export: error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
-  for path in files:
-    print(path)
-
-
 if __name__ == "__main__":
   run()

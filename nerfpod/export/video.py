@@ -1,7 +1,6 @@
 """`nerfpod export video`: the orbit archive to videos and a contact sheet.
 
---workdir is a training workdir (its renders/orbit.zarr is used) or an archive folder itself
-(`nerfpod-export WORKDIR_OR_ARCHIVE ...`, the earlier spelling, still works). Writes
+--workdir is a training workdir (its renders/orbit.zarr is used) or an archive folder itself. Writes
 PREFIX_{rgb,depth,acc,disparity}.{mp4,gif} and PREFIX_sheet.png, PREFIX being the archive's name without
 .zarr ("orbit"), into --out (default: the folder holding the archive). Depth and disparity are colour-mapped
 (turbo, near warm); acc is grey. An archive that misses frames is refused with the list of them.

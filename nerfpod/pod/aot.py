@@ -2,7 +2,7 @@
 
     nerfpod aot --config=configs/blender_fast.py --topology=v5e-64 [--json=FILE]
 
-(also `python -m nerfpod.pod.aot ...`, and `python -m tools.aot ...` in a checkout).
+(also `python -m nerfpod.pod.aot ...`).
 
 XLA compiles for a TPU topology ahead of time on a machine without TPUs (it needs libtpu: `pip install -e
 '.[tpu]'`). This builds the pod's device mesh as a run on it would (distributed.make_mesh over the
@@ -423,8 +423,6 @@ def _load_config():
     raise
   except (OSError, AttributeError, KeyError, TypeError, ValueError, SyntaxError, ImportError) as e:
     raise UserError(f"could not load the --config file {path} ({' '.join(str(e).split())[:300]}).") from None
-  for old in schema.migrate(config):
-    print(f"nerfpod aot: note: config field {old} is now {schema.LEGACY_NAMES[old]}", file=sys.stderr)
   schema.validate(config)
   return config
 
@@ -474,8 +472,7 @@ def main(argv):
 
 def _parse_flags(argv):
   """absl's parsing, with any mistake (a missing or unknown flag, a bad --config override) in one sentence,
-  exit 2. Overrides that use an earlier name of a field (schema.LEGACY_NAMES) are renamed first."""
-  argv = schema.rewrite_legacy_flags(argv)
+  exit 2."""
   sys.argv[:] = argv  # ml_collections reads the overrides off sys.argv when it parses --config
   try:
     return flags.FLAGS(argv)

@@ -24,9 +24,8 @@ RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", 
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
-  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
-  The saved config may use earlier names of fields (schema.LEGACY_NAMES)."""
-  a, b = schema.migrate_flat(schema.flatten(saved)), schema.flatten(current)
+  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed."""
+  a, b = schema.flatten(saved), schema.flatten(current)
   differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
   return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
                                           for p in RESUMABLE_CHANGES)]
@@ -76,7 +75,7 @@ def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> N
     return
   differing = incompatible_fields(saved, config_json)
   if differing:
-    was, now = schema.migrate_flat(schema.flatten(saved)), schema.flatten(config_json)
+    was, now = schema.flatten(saved), schema.flatten(config_json)
     shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
                       for k in differing[:6])
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
@@ -142,17 +141,6 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
   except ValueError as e:
     raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
   config = ml_collections.ConfigDict(tree)
-  schema.migrate(config)
-  present = schema.flatten(config)
-  for name, value in schema.ADDED_FIELDS.items():  # a workdir written before these fields: what it did then
-    if name not in present:
-      *sections, leaf = name.split(".")
-      node = config
-      for section in sections:
-        if section not in node:
-          node[section] = ml_collections.ConfigDict()
-        node = node[section]
-      node[leaf] = tuple(value) if isinstance(value, list) else value
   try:
     schema.validate(config)
   except schema.ConfigError as e:  # its fixes name command-line overrides, which these tools do not take
