@@ -21,7 +21,6 @@ given).
 import json
 import platform
 import resource
-import sys
 import time
 
 _START = time.perf_counter()
@@ -252,15 +251,13 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
   from nerfpod import schema
-  from nerfpod.errors import UserError
+  from nerfpod.errors import UserError, fail
   try:
     config = _CONFIG.value
     config.keys()
     schema.validate(config)
   except UserError as e:
-    for message in getattr(e, "messages", None) or [str(e)]:
-      print(f"nerfpod bench: error: {message}", file=sys.stderr, flush=True)
-    sys.exit(2)
+    fail(e, "nerfpod bench")
   import jax
   from nerfpod import distributed
   from nerfpod.run import compilation
@@ -279,9 +276,8 @@ def main(argv):
     try:
       targets = [float(t) for t in _TARGETS.value]
     except ValueError:
-      print(f"nerfpod bench: error: --targets={','.join(_TARGETS.value)} is not a list of PSNRs in dB; give e.g. "
-            f"--targets=31,33.", file=sys.stderr, flush=True)
-      sys.exit(2)
+      fail(f"--targets={','.join(_TARGETS.value)} is not a list of PSNRs in dB; give e.g. --targets=31,33.",
+           "nerfpod bench")
     result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value,
                                         thresholds=THRESHOLDS + tuple(targets))
   else:

@@ -17,7 +17,7 @@ from absl import app, flags, logging
 from ml_collections import config_flags
 
 from nerfpod import schema
-from nerfpod.errors import UserError
+from nerfpod.errors import UserError, fail
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
                                           lock_config=True)
@@ -39,12 +39,6 @@ _MODE = flags.DEFINE_enum("mode", "train", ["train", "eval", "render"],
                           "train: train (resuming), evaluate, render the orbit; eval: evaluate the workdir's "
                           "newest checkpoint; render: render (or finish) its orbit and export the videos.")
 flags.mark_flags_as_required(["config", "workdir"])
-
-
-def _fail(error: UserError):
-  for message in getattr(error, "messages", None) or [str(error)]:
-    print(f"nerfpod: error: {message}", file=sys.stderr, flush=True)
-  sys.exit(2)
 
 
 def main(argv):
@@ -75,7 +69,7 @@ def main(argv):
     result = {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
               "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)
   except UserError as e:
-    _fail(e)
+    fail(e)
   except KeyboardInterrupt:  # Ctrl-C outside training's steps (start-up, evaluation, the orbit)
     print("nerfpod: interrupted; the same command resumes from the newest checkpoint", file=sys.stderr,
           flush=True)
@@ -90,15 +84,13 @@ def _parse_flags(argv):
   try:
     return flags.FLAGS(argv)
   except UserError as e:  # raised by a config file's get_config (e.g. an unknown argument after the colon)
-    _fail(e)
+    fail(e)
   except flags.Error as e:
     message = str(e)
   except (AttributeError, KeyError, TypeError, ValueError, FileNotFoundError) as e:
     message = f"bad --config file or override ({e})"
-  message = " ".join(message.replace("\\n", " ").replace("\\'", "'").replace("''", "'").split())
-  print(f"nerfpod: error: {message}; see `python -m nerfpod.main --helpfull` and the config file's fields.",
-        file=sys.stderr)
-  sys.exit(2)
+  message = message.replace("\\n", " ").replace("\\'", "'").replace("''", "'")
+  fail(f"{message}; see `python -m nerfpod.main --helpfull` and the config file's fields.")
 
 
 def run():

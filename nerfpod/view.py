@@ -48,7 +48,7 @@ from nerfpod import distributed
 from nerfpod.render import renderer, video
 from nerfpod.run import compilation, components
 from nerfpod.workdir import checkpoints, files as workdir_files
-from nerfpod.errors import UserError
+from nerfpod.errors import UserError, fail
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 
 STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
@@ -489,8 +489,7 @@ def run(argv=None):
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)
   except UserError as e:
-    print(f"nerfpod: error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
+    fail(e)
   print(f"nerfpod: view: step {viewer.step} of {args.workdir} at {viewer.url} (ready in "
         f"{time.perf_counter() - started:.1f} s; Ctrl-C stops)", flush=True)
   try:

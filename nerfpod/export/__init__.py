@@ -16,7 +16,7 @@ import argparse
 import importlib
 import sys
 
-from nerfpod.errors import UserError
+from nerfpod.errors import UserError, fail
 from nerfpod.export.video import write_files  # noqa: F401 (the earlier nerfpod.export.write_files)
 
 KINDS = {
@@ -89,8 +89,7 @@ def run(argv=None) -> None:
   try:
     files = export(args)
   except UserError as e:
-    print(f"nerfpod export: error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
+    fail(e, "nerfpod export")
   if args.kind == "video":
     for path in files:
       print(path)

@@ -33,7 +33,7 @@ from absl import app, flags
 from ml_collections import config_flags
 
 from nerfpod import schema
-from nerfpod.errors import UserError
+from nerfpod.errors import UserError, fail
 from nerfpod.pod import chips
 
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
@@ -390,10 +390,9 @@ def format_report(report: dict) -> str:
   return "\n".join(lines)
 
 
-def _error(message: str, code: int = 2):
+def _error(message: "UserError | str", code: int = 2):
   """Ends the tool with one sentence on stderr (no traceback): exit 2 for bad input, 1 for a refusal."""
-  print(f"nerfpod aot: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
-  sys.exit(code)
+  fail(message, "nerfpod aot", code)
 
 
 def _check_json_path(path: str | None) -> None:
@@ -459,9 +458,7 @@ def main(argv):
       except OSError as e:
         raise UserError(f"could not write --json={_JSON.value} ({e.strerror or e}).") from None
   except UserError as e:
-    for message in (getattr(e, "messages", None) or [str(e)])[:-1]:
-      print(f"nerfpod aot: error: {' '.join(message.split())}", file=sys.stderr, flush=True)
-    _error((getattr(e, "messages", None) or [str(e)])[-1])
+    _error(e)
   except CompileError as e:
     _error(str(e), code=1)
   except KeyboardInterrupt:

@@ -32,7 +32,7 @@ import signal
 import sys
 import time
 
-from nerfpod.errors import UserError
+from nerfpod.errors import UserError, fail
 from nerfpod.prepare import capture, frames, sfm
 from nerfpod.prepare.progress import duration
 
@@ -332,8 +332,7 @@ def run(argv=None) -> int:
   try:
     summary = prepare(args)
   except UserError as e:
-    print(f"nerfpod: error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
+    fail(e)
   except KeyboardInterrupt:
     print(f"nerfpod: interrupted; the same command resumes from the finished stages in "
           f"{os.path.normpath(args.out)}.partial (--overwrite starts again)", file=sys.stderr, flush=True)
