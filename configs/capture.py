@@ -8,13 +8,14 @@ contracted into the ball of radius 2 (mip-NeRF 360), which the hash grid covers,
 proposal field places the field's 32 samples where it found matter (mip-NeRF 360's proposal sampling), and
 the field's gradients are scaled down within distance 1 of each camera (fewer floaters in front of them). The
 video follows mip-NeRF 360's ellipse through the capture's cameras. Arguments: `path=DIR`, `downscale=N`
-(images_N/ where it exists, else shrunk on loading; default 4), `smoke` for tests.
+(images_N/ where it exists, else shrunk on loading; default 4), `big` for a GPU or a TPU host (nerfacto's
+sizes: default.for_accelerator; with `downscale=1` for full-resolution images), `smoke` for tests.
 """
 from nerfpod import config_util
 
 
 def get_config(arg: str | None = None):
-  args = config_util.parse_arg(arg, path="data/capture", downscale="4", smoke=False)
+  args = config_util.parse_arg(arg, path="data/capture", downscale="4", big=False, smoke=False)
   default = config_util.sibling_module(__file__, "default")
   c = default.get_config()
   default.for_real_capture(c)     # opaque, view directions, the hash grid in the ball of radius 2, ...
@@ -32,6 +33,8 @@ def get_config(arg: str | None = None):
   # (docs/results.md, "Appearance codes and pose refinement"); turn them on for captures that need them.
   c.model.appearance_dim = 0
   c.train.pose_refine = False
+  if args["big"]:
+    default.for_accelerator(c)
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

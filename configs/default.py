@@ -222,3 +222,23 @@ def for_real_capture(c: ml_collections.ConfigDict) -> None:
   c.checkpoint.every_steps = 2000
   c.eval.chunk = 8192
   c.orbit.chunk = 8192
+
+
+def for_accelerator(c: ml_collections.ConfigDict) -> None:
+  """A real capture's config sized for a GPU or a TPU host (the `big` variants of capture.py and llff.py), as
+  nerfacto's default sizes it: a 16-level hash grid of 2^19 rows up to 2048 cells a side with 64-unit MLPs,
+  two proposal rounds (256 then 96 intervals) before 48 field samples, 4,096 rays a step for 30,000 steps,
+  and rendering calls of 32,768 rays (an accelerator's size: the CPU's 8,192 leave it idle between calls)."""
+  g = c.model.hashgrid
+  g.num_levels, g.log2_table_size, g.max_resolution = 16, 19, 2048
+  g.hidden_width, g.geo_features = 64, 15
+  c.model.proposal.num_levels, c.model.proposal.log2_table_size = 5, 17
+  c.model.proposal.max_resolution, c.model.proposal.hidden_width = 256, 16
+  c.render.proposal_samples = (256, 96)
+  c.render.num_samples = 48
+  c.train.batch_size = 4096
+  c.train.num_steps = 30_000
+  c.train.log_every = 100
+  c.train.image_every = 5000
+  c.checkpoint.every_steps = 5000
+  c.eval.chunk = c.orbit.chunk = 32768

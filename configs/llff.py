@@ -6,13 +6,15 @@ test, rays mapped to NDC (near plane at 1, t' in [0, 1] runs to infinity), and t
 through the capture's cameras for the video. The field is the hash grid, sized to the NDC cube at the
 images' resolution, with view directions (real scenes shine). Sized so that the whole job, training to the
 spiral's videos, runs within 20 minutes on a 2-core CPU (docs/results.md). Arguments: `scene=NAME`
-(folder under data/nerf_llff_data, or set --config.data.path), `smoke` for tests.
+(folder under data/nerf_llff_data, or set --config.data.path), `big` for a GPU or a TPU host (nerfacto's
+sizes, default.for_accelerator, on images_4/ as mip-NeRF evaluates LLFF, the spiral at their size),
+`smoke` for tests.
 """
 from nerfpod import config_util
 
 
 def get_config(arg: str | None = None):
-  args = config_util.parse_arg(arg, scene="fern", smoke=False)
+  args = config_util.parse_arg(arg, scene="fern", big=False, smoke=False)
   default = config_util.sibling_module(__file__, "default")
   c = default.get_config()
   default.for_real_capture(c)     # opaque, view directions, the hash grid in a box of 2, ...
@@ -28,6 +30,10 @@ def get_config(arg: str | None = None):
   c.train.pose_refine = False     # forward-facing captures; on 360 ones they cost PSNR: docs/results.md)
   c.orbit.path = "spiral"         # the original's: two turns, 120 frames, looking at the focus depth
   c.orbit.width = 252             # half the images' width (504): 120 frames stay within minutes on a CPU
+  if args["big"]:
+    default.for_accelerator(c)
+    c.data.downscale = 4          # images_4/ (1008x756 for nerf_llff_data)
+    c.orbit.width = 0             # the spiral at the images' size
   if args["smoke"]:
     default.shrink_for_smoke(c)
   return c

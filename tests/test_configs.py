@@ -64,3 +64,17 @@ def test_real_capture_configs_pick_their_space_sampling_and_path():
   assert capture.model.hashgrid.bound == 2.0
   for smoke in (load_config(name, "smoke") for name in ("llff", "capture")):
     assert smoke.render.space in ("ndc", "contract") and smoke.train.num_steps <= 20
+
+
+@pytest.mark.parametrize("name,arg", [("capture", "path=/x/cup,big"), ("llff", "scene=horns,big")])
+def test_the_big_variants_are_accelerator_sized_and_keep_their_kind(name, arg):
+  from nerfpod import schema
+  small, big = load_config(name, arg.removesuffix(",big")), load_config(name, arg)
+  g = big.model.hashgrid
+  assert (g.num_levels, g.log2_table_size, g.max_resolution, g.hidden_width) == (16, 19, 2048, 64)
+  assert tuple(big.render.proposal_samples) == (256, 96) and big.render.num_samples == 48
+  assert (big.train.batch_size, big.train.num_steps, big.eval.chunk) == (4096, 30_000, 32768)
+  for dotted in ("data.kind", "data.space", "render.space", "render.spacing", "orbit.path", "data.path"):
+    assert _get(big, dotted) == _get(small, dotted), dotted  # the same kind of scene, only bigger
+  assert schema.problems(big) == []
+  assert load_config(name, arg + ",smoke").train.num_steps <= 20  # big and smoke together shrink
