@@ -86,7 +86,8 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
               "grain": "grain", "tensorstore": "tensorstore", "ml_collections": "ml-collections",
               "absl": "absl-py", "tensorboardX": "tensorboardx", "PIL": "pillow", "imageio": "imageio",
               "etils": "etils", "viser": "viser", "pycolmap": "pycolmap",
-              "imageio_ffmpeg": "imageio-ffmpeg", "wandb": "wandb", "skimage": "scikit-image", "fsspec": "fsspec"}
+              "imageio_ffmpeg": "imageio-ffmpeg", "wandb": "wandb", "skimage": "scikit-image", "fsspec": "fsspec",
+              "jax_plugins": "jax"}  # (the namespace JAX finds its PJRT plugins in, e.g. a GPU's)
   import ast
   found = set()
   for path in (REPO / "nerfpod").rglob("*.py"):
