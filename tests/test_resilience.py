@@ -332,6 +332,33 @@ def _tmpfs(path, size: str):
                 f"full-disk test needs root in a machine that allows mounts")
 
 
+@pytest.mark.parametrize("raised", [OSError(28, "No space left on device"),  # ENOSPC, as Python raises it
+                                    RuntimeError("tensorstore write failed: No space left on device")])
+def test_a_full_disk_is_one_sentence_and_what_it_cut_off_goes_without_root_or_a_mount(tmp_path, raised):
+  """The full-disk path on its own (the whole run on a RAM disk, below, needs root): whichever write hit the
+  disk's end, the run stops with one sentence naming the newest complete checkpoint; a cut-off save and an
+  empty events file are removed, the good checkpoint and a written events file stay; any other error passes."""
+  _saved_steps(tmp_path, 4)
+  # orbax's temporary folders of saves under way, as this orbax names them and as its docs do (a timestamp)
+  cut_off = [checkpoints.checkpoint_dir(str(tmp_path)) / name
+             for name in ("8.orbax-checkpoint-tmp", "12.orbax-checkpoint-tmp-1010101")]
+  for folder in cut_off:
+    folder.mkdir()
+  (tmp_path / "events.out.tfevents.1.empty").write_bytes(b"")
+  (tmp_path / "events.out.tfevents.2.written").write_bytes(b"header")
+  with pytest.raises(UserError) as error:
+    with modes._disk_full_is_one_sentence(str(tmp_path), training=True):
+      raise raised
+  assert str(error.value) == (f"the disk holding workdir {tmp_path} is full (No space left on device); the newest "
+                              f"complete checkpoint, step 4, is safe; free space there (or pass a --workdir on a "
+                              f"larger disk) and rerun the same command, which resumes from it.")
+  assert not any(folder.exists() for folder in cut_off) and checkpoints.latest_step(str(tmp_path)) == 4
+  assert sorted(p.name for p in tmp_path.glob("events.out.tfevents.*")) == ["events.out.tfevents.2.written"]
+  with pytest.raises(ValueError, match="not a disk"):  # anything else is not turned into that sentence
+    with modes._disk_full_is_one_sentence(str(tmp_path), training=True):
+      raise ValueError("not a disk")
+
+
 @pytest.mark.slow
 def test_a_full_disk_is_one_sentence_naming_the_safe_checkpoint_and_a_rerun_with_space_resumes(tmp_path):
   """The smoke job on a 900 KiB RAM disk (room for one checkpoint of ~540 KiB, not two): it stops at its second

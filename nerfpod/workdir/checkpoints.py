@@ -27,6 +27,7 @@ import errno
 import functools
 import logging
 import os
+import re
 import sys
 import traceback
 
@@ -118,7 +119,8 @@ def remove_cut_off_saves(workdir: str) -> list[str]:
     return []
   removed = []
   for path in directory.iterdir():
-    if path.name.endswith(".orbax-checkpoint-tmp") or path.name == ROTATED:
+    # orbax's temporary folder of a save under way: STEP.orbax-checkpoint-tmp, or with -TIMESTAMP after it
+    if re.search(r"\.orbax-checkpoint-tmp(-\d+)?$", path.name) or path.name == ROTATED:
       path.rmtree()
       removed.append(path.name)
   return removed
