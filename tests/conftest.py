@@ -107,7 +107,8 @@ LONGEST_FILES = {"test_multiprocess": 195, "test_step": 105, "test_export": 124,
                  "test_view": 84, "test_benchmark": 84, "test_per_frame": 83, "test_wandb": 70, "test_pod_sweep": 59,
                  "test_resilience": 56, "test_prepare": 55, "test_shards": 49, "test_model": 44,
                  "test_multislice": 41, "test_real_configs": 36, "test_workdir_lock": 34, "test_bucket": 34,
-                 "test_whole_slice": 33}
+                 "test_whole_slice": 33,
+                 "test_device_check": 50}  # (added 2026-11-27: about 80 s on that day's slower EPYC)
 
 
 # The files that read the session's smoke run (smoke_run above) go to one worker, which trains it once.
