@@ -44,10 +44,9 @@ import numpy as np
 from absl import logging
 
 from nerfpod.render import camera_path as camera_paths
-from nerfpod import distributed
 from nerfpod.render import renderer, video
-from nerfpod.run import compilation, components
-from nerfpod.workdir import checkpoints, files as workdir_files
+from nerfpod.run import trained as run_trained
+from nerfpod.workdir import checkpoints
 from nerfpod.errors import UserError, fail
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 
@@ -118,32 +117,17 @@ class Viewer:
     except ImportError:
       raise UserError("the viewer needs viser: pip install 'nerfpod[viewer]' (or pip install viser).") from None
     self.workdir, self.paths_dir, self.poll_seconds = str(workdir), paths_dir, poll_seconds
-    if "://" not in self.workdir and not os.path.isdir(self.workdir):
-      raise UserError(f"workdir {self.workdir} does not exist; check the --workdir path, or train first "
-                      f"(nerfpod train --config=configs/default.py --workdir={self.workdir}).")
-    self.config = workdir_files.read_config(self.workdir)
-    steps = checkpoints.finished_steps(self.workdir)  # an unreachable bucket: one sentence
-    if not steps:
-      raise UserError(f"workdir {self.workdir} holds no checkpoint yet; wait for the training run's first "
-                      f"save (every checkpoint.every_steps={self.config.checkpoint.every_steps} steps) or pass "
-                      f"the --workdir of a trained run.")
+    run_trained.check(self.workdir)  # no config.json or checkpoint: one sentence before the port is looked at
     check_port_free(host, port)
-    compilation.tune_host(self.config)  # process-wide: the viewer is a process of its own
     # The viewer is a process of its own, never one of a pod run's processes (it starts no jax.distributed):
-    # its mesh, every device of this process (distributed.make_mesh), is all the devices its runtime has, so
-    # its renderer is not a program on a subset of anyone's slice. The slices are those its devices report, not
-    # the run's mesh.slices (a simulated count may not divide this process's devices; pixels do not depend on it).
-    self.comps = components.build(self.config, distributed.make_mesh())
+    # its mesh, every device of this process (nerfpod.run.trained.restore's), is all the devices its runtime
+    # has, so its renderer is not a program on a subset of anyone's slice.
+    trained = run_trained.restore(self.workdir)
+    self.config, self.comps = trained.config, trained.comps
     mesh = self.comps.mesh
-    self.damaged: dict[int, str] = {}  # {step: why it does not read back whole}: skipped, never read again
+    self.damaged = dict(trained.damaged)  # {step: why it does not read back whole}: skipped, never read again
     self._poll_error = ""  # the last poll's error, said once
-    newest = self._restore_newest(steps, above=-1)
-    if newest is None:
-      raise UserError(f"no checkpoint in {checkpoints.checkpoint_dir(self.workdir)} reads back whole ("
-                      + "; ".join(f"step {s}: {r}" for s, r in sorted(self.damaged.items(), reverse=True))
-                      + "); the viewer leaves them in place: train again from scratch in a new --workdir (or "
-                        "rerun the training command, which sets them aside and starts from scratch).")
-    self.step, self.params = newest  # the step on screen and its parameters
+    self.step, self.params = trained.step, trained.params  # the step on screen and its parameters
     self.chunk = max(mesh.size, self.config.orbit.chunk - self.config.orbit.chunk % mesh.size)
     self.max_resolution, self.coarse_resolution = int(max_resolution), int(coarse_resolution)
     self.keyframes: list[tuple[np.ndarray, float]] = []  # (OpenGL pose, vertical fov in degrees)
@@ -167,30 +151,11 @@ class Viewer:
 
   # ---- checkpoints --------------------------------------------------------------------------------------
 
-  def _restore(self, step: int):
-    """The parameters of `step`, restored read-only onto this machine's devices."""
-    return checkpoints.restore_read_only(self.workdir, self.config.checkpoint, self.comps.state_shapes, step).params
-
-  def _restore_newest(self, steps, above: int):
-    """(step, params) of the newest of `steps` after step `above` that reads back whole, or None. Newest
-    first, as `--mode=eval` does; each step that does not read back whole is said in one warning line,
-    remembered in `self.damaged` (and so never read again) and left in place: the viewer writes nothing. A
-    step gone meanwhile (rotated out by the training run's max_to_keep) is passed over in silence. A
-    checkpoint of another model is one sentence (UserError), as for evaluation."""
-    for step in sorted((s for s in steps if s > above and s not in self.damaged), reverse=True):
-      try:
-        return step, self._restore(step)
-      except UserError:
-        raise
-      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = checkpoints.damage_reason(e)
-      if step not in checkpoints.finished_steps(self.workdir):
-        continue
-      self.damaged[step] = reason
-      print(f"nerfpod: warning: the checkpoint of step {step} in {checkpoints.checkpoint_dir(self.workdir)} "
-            f"does not read back whole ({reason}); left in place (a training run on this workdir sets it "
-            f"aside); the viewer shows the newest step before it that reads back whole", file=sys.stderr, flush=True)
-    return None
+  def _restore_newest(self, above: int):
+    """(step, params) of the newest step after `above` that reads back whole, or None (the one door's
+    checkpoints.restore_newest: damaged steps are said once, remembered in `self.damaged` and left in place)."""
+    found = checkpoints.restore_newest(self.workdir, self.comps.state_shapes, above, self.damaged)
+    return None if found is None else (found[0], found[1].params)
 
   def poll(self) -> bool:
     """One look for a newer checkpoint (the poller's, every `poll_seconds`): the newest step after the one
@@ -200,7 +165,7 @@ class Viewer:
     and looked at again at the next poll."""
     damaged = len(self.damaged)
     try:
-      newest = self._restore_newest(checkpoints.finished_steps(self.workdir), above=self.step)
+      newest = self._restore_newest(above=self.step)
     except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
       reason = checkpoints.damage_reason(e)
       if reason != self._poll_error:

@@ -111,10 +111,11 @@ def test_read_only_restore_leaves_a_save_under_way_and_sigterm_alone(tmp_path):
   directory = checkpoints.checkpoint_dir(str(tmp_path))
   shutil.copytree(directory / "10", directory / "20.orbax-checkpoint-tmp")  # training is writing step 20
   handler = signal.getsignal(signal.SIGTERM)
-  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3, read_only=True) as ckpt:
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3, read_only=True):
     assert signal.getsignal(signal.SIGTERM) is handler
-    state, position = ckpt.restore(_abstract(_state(mesh, 0)))
-  assert position == {"next_step": 10} and int(state["step"]) == 10
+  step, state = checkpoints.restore_newest(str(tmp_path), _abstract(_state(mesh, 0)))
+  assert step == 10 and int(state["step"]) == 10
+  assert signal.getsignal(signal.SIGTERM) is handler
   assert (directory / "20.orbax-checkpoint-tmp").exists()
 
 
@@ -191,11 +192,10 @@ def test_restoring_a_state_of_another_shape_is_one_sentence_and_keeps_the_checkp
   other = _state(mesh, 1)
   other["params"]["w"] = jax.device_put(jnp.zeros((4, 2)), NamedSharding(mesh, P()))
   other["params"]["extra"] = jax.device_put(jnp.zeros(3), NamedSharding(mesh, P()))
-  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1, read_only=True) as ckpt:
-    with pytest.raises(UserError, match=r"step 1 .*another shape .*\(params/extra: new; "
-                                        r"params/w: \(4, 3\) saved, \(4, 2\) now\).*new --workdir"):
-      ckpt.restore(_abstract(other))
-    state, _ = ckpt.restore(_abstract(_state(mesh, 0)))  # the checkpoint is intact
+  with pytest.raises(UserError, match=r"step 1 .*another shape .*\(params/extra: new; "
+                                      r"params/w: \(4, 3\) saved, \(4, 2\) now\).*new --workdir"):
+    checkpoints.restore_newest(str(tmp_path), _abstract(other))
+  _, state = checkpoints.restore_newest(str(tmp_path), _abstract(_state(mesh, 0)))  # the checkpoint is intact
   np.testing.assert_array_equal(state["params"]["w"], np.ones((4, 3)))
   assert checkpoints.state_differences(checkpoints.checkpoint_dir(str(tmp_path)) / "1" / "state",
                                        _abstract(_state(mesh, 0))) == ""

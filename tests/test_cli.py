@@ -62,7 +62,7 @@ def test_train_checks_the_config_before_anything_runs(tmp_path):
 
 def test_eval_of_a_workdir_without_a_checkpoint_is_refused(tmp_path):
   done = _nerfpod("eval", "--config=configs/default.py:smoke", f"--workdir={tmp_path}")
-  assert done.returncode == 2 and "holds no checkpoint to evaluate or render" in done.stderr
+  assert done.returncode == 2 and "holds no checkpoint yet; train first" in done.stderr
 
 
 @pytest.mark.slow

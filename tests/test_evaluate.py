@@ -7,7 +7,7 @@ import pytest
 
 from conftest import SMOKE_RUN_EVAL, SMOKE_RUN_OVERRIDES, smoke_config
 from nerfpod.render import lpips, metrics, renderer
-from nerfpod.run import evaluate, modes
+from nerfpod.run import evaluate, modes, trained
 from nerfpod.errors import UserError
 
 OVERRIDES = dict(SMOKE_RUN_OVERRIDES, **SMOKE_RUN_EVAL)  # the session's smoke run (conftest.smoke_run): 20 steps,
@@ -58,7 +58,8 @@ def test_metrics_json_holds_each_views_psnr_and_ssim_of_its_rendering(workdir):
   assert [v["index"] for v in written["views"]] == [0, 1]  # eval.max_views=2 of the 8 test views
   # Recompute every view from the checkpoint with the plain renderer and the metrics module.
   config = smoke_config(**OVERRIDES)
-  comps, params, step = modes.restore_trained(config, str(directory))
+  restored = trained.restore(str(directory), config)
+  comps, params, step = restored.comps, restored.params, restored.step
   assert step == STEP
   plain = renderer.make_renderer(comps.model, comps.mesh, 2.0, 6.0, comps.scene.background)
   split = comps.scene.split("test")
@@ -90,8 +91,11 @@ def test_mode_eval_evaluates_the_newest_checkpoint_on_the_chosen_split(workdir, 
   assert written == result and written["split"] == "val" and written["step"] == STEP
   assert [v["index"] for v in written["views"]] == [0]
   assert _scalars(directory, "eval/val/ssim") == {STEP: pytest.approx(written["mean"]["ssim"], rel=1e-6)}
-  with pytest.raises(UserError, match="holds no checkpoint"):
+  with pytest.raises(UserError, match="empty does not exist; check the --workdir path, or train first"):
     modes.evaluate_workdir(config, str(tmp_path / "empty"))
+  with pytest.raises(UserError, match=r"holds no checkpoint yet; train first \(nerfpod train .*checkpoint\."
+                                      r"every_steps=\d+ steps\) or pass the --workdir of a trained run\."):
+    modes.evaluate_workdir(config, str(tmp_path))
   with pytest.raises(UserError, match=r"eval.split=nope is not valid: it must be one of 'test', 'val'"):
     modes.evaluate_workdir(smoke_config(**dict(OVERRIDES, **{"eval.split": "nope"})), str(directory))
 
@@ -114,7 +118,8 @@ def test_lpips_is_null_with_one_sentence_where_it_cannot_be_computed(workdir, mo
 def test_views_too_small_for_the_network_get_null_lpips_with_a_reason(workdir, tmp_path):
   from nerfpod.run import components
   directory, _ = workdir
-  _, params, step = modes.restore_trained(smoke_config(**OVERRIDES), str(directory))
+  restored = trained.restore(str(directory), smoke_config(**OVERRIDES))
+  params, step = restored.params, restored.step
   small = components.build(smoke_config(**dict(OVERRIDES, **{"data.image_size": 24})))  # AlexNet takes >= 31
   result = evaluate.evaluate(small, params, str(tmp_path), step)
   for view in result["views"]:

@@ -181,7 +181,8 @@ def smoke_workdir(smoke_run):
 def test_each_kind_refuses_bad_input_in_one_sentence(smoke_workdir, tmp_path, capsys):
   cases = [
       (["nope", "--workdir", smoke_workdir], "unknown kind 'nope'; choose one of video, pointcloud, mesh"),
-      (["mesh", f"--workdir={tmp_path / 'empty'}"], "holds no config.json"),
+      (["mesh", f"--workdir={tmp_path / 'missing'}"], "missing does not exist; check the --workdir path"),
+      (["mesh", f"--workdir={tmp_path}"], "holds no config.json"),
       (["pointcloud", f"--workdir={smoke_workdir}", "--num_points=0"], "--num_points=0 must be at least 1"),
       (["mesh", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'm.stl'}"], "must end in .ply or .obj"),
       (["depth", f"--workdir={smoke_workdir}", "--format=exr"], "--format=exr is not one of png, npy"),
@@ -249,9 +250,9 @@ def test_a_pose_refined_run_exports_its_training_frames_corrected_poses(smoke_wo
   import dataclasses
   import json
   from nerfpod.export import cameras as cameras_export
-  from nerfpod.export import trained as trained_lib
   from nerfpod.nerf import pose_correction
-  trained = trained_lib.restore(str(smoke_workdir))
+  from nerfpod.run import trained as run_trained
+  trained = run_trained.restore(str(smoke_workdir))
   train = trained.comps.scene.split("train")
   corrections = np.random.default_rng(0).uniform(-0.05, 0.05, (len(train), 6)).astype(np.float32)
   params = {"params": {**trained.params["params"], pose_correction.PARAM: corrections}}
@@ -279,13 +280,14 @@ def test_depth_maps_read_back_as_the_rendered_depth(smoke_workdir, tmp_path):
   import json
   from PIL import Image
   from nerfpod.export import trained as trained_lib
+  from nerfpod.run import trained as run_trained
   out_png, out_npy = tmp_path / "png", tmp_path / "npy"
   _export("depth", f"--workdir={smoke_workdir}", "--split=test", f"--out={out_png}", "--min_opacity=0.1")
   _export("depth", f"--workdir={smoke_workdir}", "--split=test", f"--out={out_npy}", "--format=npy",
           "--min_opacity=0.1")
   meta = json.loads((out_png / "depth.json").read_text())
   assert len(meta["views"]) == 8 and meta["coordinates"] == "capture"
-  trained = trained_lib.restore(str(smoke_workdir))
+  trained = run_trained.restore(str(smoke_workdir))
   split = trained.comps.scene.split("test")
   for view in meta["views"][:2]:
     png = np.asarray(Image.open(out_png / view["file"]))
@@ -422,7 +424,7 @@ def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_pat
   done = run("pointcloud", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'cloud.ply'}", "--num_points=100",
              "--min_opacity=0.05")
   assert done.returncode == 0, done.stderr[-2000:]
-  assert "nerfpod: export: restored step 20" in done.stdout and "pointcloud 100/100 points" in done.stdout
+  assert "nerfpod: restored step 20 of" in done.stdout and "pointcloud 100/100 points" in done.stdout
   assert len(_read_ply(tmp_path / "cloud.ply")["vertex"]) == 100
   for kind in ("pointcloud", "mesh", "cameras", "depth"):
     done = run(kind, "--help")

@@ -85,10 +85,16 @@ def test_read_only_restore_skips_a_damaged_step_and_leaves_it_in_place(tmp_path,
   _saved_steps(tmp_path, 10, 20)
   directory = checkpoints.checkpoint_dir(str(tmp_path))
   os.remove(directory / "20" / "state" / "_METADATA")
-  with checkpoints.Checkpoints(str(tmp_path), every_steps=10, max_to_keep=3, read_only=True) as ckpt:
-    _, position = ckpt.restore(_abstract(_state(0)))
-  assert position == {"next_step": 10}
-  assert "left in place" in capsys.readouterr().err
+  damaged = {}
+  step, state = checkpoints.restore_newest(str(tmp_path), _abstract(_state(0)), damaged=damaged)
+  assert step == 10 and int(state.step) == 10 and list(damaged) == [20]
+  (line,) = capsys.readouterr().err.splitlines()
+  assert line.startswith(f"nerfpod: warning: the checkpoint of step 20 in {directory} does not read back whole (")
+  assert "left in place" in line and line.endswith("falling back to the step before it")
+  # Known damaged steps are not read again; none after the newest, or none that reads back whole: None.
+  assert checkpoints.restore_newest(str(tmp_path), _abstract(_state(0)), damaged=damaged)[0] == 10
+  assert capsys.readouterr().err == ""
+  assert checkpoints.restore_newest(str(tmp_path), _abstract(_state(0)), above=10, damaged=damaged) is None
   assert (directory / "20").is_dir() and not (tmp_path / "checkpoints_damaged").exists()
   _, position, step = checkpoints.read_numpy(str(tmp_path))  # tools read the same way
   assert step == 10 and position == {"next_step": 10}

@@ -156,7 +156,7 @@ def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_pl
                                   state["params"]["params"]["coarse"]["rgb"]["bias"])
     (line,) = _warnings(capsys)
     assert f"the checkpoint of step 20 in {ckpts} does not read back whole (" in line
-    assert "left in place" in line and "shows the newest step before it that reads back whole" in line
+    assert "left in place" in line and "falling back to the step before it" in line
     assert viewer._step_text.content.startswith("**Checkpoint** step 10 (step 20 does not read back whole: `")
 
     # A new step that is damaged: the page keeps step 10 and says why; it is read once, not at every poll.

@@ -68,11 +68,11 @@ def export(args) -> list[str] | dict:
   distributed.keep_off_absent_tpu()
   distributed.initialize()  # several hosts (a TPU pod, JAX_* variables) render together; else one process
   from nerfpod.export import trained as trained_lib
-  trained_lib.read_config(args.workdir)  # no config.json or checkpoint: refused before --out is made
+  from nerfpod.run import trained as run_trained
+  run_trained.check(args.workdir)  # no config.json or checkpoint: refused before --out is made
   default, kind = _default_out(module, args)
   out = trained_lib.output_path(args.out, default, args.workdir, kind)
-  trained = trained_lib.restore(args.workdir)
-  module.export(args, trained, out)
+  module.export(args, run_trained.restore(args.workdir), out)
   return [out]
 
 

@@ -1,16 +1,12 @@
-"""What the exports of a trained run share: the workdir restored read-only, the field and the renderer over
-the whole device mesh, the capture's own coordinates, the output path's check, progress lines.
+"""What the exports of a trained run share: the field and the renderer over the whole device mesh, the output
+path's check, progress lines.
 
-`restore(workdir)` reads DIR/config.json (the scene, the model, the ray bounds: a user passes nothing else),
-the newest checkpoint that reads back whole (read-only: nothing in the workdir is written, deleted or
-locked, so a training run may go on) and scene.json's capture -> scene similarity. Rendering and field
-queries span every device of every host (as evaluation does); every process passes the same inputs and
-only process 0 writes files.
+The workdir comes restored read-only through nerfpod.run.trained (`Trained`: DIR/config.json, the newest
+checkpoint that reads back whole, scene.json's capture -> scene similarity and the capture's own
+coordinates), so a user passes nothing else. Rendering and field queries span every device of every host (as
+evaluation does); every process passes the same inputs and only process 0 writes files.
 """
-import dataclasses
-import json
 import time
-from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -20,83 +16,9 @@ from jax.sharding import PartitionSpec as P
 
 from nerfpod import distributed
 from nerfpod.render import renderer
-from nerfpod.run import compilation, components
-from nerfpod.workdir import checkpoints, files as workdir_files
+from nerfpod.run.trained import Trained
 from nerfpod.errors import UserError
 from nerfpod.nerf import coord, fields
-from nerfpod.nerf import poses as pose_math
-
-
-@dataclasses.dataclass(frozen=True)
-class Trained:
-  """A workdir's newest checkpoint with everything needed to render it and query its field."""
-  workdir: str
-  config: Any
-  comps: components.Components
-  params: Any
-  step: int
-  capture_to_scene: np.ndarray  # (4, 4) similarity: a capture point X lies at capture_to_scene @ X here
-
-  @property
-  def scale(self) -> float:
-    """Scene units per capture unit."""
-    return pose_math.scale_of(self.capture_to_scene)
-
-  def points_out(self, points_Nx3, normalized: bool) -> np.ndarray:
-    """Scene points in the capture's coordinates (or as they are, `normalized`)."""
-    points = np.asarray(points_Nx3, np.float64)
-    if normalized:
-      return points
-    inverse = np.linalg.inv(self.capture_to_scene)
-    return points @ inverse[:3, :3].T + inverse[:3, 3]
-
-  def directions_out(self, directions_Nx3, normalized: bool) -> np.ndarray:
-    """Unit directions (normals) in the capture's coordinates (or as they are)."""
-    directions = np.asarray(directions_Nx3, np.float64)
-    if normalized:
-      return directions
-    rotation = self.capture_to_scene[:3, :3] / self.scale
-    return directions @ rotation  # R^T d, row-wise
-
-  def poses_out(self, poses_Nx4x4, normalized: bool) -> np.ndarray:
-    """Camera-to-world poses in the capture's coordinates (or as they are)."""
-    poses = np.asarray(poses_Nx4x4, np.float64)
-    return poses if normalized else pose_math.transform_poses(np.linalg.inv(self.capture_to_scene), poses)
-
-  def field_name(self) -> str:
-    """The NeRF field whose density and colour the renderer shows: the fine one of a hierarchical model."""
-    return "fine" if self.config.render.num_importance > 0 else "coarse"
-
-
-def read_config(workdir: str):
-  """The workdir's config, checked to have a checkpoint to restore: one sentence where it has none, or no
-  config.json, or cannot be reached. Cheap: no JAX computation."""
-  workdir = str(workdir)
-  config = workdir_files.read_config(workdir)
-  newest = checkpoints.latest_step(workdir)  # an unreachable bucket: one sentence
-  if newest is None:
-    raise UserError(f"workdir {workdir} holds no checkpoint yet; train first (nerfpod train ...) or pass the "
-                    f"--workdir of a trained run.")
-  return config
-
-
-def restore(workdir: str) -> Trained:
-  """The workdir's config, newest checkpoint (read-only) and capture transform, on every device of every
-  host. A workdir without config.json or a checkpoint, or an unreachable one, is one sentence."""
-  workdir = str(workdir)
-  config = read_config(workdir)
-  compilation.tune_host(config)
-  # The slices its devices report, not the run's mesh.slices (a count simulated on another machine may not
-  # divide these devices; the pixels do not depend on it).
-  comps = components.build(config, distributed.make_mesh())
-  state = checkpoints.restore_read_only(workdir, config.checkpoint, comps.state_shapes)
-  step = int(jax.device_get(state.step))
-  transform = np.asarray(comps.scene.transform, np.float64)
-  scene_json = epath.Path(workdir) / "scene.json"
-  if scene_json.exists():  # what the run trained with (the loader gives the same from the same data)
-    transform = np.asarray(json.loads(scene_json.read_text())["capture_to_scene"], np.float64)
-  say(f"restored step {step} of {workdir}")
-  return Trained(workdir, config, comps, state.params, step, transform)
 
 
 def say(line: str) -> None:

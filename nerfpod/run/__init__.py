@@ -1,7 +1,9 @@
 """What a run does, from a config and a workdir to a trained, evaluated and rendered scene.
 
     modes        train_and_evaluate (train, then evaluate, then render the orbit), evaluate_workdir,
-                 render_workdir, and restore_trained: the set-up of a trained workdir
+                 render_workdir
+    trained      the one door to a trained workdir: its config, scene and newest checkpoint that reads back
+                 whole, read-only (evaluation, rendering, the viewer and the exports start from it)
     components   the one set-up value (Program without a scene, Components with one): model, optimiser,
                  schedule, TrainState, mesh, ray bounds, batches and renderer, resolved once from the config
     train        the loop: resume, steps, checkpoints, preemption, previews, one log line

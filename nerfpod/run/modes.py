@@ -20,24 +20,14 @@ import os
 import jax
 
 from nerfpod import monitor, schema
-from nerfpod.run import components, evaluate, orbit, train
+from nerfpod.run import components, evaluate, orbit, train, trained
 from nerfpod.workdir import checkpoints, files as workdir_files, lock as workdir_lock
 from nerfpod.errors import UserError
 
 
-def _prepare(config, workdir: str, trained: bool = False) -> components.Components:
-  """Checks the config (with this run's device count) and a resumed workdir's, then builds the pieces.
-  `trained`: the workdir must hold a checkpoint (evaluation, rendering)."""
-  schema.validate(config, jax.device_count())
-  workdir_files.check_workdir(workdir, writable=not trained)
-  return _build(config, workdir, trained)
-
-
-def _build(config, workdir: str, trained: bool = False) -> components.Components:
+def _build(config, workdir: str) -> components.Components:
+  """Checks a resumed workdir's config against this run's, then builds the pieces."""
   newest = checkpoints.latest_step(workdir)
-  if trained and newest is None:
-    raise UserError(f"workdir {workdir} holds no checkpoint to evaluate or render; train first (--mode=train, "
-                    f"the default) or pass the --workdir of a trained run.")
   workdir_files.check_compatible(workdir, json.loads(config.to_json_best_effort()), has_checkpoint=newest is not None)
   return components.build(config)
 
@@ -65,11 +55,11 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
       watch = monitor.Monitor(workdir, config.train.num_steps, config.train.batch_size, config)
       exit_code = 1  # for the W&B run: an exception, unless training stops early (preempted) or ends
       try:
-        trained = train.train(comps, workdir, watch)
-        if trained is None:
+        outcome = train.train(comps, workdir, watch)
+        if outcome is None:
           exit_code = config.checkpoint.preempted_exit_code
           return None
-        state, step = trained
+        state, step = outcome
         result = _evaluate(comps, state.params, workdir, step, writer=watch.writer)
         if config.orbit.render_after_training:
           _render_orbit(comps, state.params, workdir, step, writer=watch.writer)
@@ -165,26 +155,15 @@ def _render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
   return result
 
 
-def restore_trained(config, workdir: str) -> tuple[components.Components, object, int]:
-  """(components, parameters, step) of workdir's newest checkpoint, restored read-only onto this run's
-  mesh: what --mode=eval and --mode=render start from."""
-  comps = _prepare(config, workdir, trained=True)
-  state = checkpoints.restore_read_only(workdir, config.checkpoint, comps.state_shapes)
-  step = int(jax.device_get(state.step))
-  if jax.process_index() == 0:
-    print(f"nerfpod: restored step {step} of {workdir}", flush=True)
-  return comps, state.params, step
-
-
 def _from_newest_checkpoint(config, workdir: str, work):
-  """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint; the writer goes on
-  with the run's TensorBoard events and its W&B run."""
-  comps, params, step = restore_trained(config, workdir)
+  """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint that reads back whole
+  (nerfpod.run.trained, read-only); the writer goes on with the run's TensorBoard events and its W&B run."""
+  restored = trained.restore(workdir, config)
   with _disk_full_is_one_sentence(workdir, training=False):
     writer = monitor.summary_writer(workdir, config)
     exit_code = 1
     try:
-      result = work(comps, params, workdir, step, writer=writer)
+      result = work(restored.comps, restored.params, workdir, restored.step, writer=writer)
       exit_code = 0
       return result
     finally:

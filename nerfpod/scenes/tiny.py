@@ -1,5 +1,4 @@
 """The Tiny NeRF data (tiny_nerf_data.npz): 106 lego views at 100x100 on black, frames 100-105 held out."""
-import os
 import zipfile
 
 import numpy as np

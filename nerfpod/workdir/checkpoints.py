@@ -23,6 +23,7 @@ When to stop for a preemption is nerfpod.run.preemption's; the workdir's other f
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
 import dataclasses
+from typing import Any
 import errno
 import functools
 import logging
@@ -217,12 +218,14 @@ class Checkpoints:
     `abstract_state`.
 
     The placement comes from `abstract_state`'s shardings, i.e. this run's mesh, whatever mesh wrote the
-    checkpoint: a run can come back on another number of hosts or devices. Without `step`, a newest step
-    that does not read back whole (missing or emptied files, non-finite values) is set aside into
-    checkpoints_damaged/ (read-only: only skipped) with one line saying so, and the step before it is tried.
+    checkpoint: a run can come back on another number of hosts or devices. Without `step` (a training run
+    resuming), a newest step that does not read back whole (missing or emptied files, non-finite values) is
+    set aside into checkpoints_damaged/ with one line saying so, and the step before it is tried. Readers
+    that must not write go through restore_newest instead.
     """
     if step is not None:
       return self._restore_step(abstract_state, step)
+    assert not self._read_only, "a read-only reader restores through restore_newest"
     damaged = []
     for candidate in sorted(self.manager.all_steps(), reverse=True):
       try:
@@ -232,17 +235,14 @@ class Checkpoints:
       except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
         reason = damage_reason(e)
         damaged.append(f"step {candidate}: {reason}")
-        if self._read_only:
-          where = "left in place (a training run on this workdir sets it aside)"
-        else:
-          where = f"set aside as {self._set_aside(candidate)}"
+        where = self._set_aside(candidate)
         if jax.process_index() == 0:
           print(f"nerfpod: warning: the checkpoint of step {candidate} in {self._directory} does not read back "
-                f"whole ({reason}); {where}; falling back to the step before it", file=sys.stderr, flush=True)
-    raise UserError(f"no checkpoint in {self._directory} reads back whole ({'; '.join(damaged)}); "
-                    + ("" if self._read_only else f"they were set aside in {self._damaged_dir()}; ")
-                    + "train again from scratch in a new --workdir (or rerun the training command, which now "
-                      "starts from scratch).")
+                f"whole ({reason}); set aside as {where}; falling back to the step before it", file=sys.stderr,
+                flush=True)
+    raise UserError(f"no checkpoint in {self._directory} reads back whole ({'; '.join(damaged)}); they were set "
+                    f"aside in {self._damaged_dir()}; train again from scratch in a new --workdir (or rerun the "
+                    f"training command, which now starts from scratch).")
 
   def _damaged_dir(self) -> epath.Path:
     return self._directory.parent / "checkpoints_damaged"
@@ -312,14 +312,40 @@ class Checkpoints:
       self._delete_rotated()
 
 
-def restore_read_only(workdir: str, checkpoint_config, abstract_state, step: int | None = None):
-  """The train state of `step` (default: the newest that reads back whole), restored read-only onto
-  `abstract_state`'s placement: what evaluation, rendering, the viewer and the exports start from. Nothing in
-  the workdir is written, deleted or cleaned, so a training run may go on beside."""
-  cc = checkpoint_config
-  with Checkpoints(workdir, cc.every_steps, cc.max_to_keep, read_only=True) as ckpt:
-    state, _ = ckpt.restore(abstract_state, step)
-  return state
+def restore_newest(workdir: str, abstract_state, above: int = -1,
+                   damaged: dict | None = None) -> tuple[int, Any] | None:
+  """(step, train state) of the newest finished step after `above` that reads back whole, restored read-only
+  onto `abstract_state`'s placement; None where none does: the one way evaluation, rendering, the viewer and
+  the exports read a checkpoint. Nothing in the workdir is written, deleted or cleaned, so a training run may
+  go on beside. Newest first: a step that does not read back whole is said in one warning line (process 0),
+  added to `damaged` ({step: why}; the steps already there are not read again) and left in place (a training
+  run sets it aside); a step gone meanwhile (rotated out by a training run's max_to_keep) is passed over in
+  silence. A checkpoint of another model is one sentence (UserError)."""
+  damaged = {} if damaged is None else damaged
+  with Checkpoints(workdir, every_steps=1, max_to_keep=1, read_only=True) as ckpt:  # (a reader saves nothing)
+    for step in sorted((s for s in finished_steps(workdir) if s > above and s not in damaged), reverse=True):
+      try:
+        return step, ckpt.restore(abstract_state, step)[0]
+      except UserError:
+        raise
+      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
+        reason = damage_reason(e)
+      if step not in finished_steps(workdir):
+        continue
+      damaged[step] = reason
+      if jax.process_index() == 0:
+        print(f"nerfpod: warning: the checkpoint of step {step} in {checkpoint_dir(workdir)} does not read back "
+              f"whole ({reason}); left in place (a training run on this workdir sets it aside); falling back to "
+              f"the step before it", file=sys.stderr, flush=True)
+  return None
+
+
+def none_reads_back_whole(workdir: str, damaged: dict) -> UserError:
+  """The sentence for a workdir none of whose checkpoints reads back whole (`damaged`: {step: why})."""
+  return UserError(f"no checkpoint in {checkpoint_dir(workdir)} reads back whole ("
+                   + "; ".join(f"step {s}: {r}" for s, r in sorted(damaged.items(), reverse=True))
+                   + "); they are left in place: train again from scratch in a new --workdir (or rerun the "
+                     "training command, which sets them aside and starts from scratch).")
 
 
 def damage_reason(error: BaseException) -> str:
