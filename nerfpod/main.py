@@ -63,8 +63,7 @@ def main(argv):
                            shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
     from nerfpod.run import compilation, modes
     from nerfpod.workdir import checkpoints
-    # A damaged checkpoint's failed restore leaves orbax's other reads to report themselves at exit.
-    sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
+    checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
     compilation.tune_host(config)  # process-wide (glibc's malloc on a CPU): here, where the process starts
     result = {"train": modes.train_and_evaluate, "eval": modes.evaluate_workdir,
               "render": modes.render_workdir}[_MODE.value](config, _WORKDIR.value)

@@ -449,7 +449,7 @@ def run(argv=None):
   started = time.perf_counter()
   args = _parse(sys.argv[1:] if argv is None else argv)
   logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
-  sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
+  checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
   try:
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)

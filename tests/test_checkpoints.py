@@ -281,3 +281,33 @@ def test_abandoned_orbax_reads_are_quiet_and_other_reports_are_not(caplog):
                                          f"exception={error!r}>", exc_info=(type(error), error, error.__traceback__))
   assert [str(r.exc_info[1]) for r in caplog.records] == [
       "could not convert 'x'", "Encountered error while reading array index"]
+
+
+def test_the_reports_nerfpod_quiets_are_worded_as_the_pinned_orbax_words_them(tmp_path, caplog, monkeypatch):
+  """A read-only manager (every reader: eval, render, the viewer, the exports) makes orbax warn that it is
+  read-only, in the words checkpoints._ReadOnlyIsAsked matches (orbax 0.12.8, constraints.txt): each of its
+  texts must still be emitted, so that a new orbax that words them otherwise fails here rather than letting
+  them through unseen. With quiet_library_reports() (what the entry points call) they are dropped, and any
+  other warning of the same logger still passes."""
+  import logging
+  absl_log = logging.getLogger("absl")
+  monkeypatch.setattr(absl_log, "filters", [])  # the library as it is, before nerfpod configures it
+  monkeypatch.setattr("sys.unraisablehook", __import__("sys").unraisablehook)
+  mesh = _mesh(1)
+  with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
+    ckpt.save(1, _state(mesh, 1), {"next_step": 1})
+
+  def read_only_warnings() -> list[str]:
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="absl"):
+      assert checkpoints.restore_newest(str(tmp_path), _abstract(_state(mesh, 0)))[0] == 1
+      absl_log.warning("a warning of another kind")
+    return [r.getMessage() for r in caplog.records if r.name == "absl"]
+
+  emitted = read_only_warnings()
+  for text in checkpoints._ReadOnlyIsAsked.QUIET:
+    assert any(message.startswith(text) for message in emitted), (text, emitted)
+  checkpoints.quiet_library_reports()
+  checkpoints.quiet_library_reports()  # a second call installs nothing twice
+  assert [type(f).__name__ for f in absl_log.filters] == ["_ReadOnlyIsAsked", "_DiskFullIsReported"]
+  assert read_only_warnings() == ["a warning of another kind"]

@@ -63,8 +63,7 @@ def export(args) -> list[str] | dict:
   module.check(args)
   from nerfpod import distributed  # import JAX: only for the kinds that need it
   from nerfpod.workdir import checkpoints
-  # A damaged checkpoint's failed restore leaves orbax's other reads to report themselves at exit.
-  sys.unraisablehook = checkpoints.quiet_abandoned_reads(sys.unraisablehook)
+  checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
   distributed.keep_off_absent_tpu()
   distributed.initialize()  # several hosts (a TPU pod, JAX_* variables) render together; else one process
   from nerfpod.export import trained as trained_lib

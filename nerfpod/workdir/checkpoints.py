@@ -108,10 +108,6 @@ class _DiskFullIsReported(logging.Filter):
                 or any(text in record.getMessage() for text in DISK_FULL_TEXTS))
 
 
-logging.getLogger("absl").addFilter(_ReadOnlyIsAsked())
-logging.getLogger("absl").addFilter(_DiskFullIsReported())
-
-
 def remove_cut_off_saves(workdir: str) -> list[str]:
   """Removes the temporary folders of saves that did not finish (process 0, with no save under way: a run
   that stops on a full disk), so that the space they hold is free; returns their names."""
@@ -401,6 +397,21 @@ def _raised_in_orbax(error) -> bool:
       return True
     error = error.__cause__ or error.__context__
   return False
+
+
+def quiet_library_reports() -> None:
+  """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output:
+  a read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a
+  save that failed on a full disk (the run says it in one sentence: _DiskFullIsReported) and the reads orbax
+  abandons when a restore fails (quiet_abandoned_reads). Each filter drops only those; every other report
+  passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
+  again changes nothing. The texts matched are pinned to the library versions that emit them by
+  tests/test_checkpoints.py."""
+  absl_log = logging.getLogger("absl")
+  for quiet in (_ReadOnlyIsAsked, _DiskFullIsReported):
+    if not any(isinstance(f, quiet) for f in absl_log.filters):
+      absl_log.addFilter(quiet())
+  sys.unraisablehook = quiet_abandoned_reads(sys.unraisablehook)
 
 
 def quiet_abandoned_reads(hook):
