@@ -13,6 +13,9 @@ import procs  # (imports no JAX)
 os.environ["XLA_FLAGS"] = procs.TEST_XLA_FLAGS
 jax.config.update("jax_num_cpu_devices", 8)
 jax.config.update("jax_platforms", "cpu")  # CPU only, also where libtpu (the `tpu` extra) is installed
+# The training loop's host <-> device transfers must all be explicit (jax.device_get / device_put): an implicit
+# one fails the test (nerfpod.run.train.TRANSFER_GUARD), here and in the processes the tests start.
+os.environ["NERFPOD_LOOP_TRANSFER_GUARD"] = "disallow"
 
 # JAX's persistent compilation cache in a folder of this session (removed at its end): a program that an
 # earlier test compiled, here or in a process a test started (procs.environment passes the folder on), is

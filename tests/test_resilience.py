@@ -265,6 +265,22 @@ def test_a_refused_resume_leaves_config_json_as_it_was(tmp_path):
   assert (tmp_path / "config.json").read_bytes() == before
 
 
+def test_the_loop_moves_data_between_host_and_devices_only_explicitly(tmp_path, monkeypatch):
+  """The tests run the training loop under jax.transfer_guard("disallow") (tests/conftest.py sets
+  NERFPOD_LOOP_TRANSFER_GUARD; every run the tests train passes it); one implicit transfer in it fails the
+  run. (On a CPU, reading a device array is no transfer, so the guard sees host -> device and device -> device
+  ones there: a host value sent to a device, a key on one device sent to the mesh.)"""
+  assert train.TRANSFER_GUARD == "disallow"
+
+  def flush_implicitly(self):
+    if self.pending is not None:
+      self.pending[1]["loss"] * 2.0  # a host value (2.0) sent to the device without jax.device_put
+
+  monkeypatch.setattr(train.StepLog, "flush", flush_implicitly)
+  with pytest.raises(jax.errors.JaxRuntimeError, match="Disallowed host-to-device transfer"):
+    modes.train_and_evaluate(smoke_config(**{"train.num_steps": 2}), str(tmp_path))
+
+
 def test_a_first_ctrl_c_in_training_is_a_preemption_and_the_handler_is_given_back(tmp_path):
   before = signal.getsignal(signal.SIGINT)
   ckpt = checkpoints.Checkpoints(str(tmp_path), every_steps=100, max_to_keep=3)

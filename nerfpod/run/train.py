@@ -1,5 +1,6 @@
 """Training: the loop (resume, steps, checkpoints, preemption, previews, logging); the step is nerfpod.run.step."""
 import json
+import os
 import sys
 
 import jax
@@ -13,6 +14,13 @@ from nerfpod.run import step as train_step
 from nerfpod.workdir.files import write_config, write_scene
 from nerfpod.run.components import TrainState
 from nerfpod.errors import UserError
+
+
+# Host <-> device transfers the loop may make without saying so (jax.transfer_guard's level): the tests set
+# NERFPOD_LOOP_TRANSFER_GUARD=disallow (tests/conftest.py, for their processes too), so that a value moved
+# implicitly (a host value in a device computation, a key on one device passed to the mesh's program, and on
+# an accelerator float(x) of a device array) fails there instead of quietly costing a transfer every step.
+TRANSFER_GUARD = os.environ.get("NERFPOD_LOOP_TRANSFER_GUARD", "allow")
 
 
 class SkipCount:
@@ -30,8 +38,22 @@ class SkipCount:
     self.in_row = int(position.get("skipped_in_row", 0))
     self.first = position.get("streak_from")  # the streak's first skipped step
     self.before = position.get("checkpoint_before_streak")  # the newest checkpoint saved before it
+    self._unchecked = None  # (step, flag on the device) of the step dispatched last, not read yet
     if self.in_row:
       ckpt.pin(self.before)
+
+  def dispatched(self, step: int, skipped) -> None:
+    """Step `step` (counted from 1) is dispatched, `skipped` its flag on the device: the previous step's flag
+    is read now, when the device is busy with this one (reading this one's would wait for it)."""
+    self.settle()
+    self._unchecked = (step, skipped)
+
+  def settle(self) -> None:
+    """Reads the flag of the step dispatched last, where not read yet (before its position is saved)."""
+    if self._unchecked is not None:
+      step, skipped = self._unchecked
+      self._unchecked = None
+      self.record(step, skipped)
 
   def record(self, step: int, skipped) -> None:
     """Whether step `step` (counted from 1) was skipped."""
@@ -79,6 +101,64 @@ class SkipCount:
     return dict(metrics, skipped=self.total)
 
 
+class StepLog:
+  """The log line and scalars of the first step, every train.log_every-th and the last: one call site,
+  monitor.scalars. A step's metrics are fetched one step late, once the next step is dispatched, so that
+  logging never waits for the device; `flush` logs what is still pending (the end of a run, a preemption)."""
+
+  def __init__(self, monitor, train_config, start_step: int, skips: SkipCount):
+    self.monitor, self.skips = monitor, skips
+    self.learning_rate = jax.jit(components.learning_rate_schedule(train_config))  # of a step on the device
+    self.every, self.last, self.first = train_config.log_every, train_config.num_steps, start_step + 1
+    self.pending = None  # (step, metrics on the device)
+
+  def dispatched(self, step: int, metrics) -> None:
+    self.flush()
+    if step % self.every == 0 or step in (self.first, self.last):
+      self.pending = (step, metrics)
+
+  def flush(self) -> None:
+    if self.pending is not None:
+      step, metrics = self.pending
+      self.pending = None
+      lr = float(jax.device_get(self.learning_rate(jax.device_put(step - 1))))
+      self.monitor.scalars(step, self.skips.with_total(jax.device_get(metrics)), lr)
+
+
+def _start(comps: components.Components, workdir: str, ckpt) -> tuple[TrainState, int, dict | None]:
+  """(state, first step, data position): the newest checkpoint's, or a new state; then (process 0) the
+  workdir's config.json and scene.json and the run's first lines."""
+  config, tc = comps.config, comps.config.train
+  start_step, position = 0, None
+  if ckpt.latest_step() is not None:
+    state, position = ckpt.restore(comps.state_shapes)
+    start_step = int(position["next_step"])
+    logging.info("resumed from step %d", start_step)
+  else:
+    state = comps.init_state()
+  if jax.process_index() == 0:
+    write_config(workdir, json.loads(config.to_json_best_effort()))
+    write_scene(workdir, comps.scene.description())
+    slices = distributed.num_slices(comps.mesh)
+    print(f"nerfpod: JAX {jax.__version__} on {jax.default_backend()}: {jax.device_count()} x "
+          f"{jax.devices()[0].device_kind}", flush=True)
+    print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
+          f"{jax.process_count()} process(es), {jax.device_count()} device(s)"
+          f"{f' in {slices} slices' if slices > 1 else ''}, "
+          f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
+  return state, start_step, position
+
+
+def _preview(comps: components.Components, params, monitor, step: int) -> None:
+  """The first held-out view (of eval.split) at this step, colour and depth, to TensorBoard."""
+  config = comps.config
+  view = comps.scene.split(config.eval.split)
+  out = renderer.render_image(comps.renderer, params, comps.mesh, view.poses[0], view.cameras[0],
+                              config.data.pixel_center, config.eval.chunk)
+  monitor.images(step, {"preview/rgb": out["rgb"],
+                        "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})
+
+
 def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainState, int] | None:
   """Trains from workdir's newest checkpoint (or from scratch) to train.num_steps, checkpointing as it goes.
 
@@ -94,77 +174,43 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   try:
     # The step compiles while the state is restored or initialised (not when training is already done).
     compiling = train_step.start_compiling(comps) if (ckpt.latest_step() or 0) < tc.num_steps else None
-    start_step, position = 0, None
-    if ckpt.latest_step() is not None:
-      state, position = ckpt.restore(comps.state_shapes)
-      start_step = int(position["next_step"])
-      logging.info("resumed from step %d", start_step)
-    else:
-      state = comps.init_state()
+    state, start_step, position = _start(comps, workdir, ckpt)
     skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
-    if jax.process_index() == 0:
-      write_config(workdir, json.loads(config.to_json_best_effort()))
-      write_scene(workdir, comps.scene.description())
-      slices = distributed.num_slices(comps.mesh)
-      print(f"nerfpod: JAX {jax.__version__} on {jax.default_backend()}: {jax.device_count()} x "
-            f"{jax.devices()[0].device_kind}", flush=True)
-      print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
-            f"{jax.process_count()} process(es), {jax.device_count()} device(s)"
-            f"{f' in {slices} slices' if slices > 1 else ''}, "
-            f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
-
-    schedule = components.learning_rate_schedule(tc)
-    key = components.rays_key(tc.seed)
+    log = StepLog(monitor, tc, start_step, skips)
+    # Made on the mesh, replicated, once: a key on one device would be copied to every device at every step.
+    key = jax.jit(components.rays_key, static_argnums=0, out_shardings=distributed.replicated(comps.mesh))(tc.seed)
     batches = comps.batches(start_step)
     if start_step < tc.num_steps:  # (a damaged newest checkpoint may have put start_step back)
       step_fn = (compiling or train_step.start_compiling(comps)).result()
       if jax.process_count() > 1:
         # Every process has compiled before the first step: wait for all of them (see wait_for_all).
         distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
-    preview = comps.scene.split(config.eval.split)
 
-    pending = None  # metrics of a log step, fetched only after the next step is dispatched
-    unchecked = None  # (step, whether it was skipped) of the previous step, read after this one is dispatched
-    for step in range(start_step, tc.num_steps):
-      local = next(batches)
-      assert int(local.pop("step")) == step, "data pipeline out of step with training"
-      profile.starting(step + 1)
-      state, metrics = step_fn(state, distributed.to_global(comps.mesh, local), key)
-      profile.finished(step + 1, state)
-      if unchecked is not None:
-        skips.record(*unchecked)
-      unchecked = (step + 1, metrics["skipped"])
-      if pending is not None:
-        monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
-        pending = None
-      done = step + 1
-      if done % tc.log_every == 0 or done == tc.num_steps or step == start_step:
-        pending = (done, metrics)
-      preempted = watch.reached(done)
-      # Every checkpoint.every_steps, and when preempted. The position saved counts this step's skip, so its
-      # flag is read now (it is read after the next step is dispatched otherwise).
-      if (preempted or done % config.checkpoint.every_steps == 0) and unchecked is not None:
-        skips.record(*unchecked)
-        unchecked = None
-      ckpt.save(done, state, skips.position(done), force=preempted)
-      if preempted:
-        if pending is not None:
-          monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])),
-                          float(schedule(pending[0] - 1)))
-        ckpt.close()  # waits until the step is on disk
-        if jax.process_index() == 0:
-          print(f"nerfpod: preempted: saved step {done} in {checkpoints.checkpoint_dir(workdir)} and "
-                f"stopped; the same command resumes from there.", flush=True)
-        return None
-      if tc.image_every and done % tc.image_every == 0:
-        out = renderer.render_image(comps.renderer, state.params, comps.mesh, preview.poses[0],
-                                  preview.cameras[0], config.data.pixel_center, config.eval.chunk)
-        monitor.images(done, {"preview/rgb": out["rgb"],
-                              "preview/depth": video.depth_image(out["depth"], comps.near, comps.far)[..., None]})
-    if unchecked is not None:
-      skips.record(*unchecked)
-    if pending is not None:
-      monitor.scalars(pending[0], skips.with_total(jax.device_get(pending[1])), float(schedule(pending[0] - 1)))
+    with jax.transfer_guard(TRANSFER_GUARD):  # (the tests: 'disallow', every transfer an explicit one)
+      for step in range(start_step, tc.num_steps):
+        done = step + 1
+        local = next(batches)
+        assert int(local.pop("step")) == step, "data pipeline out of step with training"
+        profile.starting(done)
+        state, metrics = step_fn(state, distributed.to_global(comps.mesh, local), key)
+        profile.finished(done, state)
+        skips.dispatched(done, metrics["skipped"])
+        log.dispatched(done, metrics)
+        preempted = watch.reached(done)
+        if preempted or done % config.checkpoint.every_steps == 0:
+          skips.settle()  # the position saved counts this step's skip
+        ckpt.save(done, state, skips.position(done), force=preempted)
+        if preempted:
+          log.flush()
+          ckpt.close()  # waits until the step is on disk
+          if jax.process_index() == 0:
+            print(f"nerfpod: preempted: saved step {done} in {checkpoints.checkpoint_dir(workdir)} and "
+                  f"stopped; the same command resumes from there.", flush=True)
+          return None
+        if tc.image_every and done % tc.image_every == 0:
+          _preview(comps, state.params, monitor, done)
+      skips.settle()
+      log.flush()
     final_step = int(jax.device_get(state.step))
     if ckpt.latest_step() != final_step:
       ckpt.save(final_step, state, skips.position(final_step), force=True)
