@@ -53,7 +53,8 @@ def parse_flags(command: str, about: str, flag_values: flags.FlagValues, args: S
     fail(f"{_fold(str(e))}; {f'e.g. --{named.group(1)}={example}' if example else see}.")
   except (AttributeError, KeyError, TypeError, ValueError, OSError, SyntaxError, ImportError) as e:
     if "does not take an argument" in str(e):  # absl: --noflag=value
-      fail(f"{_fold(str(e))}; a yes/no flag is given as --name or --noname.")
+      name = str(e).split("=")[0].removeprefix("--no")
+      fail(f"{_fold(str(e))}; a yes/no flag is given as --{name} or --no{name}.")
     fail(f"bad --config file or override ({_fold(str(e))}); the config file's fields say what each override "
          f"takes, and {see}.")  # ml_collections: a config file or override that does not apply
   if rest:
@@ -101,7 +102,10 @@ def _bad_value(message: str, flag_values: flags.FlagValues, examples: dict[str, 
     value = flag.serializer.serialize(flag.value)
   if example is None and flag is not None and flag.default is not None and not flag.boolean:
     example = flag.serializer.serialize(flag.default) if flag.serializer else str(flag.default)
-  if example:
+  if flag is not None and flag.boolean:
+    hint = f"a yes/no flag is given as --{name} or --no{name}"
+    reason = "not true or false"
+  elif example:
     hint = f"e.g. --{name}={example}"
   elif name.startswith("config."):
     hint = "give a value of the type the config file's field holds"

@@ -87,7 +87,8 @@ def _flags_parser(argv):
   mode = next((a.split("=", 1)[1] for a in reversed(argv) if a.startswith("--mode=")), "train")
   command = argv[0] if argv[0].startswith("nerfpod ") else "python -m nerfpod.main"
   parse_flags(command, MODES.get(mode, MODES["train"]), flags.FLAGS, argv[1:], required=("config", "workdir"),
-              examples={"config": "configs/default.py", "workdir": "runs/default"})
+              examples={"config": "configs/default.py", "workdir": "runs/default", "num_processes": "2",
+                        "process_id": "0", "coordinator_address": "10.0.0.2:8476"})
   return argv[:1]
 
 

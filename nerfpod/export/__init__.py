@@ -71,7 +71,7 @@ def parse_args(argv) -> types.SimpleNamespace:
     fail(f"unknown kind {kind!r}; choose one of {', '.join(KINDS)} (nerfpod export --help says what each writes).")
   flag_values = kind_flags(kind)
   parse_flags(f"nerfpod export {kind}", KINDS[kind], flag_values, argv[1:], required=("workdir",),
-              examples={"workdir": "runs/mine"})
+              examples={"workdir": "runs/mine", "fps": "30"})
   return types.SimpleNamespace(kind=kind, **flag_values.flag_values_dict())
 
 

@@ -72,8 +72,7 @@ def _threads() -> int:
     return os.cpu_count() or 1
 
 
-ABOUT = ("photos or a video -> a capture folder with camera poses (COLMAP structure from motion with pycolmap), "
-         "ready for `nerfpod train --config=configs/capture.py:path=OUT`")
+ABOUT = "photos or a video -> a posed capture folder (COLMAP structure from motion)"
 FLAGS = flags.FlagValues()  # its own: other subcommands define --out too
 flags.DEFINE_string("input", None, "A folder of photos (.jpg, .jpeg, .png) or a video file (.mp4, .mov, ... anything "
                     "ffmpeg reads).", flag_values=FLAGS)
