@@ -426,4 +426,5 @@ def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_pat
   assert len(_read_ply(tmp_path / "cloud.ply")["vertex"]) == 100
   for kind in ("pointcloud", "mesh", "cameras", "depth"):
     done = run(kind, "--help")
-    assert done.returncode == 0 and "--normalized" in done.stdout and "--workdir" in done.stdout, done.stderr
+    # absl's help spells a yes/no flag --[no]NAME
+    assert done.returncode == 0 and "--[no]normalized" in done.stdout and "--workdir" in done.stdout, done.stderr
