@@ -20,7 +20,7 @@ import types
 
 from absl import flags
 
-from nerfpod.errors import UserError, fail, parse_flags
+from nerfpod.errors import HELP_WORDS, UserError, fail, parse_flags
 from nerfpod.export.video import write_files  # noqa: F401 (the earlier nerfpod.export.write_files)
 
 KINDS = {
@@ -61,7 +61,7 @@ def parse_args(argv) -> types.SimpleNamespace:
   (errors.parse_flags)."""
   argv = list(argv)
   if not argv or argv[0].startswith("-"):
-    if any(word in ("-h", "--help", "--helpshort", "--helpfull") for word in argv):
+    if any(word in HELP_WORDS for word in argv):
       print(usage())
       sys.exit(0)
     fail(f"name what to export first: nerfpod export KIND, KIND one of {', '.join(KINDS)} (nerfpod export --help "
