@@ -28,16 +28,35 @@ _START = time.perf_counter()
 from absl import app, flags  # noqa: E402
 from ml_collections import config_flags  # noqa: E402
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file to benchmark.", lock_config=True)
-_STEPS = flags.DEFINE_integer("steps", 30, "Timed train steps (throughput mode).")
-_QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20/25/28/30 dB instead.")
-_MAX_SECONDS = flags.DEFINE_float("max_seconds", 600.0, "Quality mode: stop after this much wall time.")
-_EVAL_EVERY = flags.DEFINE_integer("eval_every", 250, "Quality mode: steps between held-out evaluations.")
-_OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file.")
+from nerfpod.errors import UserError, fail, parse_flags  # noqa: E402
+
+ABOUT = "benchmark a config: throughput, FLOP/s against the peak, time to quality"
+FLAGS = flags.FlagValues()  # its own: `config` is also nerfpod.main's flag, and the aot tool's
+
+
+def _psnrs(values) -> bool:
+  try:
+    return all(float(value) > 0 for value in values)
+  except ValueError:
+    return False
+
+
+_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file to benchmark.", flag_values=FLAGS,
+                                          lock_config=True)
+_STEPS = flags.DEFINE_integer("steps", 30, "Timed train steps (throughput mode).", lower_bound=1, flag_values=FLAGS)
+_QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20/25/28/30 dB instead.",
+                             flag_values=FLAGS)
+_MAX_SECONDS = flags.DEFINE_float("max_seconds", 600.0, "Quality mode: stop after this much wall time.",
+                                  lower_bound=0.0, flag_values=FLAGS)
+_EVAL_EVERY = flags.DEFINE_integer("eval_every", 250, "Quality mode: steps between held-out evaluations.",
+                                   lower_bound=1, flag_values=FLAGS)
+_OUT = flags.DEFINE_string("out", None, "Also write the JSON result to this file.", flag_values=FLAGS)
 _PEAK_SIZE = flags.DEFINE_integer("peak_matmul_size", 2048, "Throughput mode: n of the n x n x n matmul whose "
-                                  "FLOP/s is the peak (a large accelerator needs a larger one to be busy).")
+                                  "FLOP/s is the peak (a large accelerator needs a larger one to be busy).",
+                                  lower_bound=1, flag_values=FLAGS)
 _TARGETS = flags.DEFINE_list("targets", [], "Quality mode: more held-out PSNRs (dB) to time, beside 20, 25, 28 "
-                             "and 30, e.g. --targets=31,33.")
+                             "and 30, e.g. --targets=31,33.", flag_values=FLAGS)
+flags.register_validator("targets", _psnrs, "not a list of PSNRs in dB", flag_values=FLAGS)
 THRESHOLDS = (20.0, 25.0, 28.0, 30.0)
 NEGLIGIBLE_WEIGHT = 0.01  # a sample below this share of its ray's light hardly changes the pixel
 
@@ -248,16 +267,17 @@ def time_to_quality(config, max_seconds: float, eval_every: int, started: float 
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+  del argv  # [the program's name]: the flags' parsing refuses anything else
   from nerfpod import schema
-  from nerfpod.errors import UserError, fail
   try:
-    config = _CONFIG.value
-    config.keys()
+    try:
+      config = _CONFIG.value
+      config.keys()  # the value is a lazy proxy until first touched
+    except OSError as e:  # ml_collections reports a config file that failed to load on first access
+      raise UserError(f"could not load the --config file ({' '.join(str(e).split())}).") from None
     schema.validate(config)
   except UserError as e:
-    fail(e, "nerfpod bench")
+    fail(e)
   import jax
   from nerfpod import distributed
   from nerfpod.run import compilation
@@ -273,11 +293,7 @@ def main(argv):
                         "device_kind": jax.devices()[0].device_kind},
             "compiler_options": compilation.compiler_options(config)}
   if _QUALITY.value:
-    try:
-      targets = [float(t) for t in _TARGETS.value]
-    except ValueError:
-      fail(f"--targets={','.join(_TARGETS.value)} is not a list of PSNRs in dB; give e.g. --targets=31,33.",
-           "nerfpod bench")
+    targets = [float(t) for t in _TARGETS.value]
     result["quality"] = time_to_quality(config, _MAX_SECONDS.value, _EVAL_EVERY.value,
                                         thresholds=THRESHOLDS + tuple(targets))
   else:
@@ -291,8 +307,11 @@ def main(argv):
 
 def run(argv=None):
   """`nerfpod bench ...` (argv[0] is the program's name) and `python -m nerfpod.bench ...`."""
-  flags.mark_flags_as_required(["config"])
-  app.run(main, argv=argv)
+  def parse(argv):
+    parse_flags("nerfpod bench", ABOUT, FLAGS, argv[1:], required=("config",),
+                examples={"config": "configs/default.py", "targets": "31,33"})
+    return argv[:1]
+  app.run(main, argv=argv, flags_parser=parse)
 
 
 if __name__ == "__main__":

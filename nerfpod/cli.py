@@ -5,11 +5,14 @@
     nerfpod view|prepare|export|aot|bench ...
 
 Each subcommand is a module's `run(argv)`, imported only when asked for (so `nerfpod --help` starts no JAX
-and needs no optional extra). `nerfpod --config=... --workdir=...` without a subcommand trains, as the
+and needs no optional extra). Every one reads its absl flags through errors.parse_flags: `nerfpod NAME --help`
+lists that subcommand's flags, and a bad flag is one `nerfpod: error:` sentence with exit code 2. `nerfpod --config=... --workdir=...` without a subcommand trains, as the
 command did before it had subcommands.
 """
 import importlib
 import sys
+
+from nerfpod.errors import fail
 
 # name -> (module, what it does, whether the module's run() takes the program name as argv[0] (absl))
 SUBCOMMANDS = {
@@ -49,28 +52,19 @@ def run(argv=None) -> None:
     argv = ["train", *argv]
   name, rest = argv[0], argv[1:]
   if name not in SUBCOMMANDS:
-    print(f"nerfpod: error: unknown subcommand {name!r}; choose one of {', '.join(SUBCOMMANDS)} "
-          f"(nerfpod --help says what each does).", file=sys.stderr)
-    sys.exit(2)
+    fail(f"unknown subcommand {name!r}; choose one of {', '.join(SUBCOMMANDS)} (nerfpod --help says what each "
+         f"does).")
   module_name, _, takes_program_name = SUBCOMMANDS[name]
   if name in _MODES:
     if any(a == "--mode" or a.startswith("--mode=") for a in rest):
-      print(f"nerfpod: error: `nerfpod {name}` sets the mode itself; leave out --mode (or use "
-            f"`python -m nerfpod.main --mode=...`).", file=sys.stderr)
-      sys.exit(2)
+      fail(f"`nerfpod {name}` sets the mode itself; leave out --mode (or use `python -m nerfpod.main "
+           f"--mode=...`).")
     rest = [*rest, f"--mode={name}"]
   try:
     module = importlib.import_module(module_name)
   except ImportError as e:
-    print(f"nerfpod: error: `nerfpod {name}` could not start ({e}); reinstall nerfpod with "
-          f"pip install -c constraints.txt -e . (and the extra the message names).", file=sys.stderr)
-    sys.exit(2)
-  if takes_program_name and any(a in ("-h", "--help", "--helpshort") for a in rest):
-    # absl's own --help lists the flags of the __main__ module, which is this one: list the subcommand's.
-    from absl import flags
-    print(f"usage: nerfpod {name} [flags]\n\n{SUBCOMMANDS[name][1]}\n\nflags:\n"
-          f"{flags.FLAGS.module_help(module_name)}\n\n(--helpfull: every flag, JAX's and absl's too)")
-    sys.exit(0)
+    fail(f"`nerfpod {name}` could not start ({e}); reinstall nerfpod with pip install -c constraints.txt -e . "
+         f"(and the extra the message names).")
   if takes_program_name:
     sys.argv[:] = [f"nerfpod {name}", *rest]  # absl parses sys.argv; the name shows in its messages
     module.run()

@@ -1,6 +1,12 @@
-"""A user's mistake: the one exception type for it, and the one way every command ends on it."""
+"""A user's mistake: the one exception type for it, the one way every command ends on it, and the one way every
+subcommand reads its command line (absl flags), where a bad flag is such a mistake."""
+import re
 import sys
-from typing import NoReturn
+from typing import NoReturn, Sequence
+
+from absl import flags
+
+HELP_WORDS = ("-h", "--help", "--helpshort", "--helpfull")
 
 
 class UserError(Exception):
@@ -13,3 +19,98 @@ def fail(problem: "UserError | str", program: str = "nerfpod", code: int = 2) ->
   for message in getattr(problem, "messages", None) or [str(problem)]:
     print(f"{program}: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
   sys.exit(code)
+
+
+def parse_flags(command: str, about: str, flag_values: flags.FlagValues, args: Sequence[str],
+                required: Sequence[str] = (), examples: dict[str, str] | None = None) -> None:
+  """Parses `args` (the words after `command`, e.g. "nerfpod view") into `flag_values`: the one way every
+  subcommand reads its command line. -h/--help prints `about` (one line) and the command's own flags (absl's
+  help text; --helpfull: absl's flags too), exit 0. Any mistake (an unknown flag, a bad value, a `required`
+  flag left out, a word that is no flag) is one sentence naming the flag and a valid value (`examples`: flag ->
+  a value, else its default), `nerfpod: error: ...`, exit 2. The flags parse from their defaults each time."""
+  args = list(args)
+  words = args[:args.index("--")] if "--" in args else args
+  if any(word in HELP_WORDS for word in words):
+    print(flags_help(command, about, flag_values, everything="--helpfull" in words))
+    sys.exit(0)
+  examples = examples or {}
+  flag_values.unparse_flags()
+  if any(type(flag).__module__.startswith("ml_collections") for flag in map(flag_values.__getitem__, flag_values)):
+    sys.argv[:] = [command, *args]  # ml_collections reads a --config's overrides off sys.argv
+  see = f"`{command} --help` lists the flags"
+  try:
+    rest = flag_values([command, *args])[1:]
+  except UserError as e:  # raised by a config file's get_config (e.g. an unknown argument after the colon)
+    fail(e)
+  except flags.UnrecognizedFlagError as e:
+    fail(f"unknown flag --{e.flagname}; {command} takes {', '.join(_own_flags(flag_values))} (`{command} --help` "
+         f"says what each does).")
+  except flags.IllegalFlagValueError as e:
+    fail(_bad_value(str(e), flag_values, examples, see))
+  except flags.Error as e:  # e.g. a flag given last without its value
+    named = re.search(r"--([\w.]+)", str(e))
+    example = examples.get(named.group(1)) if named else None
+    fail(f"{_fold(str(e))}; {f'e.g. --{named.group(1)}={example}' if example else see}.")
+  except (AttributeError, KeyError, TypeError, ValueError, OSError, SyntaxError, ImportError) as e:
+    if "does not take an argument" in str(e):  # absl: --noflag=value
+      name = str(e).split("=")[0].removeprefix("--no")
+      fail(f"{_fold(str(e))}; a yes/no flag is given as --{name} or --no{name}.")
+    fail(f"bad --config file or override ({_fold(str(e))}); the config file's fields say what each override "
+         f"takes, and {see}.")  # ml_collections: a config file or override that does not apply
+  if rest:
+    fail(f"unexpected arguments: {' '.join(rest)} (flags take the form --name=value; {see}).")
+  missing = [name for name in required if not flag_values[name].present]
+  if missing:
+    fail(f"{' and '.join('--' + n for n in missing)} {'is' if len(missing) == 1 else 'are'} required, e.g. "
+         f"{' '.join(f'--{n}={examples[n]}' for n in missing)} ({see}).")
+  if flag_values is not flags.FLAGS and not flags.FLAGS.is_parsed():
+    flags.FLAGS.mark_as_parsed()  # absl (app.run, logging) reads its own flags: their defaults
+
+
+def flags_help(command: str, about: str, flag_values: flags.FlagValues, everything: bool = False) -> str:
+  """The command's --help: its usage, `about` and its flags as absl describes them (`everything`: absl's own
+  flags too, under the module that defines each)."""
+  modules = flag_values.flags_by_module_dict()
+  if everything:
+    text = flag_values.get_help(prefix="  ")
+  else:
+    text = "\n".join(flag_values.module_help(m).strip("\n").split("\n", 1)[1] for m in modules
+                     if not m.startswith("absl"))
+  more = "" if everything else "\n\n(--helpfull: absl's own flags too)"
+  return f"usage: {command} [flags]\n\n{about}\n\nflags:\n{text}{more}"
+
+
+def _own_flags(flag_values: flags.FlagValues) -> list[str]:
+  return [f"--{name}" for module, defined in flag_values.flags_by_module_dict().items()
+          if not module.startswith("absl") for name in sorted(f.name for f in defined)]
+
+
+def _fold(message: str) -> str:
+  """absl's and ml_collections' messages on one line, with their quoting undone."""
+  return " ".join(message.replace("\\n", " ").replace("\\'", "'").replace("''", "'").split()).rstrip(".")
+
+
+def _bad_value(message: str, flag_values: flags.FlagValues, examples: dict[str, str], see: str) -> str:
+  """absl's `flag --NAME=VALUE: REASON` as one sentence that ends with a valid value."""
+  match = re.match(r"flag --([^=]+)=(.*?): (.*)", _fold(message), re.S)
+  if not match:
+    return f"{_fold(message)}; {see}."
+  name, value, reason = match.groups()
+  example = examples.get(name)
+  flag = flag_values[name] if name in flag_values else None
+  if flag is not None and isinstance(flag.value, list) and value.startswith("["):  # a validator's refusal
+    value = flag.serializer.serialize(flag.value)
+  if example is None and flag is not None and flag.default is not None and not flag.boolean:
+    example = flag.serializer.serialize(flag.default) if flag.serializer else str(flag.default)
+  if flag is not None and flag.boolean:
+    hint = f"a yes/no flag is given as --{name} or --no{name}"
+    reason = "not true or false"
+  elif example:
+    hint = f"e.g. --{name}={example}"
+  elif name.startswith("config."):
+    hint = "give a value of the type the config file's field holds"
+  elif flag is not None and flag.parser.syntactic_help:
+    hint = f"--{name} takes {flag.parser.syntactic_help} ({see})"
+  else:
+    hint = see
+  return f"--{name}={value}: {reason}; {hint}."

@@ -8,7 +8,8 @@ training diverged); checkpoint.preempted_exit_code (75) stopped early at a saved
 first Ctrl-C): run the same command again; 130 interrupted outside training's steps.
 
 `nerfpod train|eval|render ...` (nerfpod.cli) is this entry point with --mode set; the other subcommands
-(`nerfpod view`, `prepare`, `export`, `aot`, `bench`) are modules of their own.
+(`nerfpod view`, `prepare`, `export`, `aot`, `bench`) are modules of their own. Every one reads its flags
+through errors.parse_flags: one --help, one sentence and exit 2 for a bad flag.
 """
 import signal
 import sys
@@ -17,8 +18,12 @@ from absl import app, flags, logging
 from ml_collections import config_flags
 
 from nerfpod import schema
-from nerfpod.errors import UserError, fail
+from nerfpod.errors import UserError, fail, parse_flags
 
+# What each mode does: the one line of its --help (nerfpod.cli lists the same lines).
+MODES = {"train": "train (resuming from the workdir), evaluate the held-out views, render the orbit",
+         "eval": "evaluate the workdir's newest checkpoint -> eval/metrics.json",
+         "render": "render (or finish) the orbit of the workdir's newest checkpoint, and its videos"}
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
                                           lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Where checkpoints, TensorBoard events, metrics and renders go.")
@@ -35,15 +40,13 @@ _SHUTDOWN = flags.DEFINE_integer("shutdown_timeout_seconds", 300,
                                  "(process 0 may still be exporting videos).")
 _INIT_TIMEOUT = flags.DEFINE_integer("initialization_timeout", 300,
                                      "Multi-process runs: how long a process waits for all to connect at start.")
-_MODE = flags.DEFINE_enum("mode", "train", ["train", "eval", "render"],
+_MODE = flags.DEFINE_enum("mode", "train", list(MODES),
                           "train: train (resuming), evaluate, render the orbit; eval: evaluate the workdir's "
                           "newest checkpoint; render: render (or finish) its orbit and export the videos.")
-flags.mark_flags_as_required(["config", "workdir"])
 
 
 def main(argv):
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments: {' '.join(argv[1:])}")
+  del argv  # [the program's name]: _flags_parser refuses anything else
   if not flags.FLAGS["verbosity"].present:  # orbax and grain log every save at INFO: keep the console readable
     logging.set_verbosity(logging.WARNING)
   try:
@@ -77,24 +80,20 @@ def main(argv):
     sys.exit(config.checkpoint.preempted_exit_code)
 
 
-def _parse_flags(argv):
-  """absl's parsing, with a bad --config or override (unknown key, wrong type) reported in one sentence."""
-  sys.argv[:] = argv  # ml_collections reads the overrides off sys.argv when it parses --config
-  try:
-    return flags.FLAGS(argv)
-  except UserError as e:  # raised by a config file's get_config (e.g. an unknown argument after the colon)
-    fail(e)
-  except flags.Error as e:
-    message = str(e)
-  except (AttributeError, KeyError, TypeError, ValueError, FileNotFoundError) as e:
-    message = f"bad --config file or override ({e})"
-  message = message.replace("\\n", " ").replace("\\'", "'").replace("''", "'")
-  fail(f"{message}; see `python -m nerfpod.main --helpfull` and the config file's fields.")
+def _flags_parser(argv):
+  """The shared parsing (errors.parse_flags) of absl's FLAGS, where the flags of this module are; argv[0] is
+  `nerfpod MODE` (nerfpod.cli) or this file's path (python -m nerfpod.main)."""
+  mode = next((a.split("=", 1)[1] for a in reversed(argv) if a.startswith("--mode=")), "train")
+  command = argv[0] if argv[0].startswith("nerfpod ") else "python -m nerfpod.main"
+  parse_flags(command, MODES.get(mode, MODES["train"]), flags.FLAGS, argv[1:], required=("config", "workdir"),
+              examples={"config": "configs/default.py", "workdir": "runs/default", "num_processes": "2",
+                        "process_id": "0", "coordinator_address": "10.0.0.2:8476"})
+  return argv[:1]
 
 
 def run():
   """`python -m nerfpod.main ...` and `nerfpod train|eval|render ...` (nerfpod.cli)."""
-  app.run(main, flags_parser=_parse_flags)
+  app.run(main, flags_parser=_flags_parser)
 
 
 if __name__ == "__main__":

@@ -32,22 +32,22 @@ folder (default ./camera_paths; never the workdir, which belongs to the training
 Viewer cameras are viser's (OpenCV: looking down +z, +y down); nerfpod's poses are OpenGL (looking down -z,
 +y up): nerf/cameras.py converts them (pose_from_opencv, pose_to_opencv).
 """
-import argparse
 import dataclasses
 import os
 import socket
 import sys
 import threading
 import time
+import types
 
 import numpy as np
-from absl import logging
+from absl import flags, logging
 
 from nerfpod.render import camera_path as camera_paths
 from nerfpod.render import renderer, video
 from nerfpod.run import trained as run_trained
 from nerfpod.workdir import checkpoints
-from nerfpod.errors import UserError, fail
+from nerfpod.errors import UserError, fail, parse_flags
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 
 STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
@@ -421,26 +421,26 @@ def _thumbnail(image_HxWx3) -> np.ndarray:
   return video.to_uint8(image[::step, ::step])
 
 
+ABOUT = "a live web viewer of a workdir (training may still be running)"
+FLAGS = flags.FlagValues()  # its own: other subcommands define --workdir too
+flags.DEFINE_string("workdir", None, "The training run's workdir (local or gs://).", flag_values=FLAGS)
+flags.DEFINE_integer("port", 7007, "Port to serve the page on (0: any free one).", lower_bound=0,
+                     upper_bound=65535, flag_values=FLAGS)
+flags.DEFINE_string("host", "127.0.0.1", "Address to listen on (0.0.0.0: every interface).", flag_values=FLAGS)
+flags.DEFINE_integer("max_resolution", 512, "Longest side of a still frame, pixels (the page's slider starts "
+                     "here).", lower_bound=8, flag_values=FLAGS)
+flags.DEFINE_integer("coarse_resolution", 64, "Longest side of the preview frames drawn while the camera moves, "
+                     "pixels.", lower_bound=8, flag_values=FLAGS)
+flags.DEFINE_string("paths_dir", "camera_paths", "Local folder where saved camera paths go.", flag_values=FLAGS)
+flags.DEFINE_float("poll_seconds", 2.0, "How often to look for a newer checkpoint, seconds.", flag_values=FLAGS)
+flags.register_validator("poll_seconds", lambda seconds: seconds > 0, "must be a positive number of seconds",
+                         flag_values=FLAGS)
+
+
 def _parse(argv):
-  parser = argparse.ArgumentParser(prog="nerfpod view", description="A live web viewer of a nerfpod workdir.")
-  parser.add_argument("--workdir", required=True, help="the training run's workdir (local or gs://)")
-  parser.add_argument("--port", type=int, default=7007, help="port to serve the page on (0: any free one)")
-  parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
-  parser.add_argument("--max_resolution", type=int, default=512,
-                      help="longest side of a still frame, pixels (the page's slider starts here)")
-  parser.add_argument("--coarse_resolution", type=int, default=64,
-                      help="longest side of the preview frames drawn while the camera moves")
-  parser.add_argument("--paths_dir", default="camera_paths", help="local folder where saved camera paths go")
-  parser.add_argument("--poll_seconds", type=float, default=2.0, help="how often to look for a newer checkpoint")
-  args = parser.parse_args(argv)
-  for name in ("max_resolution", "coarse_resolution"):
-    if getattr(args, name) < 8:
-      parser.error(f"--{name} must be at least 8 pixels")
-  if not 0 <= args.port < 65536:
-    parser.error("--port must be between 0 and 65535")
-  if not args.poll_seconds > 0:
-    parser.error("--poll_seconds must be positive")
-  return args
+  """The command line's flags (errors.parse_flags: --help, one sentence and exit 2 for a mistake)."""
+  parse_flags("nerfpod view", ABOUT, FLAGS, argv, required=("workdir",), examples={"workdir": "runs/mine"})
+  return types.SimpleNamespace(**FLAGS.flag_values_dict())
 
 
 def run(argv=None):

@@ -36,7 +36,7 @@ def test_unknown_topology_is_refused_in_one_sentence_listing_the_known_ones(entr
   out = _aot("--config=configs/default.py:smoke", "--topology=v9-1024", entry=entry)
   assert out.returncode == 2
   lines = out.stderr.strip().splitlines()
-  assert len(lines) == 1 and lines[0].startswith("nerfpod aot: error: unknown --topology=v9-1024; known pods:")
+  assert len(lines) == 1 and lines[0].startswith("nerfpod: error: unknown --topology=v9-1024; known pods:")
   for name in ("v4-8", "v4-32", "v5litepod-16", "v5litepod-64", "v5litepod-256", "v5p-128", "v6e-64"):
     assert name in lines[0]
 
@@ -46,7 +46,7 @@ def _one_sentence(out: subprocess.CompletedProcess, code: int = 2) -> str:
   assert out.returncode == code, out.stderr
   assert "Traceback" not in out.stderr + out.stdout
   lines = [l for l in out.stderr.strip().splitlines() if not l.startswith(("I1", "I0", "W1", "W0"))]
-  assert len(lines) == 1 and lines[0].startswith("nerfpod aot: error: "), out.stderr
+  assert len(lines) == 1 and lines[0].startswith("nerfpod: error: "), out.stderr
   return lines[0]
 
 
@@ -55,18 +55,18 @@ def _one_sentence(out: subprocess.CompletedProcess, code: int = 2) -> str:
     (["--topology=,"], "--topology is empty"),
     (["--config=configs/nope.py", "--topology=v5e-8"], "the --config file configs/nope.py does not exist"),
     (["--topology=v5e-8", "--config.train.nope=3"], "bad --config file or override"),
-    (["--topology=v5e-8", "--config.train.num_steps=many"], "flag --config.train.num_steps=many: invalid literal"),
+    (["--topology=v5e-8", "--config.train.num_steps=many"], "--config.train.num_steps=many: invalid literal"),
     (["--config=configs/default.py:nosuch", "--topology=v5e-8"], "unknown config argument 'nosuch'"),
-    (["--topology=v5e-8", "--bogus"], "Unknown command line flag 'bogus'"),
+    (["--topology=v5e-8", "--bogus"], "unknown flag --bogus; nerfpod aot takes --config, --json, --slices"),
     (["--topology=v5e-8", "extra"], "unexpected arguments: extra"),
     (["--topology=v5e-8", "--what="], "--what=: choose one or more of step, eval, orbit"),
     (["--topology=v5e-8", "--what=step,train"], "--what=step,train: choose one or more of step, eval, orbit"),
     (["--topology=v5e-8", "--json=/nonexistent/r.json"], "--json=/nonexistent/r.json: its folder /nonexistent "
                                                          "does not exist"),
     (["--topology=v5e-8", "--json=tests"], "--json=tests is a folder; name a file"),
-    (["--config=configs/default.py:smoke"], "flag --topology=None: Flag --topology must have a value"),
+    (["--config=configs/default.py:smoke"], "--topology is required, e.g. --topology=v5e-64"),
     (["--topology=v5e-8", "--slices=0"], "--slices=0 must be 1 (one slice) or more"),
-    (["--topology=v5e-8", "--slices=two"], "flag --slices=two: invalid literal"),
+    (["--topology=v5e-8", "--slices=two"], "--slices=two: invalid literal"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
 def test_bad_arguments_are_one_sentence_and_exit_2(args, message):
   if not any(a.startswith("--config=") for a in args) and "--config=configs/default.py:smoke" not in args:
@@ -90,11 +90,11 @@ def test_a_compiler_refusal_is_one_sentence_naming_the_program_the_pod_and_xlas_
       "aot.run(['nerfpod aot'] + sys.argv[1:])\n")
   out = _aot("--config=configs/default.py:smoke", "--topology=v5e-64", "--what=orbit", entry=["-c", script])
   line = _one_sentence(out, code=1)
-  assert line == ("nerfpod aot: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 hosts): "
+  assert line == ("nerfpod: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 hosts): "
                   "INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count")
   crash = script.replace("raise jax.errors.JaxRuntimeError(", "raise IndexError(")
   line = _one_sentence(_aot("--config=configs/default.py:smoke", "--topology=v5e-64", entry=["-c", crash]), code=1)
-  assert line.startswith("nerfpod aot: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 "
+  assert line.startswith("nerfpod: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 "
                          "hosts): IndexError: INTERNAL: RET_CHECK")
 
 

@@ -1,5 +1,6 @@
 """The `nerfpod` command: its subcommands, their help, one sentence for a mistake; and the wheel, whose only
 top-level package is nerfpod."""
+import json
 import os
 import subprocess
 import sys
@@ -99,3 +100,148 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
   third_party = {name for name in found if name not in sys.stdlib_module_names and name != "nerfpod"}
   assert third_party <= set(imported), f"imported but not mapped to a distribution: {third_party - set(imported)}"
   assert {imported[name] for name in third_party} <= required, sorted({imported[n] for n in third_party} - required)
+
+
+# Runs `nerfpod ARGV` (nerfpod.cli.run) for each ARGV (JSON on stdin), each in a child forked from one interpreter
+# that has imported every subcommand's module (not started JAX): each child parses its flags from scratch, as the
+# command does, without paying for the interpreter and the imports again. Prints [[exit code, stdout, stderr]].
+_FORKED_CLI = r"""
+import json, os, sys, tempfile
+from nerfpod import bench, cli, export, main, prepare, view
+from nerfpod.export import cameras, depth, mesh, pointcloud, video
+from nerfpod.pod import aot
+results = []
+for argv in json.loads(sys.stdin.read()):
+  with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    pid = os.fork()
+    if pid == 0:
+      os.dup2(out.fileno(), 1)
+      os.dup2(err.fileno(), 2)
+      code = 0
+      try:
+        cli.run(argv)
+      except SystemExit as e:
+        code = e.code if isinstance(e.code, int) else 1
+      except BaseException:
+        import traceback
+        traceback.print_exc()
+        code = 1
+      sys.stdout.flush()
+      sys.stderr.flush()
+      os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    out.seek(0)
+    err.seek(0)
+    results.append([os.waitstatus_to_exitcode(status), out.read().decode(), err.read().decode()])
+print(json.dumps(results))
+"""
+
+# Every subcommand (each kind of export too): the words that make its command line whole, flags of its own that
+# its --help lists, flags of other subcommands that it must not list, and a flag given a value it refuses.
+_CONFIG = "--config=configs/default.py:smoke"
+_COMMANDS = {
+    "train": (["train", _CONFIG, "--workdir=/nonexistent"], ["--workdir", "--mode", "--num_processes"],
+              ["--topology", "--port", "--matching"], "--num_processes=two"),
+    "eval": (["eval", _CONFIG, "--workdir=/nonexistent"], ["--config", "--process_id"], ["--quality", "--fps"],
+             "--process_id=first"),
+    "render": (["render", _CONFIG, "--workdir=/nonexistent"], ["--config", "--heartbeat_timeout_seconds"],
+               ["--slices", "--num_points"], "--heartbeat_timeout_seconds=soon"),
+    "view": (["view", "--workdir=/nonexistent"], ["--workdir", "--port", "--poll_seconds"],
+             ["--config", "--topology", "--input"], "--port=70000"),
+    "prepare": (["prepare", "--input=/nonexistent", "--out=/nonexistent/capture"], ["--input", "--matching",
+                "--num_frames"], ["--workdir", "--config", "--port"], "--matching=best"),
+    "export video": (["export", "video", "--workdir=/nonexistent"], ["--workdir", "--formats", "--fps"],
+                     ["--num_points", "--normalized", "--config"], "--fps=fast"),
+    "export pointcloud": (["export", "pointcloud", "--workdir=/nonexistent"], ["--num_points", "--normalized"],
+                          ["--formats", "--resolution", "--port"], "--num_points=many"),
+    "export mesh": (["export", "mesh", "--workdir=/nonexistent"], ["--resolution", "--level", "--normalized"],
+                    ["--num_points", "--formats"], "--resolution=big"),
+    "export cameras": (["export", "cameras", "--workdir=/nonexistent"], ["--workdir", "--out", "--normalized"],
+                       ["--num_points", "--resolution", "--min_opacity"], "--normalized=maybe"),
+    "export depth": (["export", "depth", "--workdir=/nonexistent"], ["--split", "--format", "--min_opacity"],
+                     ["--num_points", "--resolution"], "--min_opacity=half"),
+    "aot": (["aot", _CONFIG, "--topology=v5e-8"], ["--topology", "--slices", "--what"],
+            ["--workdir", "--port", "--steps"], "--slices=two"),
+    "bench": (["bench", _CONFIG], ["--quality", "--steps", "--targets"], ["--workdir", "--topology", "--slices"],
+              "--steps=0"),
+}
+
+
+@pytest.fixture(scope="module")
+def command_lines():
+  """{(subcommand, case): (exit code, stdout, stderr)} of --help, an unknown flag, a bad value and the required
+  flags left out, for every subcommand, through nerfpod.cli.run."""
+  cases = {}
+  for name, (argv, _, _, bad) in _COMMANDS.items():
+    words = argv[:len(name.split())]
+    cases[name, "help"] = [*words, "--help"]
+    cases[name, "unknown"] = [*argv, "--bogus=1"]
+    cases[name, "bad"] = [*argv, bad]
+    cases[name, "missing"] = words
+  env = dict(os.environ, JAX_PLATFORMS="cpu")
+  done = subprocess.run([sys.executable, "-c", _FORKED_CLI], input=json.dumps(list(cases.values())), cwd=REPO,
+                        env=env, capture_output=True, text=True, timeout=300)
+  assert done.returncode == 0, done.stderr[-3000:]
+  return dict(zip(cases, json.loads(done.stdout)))
+
+
+def _the_one_error(result) -> str:
+  """A mistake's result: exit code 2, nothing on stdout, one `nerfpod: error:` line on stderr and nothing else."""
+  code, out, err = result
+  assert code == 2 and out == "", result
+  lines = err.splitlines()
+  assert len(lines) == 1 and lines[0].startswith("nerfpod: error: ") and "Traceback" not in err, result
+  return lines[0]
+
+
+@pytest.mark.parametrize("name", _COMMANDS)
+def test_every_subcommands_help_lists_its_own_flags_only(command_lines, name):
+  _, own, others, _ = _COMMANDS[name]
+  code, out, err = command_lines[name, "help"]
+  assert code == 0 and err == "", (code, err)
+  assert out.startswith(f"usage: nerfpod {name} [flags]\n\n"), out
+  about = out.split("\n")[2]
+  assert about and about == (cli.SUBCOMMANDS.get(name, (None, about))[1]), about  # its one line
+  listed = {line.split(":")[0].strip().replace("--[no]", "--") for line in out.splitlines()
+            if line.startswith("  --")}
+  assert set(own) <= listed, (own, listed)
+  assert not set(others) & listed, (others, listed)
+
+
+@pytest.mark.parametrize("name", _COMMANDS)
+def test_every_subcommands_unknown_flag_is_one_sentence_and_exit_2(command_lines, name):
+  line = _the_one_error(command_lines[name, "unknown"])
+  assert line.startswith("nerfpod: error: unknown flag --bogus; ") and f"`nerfpod {name} --help`" in line, line
+  for flag in _COMMANDS[name][1]:  # the flags it does take, named
+    assert flag in line, line
+
+
+@pytest.mark.parametrize("name", _COMMANDS)
+def test_every_subcommands_bad_value_is_one_sentence_naming_the_flag_and_a_valid_value(command_lines, name):
+  bad = _COMMANDS[name][3]
+  line = _the_one_error(command_lines[name, "bad"])
+  flag = bad.split("=")[0]
+  assert line.startswith(f"nerfpod: error: {bad}") or line.startswith(f"nerfpod: error: {flag}="), line
+  assert f"e.g. {flag}=" in line or f"a yes/no flag is given as {flag} or --no{flag[2:]}" in line, line
+
+
+@pytest.mark.parametrize("name", _COMMANDS)
+def test_every_subcommands_required_flags_are_named_with_an_example(command_lines, name):
+  line = _the_one_error(command_lines[name, "missing"])
+  assert " required, e.g. --" in line, line
+
+
+def test_the_modes_help_lines_are_the_subcommands():
+  from nerfpod import main
+  assert {mode: cli.SUBCOMMANDS[mode][1] for mode in main.MODES} == main.MODES
+
+
+def test_export_without_a_kind_lists_the_kinds_or_asks_for_one():
+  done = _nerfpod("export", "--help")
+  assert done.returncode == 0 and "kinds:" in done.stdout and "nerfpod export KIND --help" in done.stdout
+  for words in (["export"], ["export", "--workdir=/nonexistent"]):
+    done = _nerfpod(*words)
+    assert done.returncode == 2 and done.stdout == "", done
+    assert done.stderr.startswith("nerfpod: error: name what to export first") and done.stderr.count("\n") == 1

@@ -114,7 +114,7 @@ def test_missing_or_partial_archives_are_refused_naming_the_missing_frames(tmp_p
     export_tool.run(["video", f"--workdir={tmp_path / 'orbit.zarr'}"])
   assert exit_info.value.code == 2
   message = capsys.readouterr().err
-  assert message.count("\n") == 1 and message.startswith("nerfpod export: error: ")
+  assert message.count("\n") == 1 and message.startswith("nerfpod: error: ")
   assert "incomplete: 2 of 5 frames are missing (1, 3)" in message and "--mode=render" in message
   assert not list(tmp_path.glob("orbit_*"))
   with pytest.raises(UserError, match="unknown export format"):
@@ -199,7 +199,7 @@ def test_each_kind_refuses_bad_input_in_one_sentence(smoke_workdir, tmp_path, ca
       export_tool.run([str(a) for a in argv])
     assert exit_info.value.code == 2, argv
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("nerfpod export: error: ") and message in err, (argv, err)
+    assert err.count("\n") == 1 and err.startswith("nerfpod: error: ") and message in err, (argv, err)
   assert not (no_checkpoint / "exports").exists()
 
 
@@ -406,7 +406,7 @@ def test_a_workdir_whose_every_checkpoint_is_damaged_is_one_sentence_and_nothing
                         timeout=300)
   assert done.returncode == 2, done.stderr[-3000:]
   (error,) = [line for line in done.stderr.splitlines() if "error:" in line]
-  assert error.startswith(f"nerfpod export: error: no checkpoint in {workdir / 'checkpoints'} reads back whole")
+  assert error.startswith(f"nerfpod: error: no checkpoint in {workdir / 'checkpoints'} reads back whole")
   assert all(f"step {step.name}: " in error for step in steps), error
   for noise in ABANDONED_READ_REPORTS:
     assert noise not in done.stderr, done.stderr[-3000:]
@@ -428,4 +428,5 @@ def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_pat
   assert len(_read_ply(tmp_path / "cloud.ply")["vertex"]) == 100
   for kind in ("pointcloud", "mesh", "cameras", "depth"):
     done = run(kind, "--help")
-    assert done.returncode == 0 and "--normalized" in done.stdout and "--workdir" in done.stdout, done.stderr
+    # absl's help spells a yes/no flag --[no]NAME
+    assert done.returncode == 0 and "--[no]normalized" in done.stdout and "--workdir" in done.stdout, done.stderr

@@ -480,7 +480,7 @@ distributed.initialize = lambda *a, **k: None
 out = {}
 for mode in ("eval", "render", "train"):
   flags.FLAGS.unparse_flags()
-  main._parse_flags(["nerfpod", "--config=configs/default.py:smoke", "--workdir=" + sys.argv[1], "--mode=" + mode])
+  main._flags_parser(["nerfpod", "--config=configs/default.py:smoke", "--workdir=" + sys.argv[1], "--mode=" + mode])
   err = io.StringIO()
   with contextlib.redirect_stderr(err):
     try:

@@ -9,14 +9,18 @@
 video reads the orbit archive; the others restore the workdir's newest checkpoint read-only (local or gs://,
 training may still run) and render or query it on every device of every host (on a pod, run the command on
 every host, as training; process 0 writes). Their outputs default to DIR/exports/. Each kind is a module
-here (video, pointcloud, mesh, cameras, depth) with ABOUT, add_arguments(parser), check(args) and export();
-trained restores a workdir for them, ply writes PLY files.
+here (video, pointcloud, mesh, cameras, depth) with ABOUT, define_flags(flag_values), check(args) and
+export(); trained restores a workdir for them, ply writes PLY files. Each kind's absl flags are defined when
+that kind is asked for, in a FlagValues of its own, and read as every subcommand reads them
+(errors.parse_flags: `nerfpod export KIND --help`, one sentence and exit 2 for a mistake).
 """
-import argparse
 import importlib
 import sys
+import types
 
-from nerfpod.errors import UserError, fail
+from absl import flags
+
+from nerfpod.errors import HELP_WORDS, UserError, fail, parse_flags
 from nerfpod.export.video import write_files  # noqa: F401 (the earlier nerfpod.export.write_files)
 
 KINDS = {
@@ -32,20 +36,43 @@ def _module(kind: str):
   return importlib.import_module(f"nerfpod.export.{kind}")
 
 
-def parse_args(argv):
-  parser = argparse.ArgumentParser(prog="nerfpod export", description=__doc__.split("\n\n")[0])
-  kinds = parser.add_subparsers(dest="kind", required=True, metavar="KIND")
-  for kind, about in KINDS.items():
-    sub = kinds.add_parser(kind, help=about, description=_module(kind).__doc__.split("\n\n")[0])
-    if kind == "video":
-      _module(kind).add_arguments(sub)
-      continue
-    sub.add_argument("--workdir", required=True, help="the training run's workdir (local or gs://)")
-    sub.add_argument("--out", default=None, help="where to write (default: under WORKDIR/exports/)")
-    sub.add_argument("--normalized", action="store_true",
-                     help="write the normalised scene's coordinates, not the capture's own")
-    _module(kind).add_arguments(sub)
-  return parser.parse_args(argv)
+def kind_flags(kind: str) -> flags.FlagValues:
+  """The flags of `nerfpod export KIND`, defined now (the kinds share names with other meanings: --out, --split)."""
+  flag_values = flags.FlagValues()
+  if kind != "video":
+    flags.DEFINE_string("workdir", None, "The training run's workdir (local or gs://).", flag_values=flag_values)
+    flags.DEFINE_string("out", None, "Where to write (default: under WORKDIR/exports/).", flag_values=flag_values)
+    flags.DEFINE_bool("normalized", False, "Write the normalised scene's coordinates, not the capture's own.",
+                      flag_values=flag_values)
+  _module(kind).define_flags(flag_values)
+  return flag_values
+
+
+def usage() -> str:
+  """`nerfpod export --help`: the kinds, one line each."""
+  width = max(len(kind) for kind in KINDS)
+  return "\n".join(["usage: nerfpod export KIND [flags]   (nerfpod export KIND --help: its flags)", "",
+                    __doc__.split("\n\n")[0].split(": ", 1)[1], "", "kinds:",
+                    *[f"  {kind:<{width}}  {about}" for kind, about in KINDS.items()]])
+
+
+def parse_args(argv) -> types.SimpleNamespace:
+  """`KIND --flag=value ...` -> the kind and its flags' values (attributes); --help and every mistake end here
+  (errors.parse_flags)."""
+  argv = list(argv)
+  if not argv or argv[0].startswith("-"):
+    if any(word in HELP_WORDS for word in argv):
+      print(usage())
+      sys.exit(0)
+    fail(f"name what to export first: nerfpod export KIND, KIND one of {', '.join(KINDS)} (nerfpod export --help "
+         f"says what each writes).")
+  kind = argv[0]
+  if kind not in KINDS:
+    fail(f"unknown kind {kind!r}; choose one of {', '.join(KINDS)} (nerfpod export --help says what each writes).")
+  flag_values = kind_flags(kind)
+  parse_flags(f"nerfpod export {kind}", KINDS[kind], flag_values, argv[1:], required=("workdir",),
+              examples={"workdir": "runs/mine", "fps": "30"})
+  return types.SimpleNamespace(kind=kind, **flag_values.flag_values_dict())
 
 
 def _default_out(module, args) -> tuple[str, str]:
@@ -77,18 +104,13 @@ def export(args) -> list[str] | dict:
 
 def run(argv=None) -> None:
   """`nerfpod export KIND ...` (argv: the arguments after `export`)."""
-  argv = list(sys.argv[1:] if argv is None else argv)
-  if argv and not argv[0].startswith("-") and argv[0] not in KINDS:
-    print(f"nerfpod export: error: unknown kind {argv[0]!r}; choose one of {', '.join(KINDS)} "
-          f"(nerfpod export --help says what each writes).", file=sys.stderr, flush=True)
-    sys.exit(2)
-  args = parse_args(argv)
+  args = parse_args(sys.argv[1:] if argv is None else argv)
   from absl import logging
   logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
   try:
     files = export(args)
   except UserError as e:
-    fail(e, "nerfpod export")
+    fail(e)
   if args.kind == "video":
     for path in files:
       print(path)

@@ -30,8 +30,8 @@ ABOUT = "the cameras, poses and images as a nerfstudio transforms.json"
 DEFAULT_OUT = os.path.join("cameras", "transforms.json")
 
 
-def add_arguments(parser) -> None:
-  del parser  # --workdir, --out and --normalized only
+def define_flags(flag_values) -> None:
+  del flag_values  # --workdir, --out and --normalized only
 
 
 def check(args) -> None:

@@ -11,6 +11,7 @@ import io
 
 import jax
 import numpy as np
+from absl import flags
 from etils import epath
 from PIL import Image
 
@@ -27,11 +28,11 @@ def default_out(args) -> str:
   return f"depth_{args.split}"
 
 
-def add_arguments(parser) -> None:
-  parser.add_argument("--split", default="train", help="the views to render (train)")
-  parser.add_argument("--format", default="png", help="png (16-bit, scale in depth.json) or npy (float32)")
-  parser.add_argument("--min_opacity", type=float, default=0.5,
-                      help="pixels whose accumulated opacity stays under this have depth 0 (0.5)")
+def define_flags(flag_values) -> None:
+  flags.DEFINE_string("split", "train", "The views to render.", flag_values=flag_values)
+  flags.DEFINE_string("format", "png", "png (16-bit, scale in depth.json) or npy (float32).", flag_values=flag_values)
+  flags.DEFINE_float("min_opacity", 0.5, "Pixels whose accumulated opacity stays under this have depth 0.",
+                     flag_values=flag_values)
 
 
 def check(args) -> None:

@@ -12,6 +12,7 @@ scene's mesh covers its bounded part only: the unit ball (b = 1), inside the con
 """
 import jax
 import numpy as np
+from absl import flags
 
 from nerfpod.errors import UserError
 from nerfpod.export import ply, trained as trained_lib
@@ -21,12 +22,12 @@ DEFAULT_OUT = "mesh.ply"
 MISSING = "mesh export needs scikit-image (marching cubes): pip install 'nerfpod[mesh]'"
 
 
-def add_arguments(parser) -> None:
-  parser.add_argument("--resolution", type=int, default=256, help="grid points per side of the box (256)")
-  parser.add_argument("--level", type=float, default=25.0,
-                      help="density of the surface, per unit of the normalised scene (25)")
-  parser.add_argument("--bound", type=float, default=0.0,
-                      help="the box [-b, b]^3 of the normalised scene (0: the field's box; 1 if contracted)")
+def define_flags(flag_values) -> None:
+  flags.DEFINE_integer("resolution", 256, "Grid points per side of the box.", flag_values=flag_values)
+  flags.DEFINE_float("level", 25.0, "Density of the surface, per unit of the normalised scene.",
+                     flag_values=flag_values)
+  flags.DEFINE_float("bound", 0.0, "The box [-b, b]^3 of the normalised scene (0: the field's box; 1 if "
+                     "contracted).", flag_values=flag_values)
 
 
 def check(args) -> None:

@@ -12,6 +12,7 @@ inverse of the run's capture -> scene similarity in scene.json), or in the norma
 """
 import jax
 import numpy as np
+from absl import flags
 
 from nerfpod.errors import UserError
 from nerfpod.export import ply, trained as trained_lib
@@ -22,14 +23,14 @@ DEFAULT_OUT = "pointcloud.ply"
 MAX_PERMUTED = 20_000_000  # up to this many pixels, each is tried once (a permutation); past it, drawn at random
 
 
-def add_arguments(parser) -> None:
-  parser.add_argument("--num_points", type=int, default=1_000_000, help="points to keep (default 1000000)")
-  parser.add_argument("--min_opacity", type=float, default=0.5,
-                      help="a ray makes a point where its accumulated opacity is at least this (0.5)")
-  parser.add_argument("--split", default="train", help="the views whose pixels are rendered (train)")
-  parser.add_argument("--bound", type=float, default=0.0,
-                      help="keep points in [-b, b]^3 of the normalised scene (0: the field's box; 1 if contracted)")
-  parser.add_argument("--seed", type=int, default=0, help="seeds which pixels are rendered")
+def define_flags(flag_values) -> None:
+  flags.DEFINE_integer("num_points", 1_000_000, "Points to keep.", flag_values=flag_values)
+  flags.DEFINE_float("min_opacity", 0.5, "A ray makes a point where its accumulated opacity is at least this.",
+                     flag_values=flag_values)
+  flags.DEFINE_string("split", "train", "The views whose pixels are rendered.", flag_values=flag_values)
+  flags.DEFINE_float("bound", 0.0, "Keep points in [-b, b]^3 of the normalised scene (0: the field's box; 1 if "
+                     "contracted).", flag_values=flag_values)
+  flags.DEFINE_integer("seed", 0, "Seeds which pixels are rendered.", flag_values=flag_values)
 
 
 def check(args) -> None:

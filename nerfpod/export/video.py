@@ -5,8 +5,9 @@ PREFIX_{rgb,depth,acc,disparity}.{mp4,gif} and PREFIX_sheet.png, PREFIX being th
 .zarr ("orbit"), into --out (default: the folder holding the archive). Depth and disparity are colour-mapped
 (turbo, near warm); acc is grey. An archive that misses frames is refused with the list of them.
 """
-import argparse
 import os
+
+from absl import flags
 
 from nerfpod.render import archive, video
 from nerfpod.errors import UserError
@@ -39,17 +40,15 @@ def write_files(path: str, out_dir: str | None = None, fps: float | None = None,
   return files
 
 
-def add_arguments(parser: argparse.ArgumentParser, positional: bool = False) -> None:
-  help_text = "a training workdir (uses renders/orbit.zarr) or an orbit archive folder"
-  if positional:
-    parser.add_argument("workdir", metavar="WORKDIR_OR_ARCHIVE", help=help_text)
-  else:
-    parser.add_argument("--workdir", required=True, metavar="WORKDIR_OR_ARCHIVE", help=help_text)
-  parser.add_argument("--out", default=None, help="output folder (default: the folder holding the archive)")
-  parser.add_argument("--fps", type=float, default=None,
-                      help="frames per second (default: the archive's, from orbit.fps)")
-  parser.add_argument("--formats", default="mp4,gif,png", help="comma-separated: mp4, gif, png")
+def define_flags(flag_values) -> None:
+  flags.DEFINE_string("workdir", None, "A training workdir (uses renders/orbit.zarr) or an orbit archive folder.",
+                      flag_values=flag_values)
+  flags.DEFINE_string("out", None, "Output folder (default: the folder holding the archive).",
+                      flag_values=flag_values)
+  flags.DEFINE_float("fps", None, "Frames per second (default: the archive's, from orbit.fps).",
+                     flag_values=flag_values)
+  flags.DEFINE_list("formats", ["mp4", "gif", "png"], "Comma-separated: mp4, gif, png.", flag_values=flag_values)
 
 
 def export(args) -> list[str]:
-  return write_files(args.workdir, args.out, args.fps, args.formats.split(","))
+  return write_files(args.workdir, args.out, args.fps, args.formats)

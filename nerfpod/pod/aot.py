@@ -20,7 +20,8 @@ from XLA's program and the chips' published peaks, not measurements. A program t
 report too (fits_hbm false, with XLA's figures), not a crash.
 
 Nothing it is given ends in a traceback: a topology it does not know (or none), a config file that does not
-load, a bad override or --json path, a config whose batch does not split over the pod: one sentence, exit 2;
+load, a bad flag, override or --json path, a config whose batch does not split over the pod: one sentence,
+`nerfpod: error: ...`, exit 2 (the flags are read as every subcommand reads them: errors.parse_flags);
 a program the TPU compiler refuses: one sentence naming the program, the pod and XLA's reason, exit 1.
 With --json=-, stdout holds the JSON report alone (the tables go to stderr).
 """
@@ -33,17 +34,23 @@ from absl import app, flags
 from ml_collections import config_flags
 
 from nerfpod import schema
-from nerfpod.errors import UserError, fail
+from nerfpod.errors import UserError, fail, parse_flags
 from nerfpod.pod import chips
 
+ABOUT = "compile a config for a TPU pod topology here, and report memory and time"
+# Its own flags (not absl's global ones): tools.pod_tables imports this module beside flags of its own.
+FLAGS = flags.FlagValues()
 _CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
-                                          lock_config=True)
+                                          flag_values=FLAGS, lock_config=True)
 _TOPOLOGY = flags.DEFINE_string("topology", None, "The pod: an accelerator type, e.g. v4-32, v5e-64 (= "
-                                "v5litepod-64), v5p-128, v6e-64; several, comma-separated.")
+                                "v5litepod-64), v5p-128, v6e-64; several, comma-separated.", flag_values=FLAGS)
 _SLICES = flags.DEFINE_integer("slices", 1, "Multi-slice: this many slices of the --topology pod, joined by the "
-                                "data-centre network (DCN), e.g. --topology=v5e-256 --slices=2 (512 chips).")
-_WHAT = flags.DEFINE_list("what", ["step", "eval", "orbit"], "What to compile: step, eval, orbit.")
-_JSON = flags.DEFINE_string("json", None, "Also write the report as JSON to this file ('-': stdout only).")
+                               "data-centre network (DCN), e.g. --topology=v5e-256 --slices=2 (512 chips).",
+                               flag_values=FLAGS)
+_WHAT = flags.DEFINE_list("what", ["step", "eval", "orbit"], "What to compile: step, eval, orbit.",
+                          flag_values=FLAGS)
+_JSON = flags.DEFINE_string("json", None, "Also write the report as JSON to this file ('-': stdout only).",
+                            flag_values=FLAGS)
 
 
 def _quiet_libtpu() -> None:
@@ -392,7 +399,7 @@ def format_report(report: dict) -> str:
 
 def _error(message: "UserError | str", code: int = 2):
   """Ends the tool with one sentence on stderr (no traceback): exit 2 for bad input, 1 for a refusal."""
-  fail(message, "nerfpod aot", code)
+  fail(message, code=code)
 
 
 def _check_json_path(path: str | None) -> None:
@@ -411,7 +418,7 @@ def _check_json_path(path: str | None) -> None:
 
 def _load_config():
   """The --config value (with its overrides): a file that fails to load is one sentence."""
-  path = config_flags.get_config_filename(flags.FLAGS["config"]).split(":")[0]
+  path = config_flags.get_config_filename(FLAGS["config"]).split(":")[0]
   if not os.path.isfile(path):
     raise UserError(f"the --config file {path} does not exist (a relative path is from the current folder, "
                     f"{os.getcwd()}).")
@@ -427,9 +434,8 @@ def _load_config():
 
 
 def main(argv):
-  if len(argv) > 1:
-    _error(f"unexpected arguments: {' '.join(argv[1:])} (flags take the form --name=value; `nerfpod aot "
-           f"--help` lists them).")
+  del argv  # [the program's name]: the flags' parsing refuses anything else
+  _quiet_libtpu()
   to_json = _JSON.value == "-"
   tables = sys.stderr if to_json else sys.stdout  # --json=-: stdout is the JSON report alone
   try:
@@ -467,28 +473,13 @@ def main(argv):
     _error(f"compiling failed unexpectedly: {_reason(e)}", code=1)
 
 
-def _parse_flags(argv):
-  """absl's parsing, with any mistake (a missing or unknown flag, a bad --config override) in one sentence,
-  exit 2."""
-  sys.argv[:] = argv  # ml_collections reads the overrides off sys.argv when it parses --config
-  try:
-    return flags.FLAGS(argv)
-  except UserError as e:  # raised by a config file's get_config (e.g. an unknown argument after the colon)
-    _error(str(e))
-  except flags.Error as e:
-    message = str(e)
-  except (OSError, AttributeError, KeyError, TypeError, ValueError, SyntaxError, ImportError) as e:
-    message = f"bad --config file or override ({e})"
-  message = " ".join(message.replace("\\n", " ").replace("\\'", "'").replace("''", "'").split()).rstrip(".")
-  _error(f"{message}; `nerfpod aot --help` lists the flags.")
-
-
 def run(argv: list[str] | None = None) -> None:
-  """`nerfpod aot ...`: `argv` as sys.argv has it (argv[0] the program's name; default sys.argv). The flags
-  are required here, not where they are defined: tools.pod_tables imports this module for compile_pod."""
-  flags.mark_flags_as_required(["config", "topology"])
-  _quiet_libtpu()
-  app.run(main, argv=argv, flags_parser=_parse_flags)
+  """`nerfpod aot ...`: `argv` as sys.argv has it (argv[0] the program's name; default sys.argv)."""
+  def parse(argv):
+    parse_flags("nerfpod aot", ABOUT, FLAGS, argv[1:], required=("config", "topology"),
+                examples={"config": "configs/default.py", "topology": "v5e-64", "what": "step,eval"})
+    return argv[:1]
+  app.run(main, argv=argv, flags_parser=parse)
 
 
 if __name__ == "__main__":

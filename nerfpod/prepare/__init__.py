@@ -19,11 +19,11 @@ interrupted run leaves DIR.partial/: the same command again reuses its finished 
 features and matches in the COLMAP database); --overwrite starts again. A user's mistake is one sentence on
 stderr and exit code 2. Measurements and every message: docs/prepare.md.
 
-Here: the command (its flags, the stages in order, resuming them, the report). The stages' work is in
+Here: the command (its absl flags, read as every subcommand reads them: errors.parse_flags; the stages in
+order, resuming them, the report). The stages' work is in
 frames (the input: photos, a video's frames), sfm (pycolmap: features, matching, mapping, the model kept)
 and capture (the capture folder's files); progress prints the progress lines.
 """
-import argparse
 import json
 import math
 import os
@@ -31,8 +31,11 @@ import shutil
 import signal
 import sys
 import time
+import types
 
-from nerfpod.errors import UserError, fail
+from absl import flags
+
+from nerfpod.errors import UserError, fail, parse_flags
 from nerfpod.prepare import capture, frames, sfm
 from nerfpod.prepare.progress import duration
 
@@ -69,64 +72,40 @@ def _threads() -> int:
     return os.cpu_count() or 1
 
 
-def _positive(kind):
-  def parse(text):
-    try:
-      value = kind(text)
-    except ValueError:
-      raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if value <= 0:
-      raise argparse.ArgumentTypeError(f"{text!r} must be positive")
-    return value
-  return parse
+ABOUT = "photos or a video -> a posed capture folder (COLMAP structure from motion)"
+FLAGS = flags.FlagValues()  # its own: other subcommands define --out too
+flags.DEFINE_string("input", None, "A folder of photos (.jpg, .jpeg, .png) or a video file (.mp4, .mov, ... anything "
+                    "ffmpeg reads).", flag_values=FLAGS)
+flags.DEFINE_string("out", None, "The capture folder to write (it must not exist, be empty, or hold an earlier "
+                    "prepare's capture, replaced with --overwrite).", flag_values=FLAGS)
+flags.DEFINE_integer("num_frames", frames.DEFAULT_NUM_FRAMES, "Video: how many frames to take, the sharpest of "
+                     "each even window in time.", lower_bound=1, flag_values=FLAGS)
+flags.DEFINE_enum("matching", "auto", ["auto", "exhaustive", "sequential"], "Which image pairs to match: auto = "
+                  f"sequential for a video or over {sfm.EXHAUSTIVE_MAX_IMAGES} photos, else exhaustive.",
+                  flag_values=FLAGS)
+flags.DEFINE_enum("mapper", "auto", ["auto", "incremental", "global"], "auto = the incremental mapper, and the "
+                  "global one too where it leaves over 5% of the images out, keeping the model with more images "
+                  "unless the two disagree.", flag_values=FLAGS)
+flags.DEFINE_enum("cameras", "auto", ["auto", "shared", "per_image"], "One camera for all images or one per image: "
+                  "auto = shared for a video and for photos of one size from one camera (EXIF).", flag_values=FLAGS)
+flags.DEFINE_enum("camera_model", "auto", ["auto", *sfm.CAMERA_MODELS], "COLMAP camera model: auto = "
+                  "SIMPLE_RADIAL; OPENCV for wide-angle lenses.", flag_values=FLAGS)
+flags.DEFINE_integer("max_image_size", 1600, "SIFT runs on images shrunk to this long side, in pixels.",
+                     lower_bound=1, flag_values=FLAGS)
+flags.DEFINE_float("min_registered", 0.5, "Fail unless at least this share of the images is registered.",
+                   lower_bound=0.0, upper_bound=1.0, flag_values=FLAGS)
+flags.DEFINE_integer("threads", _threads(), "CPU threads (default: this machine's cores).", lower_bound=1,
+                     flag_values=FLAGS)
+flags.DEFINE_bool("overwrite", False, "Start again: replace an earlier prepare's capture at --out and its "
+                  "unfinished work.", flag_values=FLAGS)
+flags.DEFINE_bool("verbose", False, "Show COLMAP's own log.", flag_values=FLAGS)
 
 
-def _fraction(text):
-  try:
-    value = float(text)
-  except ValueError:
-    raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-  if not 0 <= value <= 1:
-    raise argparse.ArgumentTypeError(f"{text!r} must be between 0 and 1")
-  return value
-
-
-def parser() -> argparse.ArgumentParser:
-  p = argparse.ArgumentParser(
-      prog="nerfpod prepare",
-      description="Photos or a video -> a capture folder with camera poses (COLMAP structure from motion with "
-                  "pycolmap), ready for `nerfpod train --config=configs/capture.py:path=OUT`.")
-  p.add_argument("--input", required=True, metavar="PATH",
-                 help="a folder of photos (.jpg, .jpeg, .png) or a video file (.mp4, .mov, ... anything ffmpeg "
-                      "reads)")
-  p.add_argument("--out", required=True, metavar="DIR", help="the capture folder to write (it must not exist, be "
-                 "empty, or hold an earlier prepare's capture, replaced with --overwrite)")
-  p.add_argument("--num_frames", type=_positive(int), default=frames.DEFAULT_NUM_FRAMES,
-                 help="video: how many frames to take, the sharpest of each even window in time (default "
-                      "%(default)s)")
-  p.add_argument("--matching", choices=("auto", "exhaustive", "sequential"), default="auto",
-                 help="which image pairs to match: auto = sequential for a video or over "
-                      f"{sfm.EXHAUSTIVE_MAX_IMAGES} photos, else exhaustive (default %(default)s)")
-  p.add_argument("--mapper", choices=("auto", "incremental", "global"), default="auto",
-                 help="auto = the incremental mapper, and the global one too where it leaves over 5%% of the "
-                      "images out, keeping the model with more images unless the two disagree (default "
-                      "%(default)s)")
-  p.add_argument("--cameras", choices=("auto", "shared", "per_image"), default="auto",
-                 help="one camera for all images or one per image: auto = shared for a video and for photos "
-                      "of one size from one camera (EXIF) (default %(default)s)")
-  p.add_argument("--camera_model", choices=("auto",) + sfm.CAMERA_MODELS, default="auto",
-                 help="COLMAP camera model: auto = SIMPLE_RADIAL; OPENCV for wide-angle lenses (default "
-                      "%(default)s)")
-  p.add_argument("--max_image_size", type=_positive(int), default=1600,
-                 help="SIFT runs on images shrunk to this long side, in pixels (default %(default)s)")
-  p.add_argument("--min_registered", type=_fraction, default=0.5,
-                 help="fail unless at least this share of the images is registered (default %(default)s)")
-  p.add_argument("--threads", type=_positive(int), default=_threads(),
-                 help="CPU threads (default: this machine's cores, %(default)s)")
-  p.add_argument("--overwrite", action="store_true",
-                 help="start again: replace an earlier prepare's capture at --out and its unfinished work")
-  p.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
-  return p
+def parse(argv) -> types.SimpleNamespace:
+  """The command line's flags (errors.parse_flags: --help, one sentence and exit 2 for a mistake)."""
+  parse_flags("nerfpod prepare", ABOUT, FLAGS, argv, required=("input", "out"),
+              examples={"input": "my_photos/", "out": "captures/mine"})
+  return types.SimpleNamespace(**FLAGS.flag_values_dict())
 
 
 def _check_out(out: str, overwrite: bool, input_path: str):
@@ -328,7 +307,7 @@ def run(argv=None) -> int:
   """`nerfpod prepare ...` and `python -m nerfpod.prepare ...`; argv: the arguments after `prepare`. Returns 0
   when the capture is written; a user's mistake is one sentence on stderr and exit code 2; Ctrl-C exits 130,
   keeping the finished stages for the same command to resume."""
-  args = parser().parse_args(sys.argv[1:] if argv is None else argv)
+  args = parse(sys.argv[1:] if argv is None else argv)
   try:
     summary = prepare(args)
   except UserError as e:
