@@ -30,6 +30,7 @@ no credentials, as google-cloud-storage itself has it.
 """
 import contextlib
 import io
+import logging
 import os
 import posixpath
 import shutil
@@ -265,11 +266,27 @@ def gcs_bucket(url) -> GcsBucket:
     client = gcs.Client(project=None)  # the emulator's endpoint, anonymous: the client's own rule
     who = "no credentials (the storage emulator at STORAGE_EMULATOR_HOST)"
   else:
-    credentials, _ = google.auth.default(scopes=GCS_SCOPES)
+    with _quiet("google.auth._default", "google.auth.compute_engine._metadata"):
+      credentials, _ = google.auth.default(scopes=GCS_SCOPES)
     options = {"api_endpoint": GCS_ENDPOINT} if GCS_ENDPOINT != "https://storage.googleapis.com" else None
     client = gcs.Client(project=None, credentials=credentials, client_options=options)
     who = _credentials_name(credentials)
   return GcsBucket(client.bucket(bucket_name), name, who)
+
+
+@contextlib.contextmanager
+def _quiet(*names: str):
+  """The loggers `names` log errors only, meanwhile: google.auth warns at each place it looks for credentials
+  and finds none (off a VM: three pings of a metadata server), where the caller says so in one sentence."""
+  loggers = [logging.getLogger(name) for name in names]
+  levels = [logger.level for logger in loggers]
+  for logger in loggers:
+    logger.setLevel(logging.ERROR)
+  try:
+    yield
+  finally:
+    for logger, level in zip(loggers, levels):
+      logger.setLevel(level)
 
 
 def _credentials_name(credentials) -> str:
