@@ -43,7 +43,8 @@ from typing import NamedTuple
 
 from nerfpod.errors import UserError
 
-GCS_ENDPOINT = "https://storage.googleapis.com"  # Cloud Storage, where STORAGE_EMULATOR_HOST is not set
+_CLOUD_STORAGE = "https://storage.googleapis.com"
+GCS_ENDPOINT = _CLOUD_STORAGE  # Cloud Storage, where STORAGE_EMULATOR_HOST is not set
 GCS_SCOPES = ("https://www.googleapis.com/auth/devstorage.read_write",)  # what gcs_bucket's credentials may do
 CONNECT_TIMEOUT_SECONDS = 10.0  # the first connection to a storage endpoint
 HEADER_BLOCK_BYTES = 64 * 1024  # what header_reader fetches at a time: an image header is in the first block
@@ -262,14 +263,19 @@ def gcs_bucket(url) -> GcsBucket:
   except ImportError:
     raise UserError(f"cannot use {url}: gs:// needs the google-cloud-storage package, which is not installed; "
                     f"install the gcs extra (pip install 'nerfpod[gcs]').") from None
-  if os.environ.get("STORAGE_EMULATOR_HOST"):
-    client = gcs.Client(project=None)  # the emulator's endpoint, anonymous: the client's own rule
+  emulator = os.environ.get("STORAGE_EMULATOR_HOST")
+  if emulator:  # anonymous, as the client itself has it; a bare host:port is http, as for gcsfs
+    client = gcs.Client(project=None, client_options={"api_endpoint": emulator if "://" in emulator else
+                                                      "http://" + emulator})
     who = "no credentials (the storage emulator at STORAGE_EMULATOR_HOST)"
   else:
     with _quiet("google.auth._default", "google.auth.compute_engine._metadata"):
       credentials, _ = google.auth.default(scopes=GCS_SCOPES)
-    options = {"api_endpoint": GCS_ENDPOINT} if GCS_ENDPOINT != "https://storage.googleapis.com" else None
-    client = gcs.Client(project=None, credentials=credentials, client_options=options)
+    # Cloud Storage's own endpoint is the client's default (with its universe and mTLS rules); another one (a
+    # test's server) is named
+    custom = GCS_ENDPOINT.rstrip("/") != _CLOUD_STORAGE
+    client = gcs.Client(project=None, credentials=credentials,
+                        client_options={"api_endpoint": GCS_ENDPOINT} if custom else None)
     who = _credentials_name(credentials)
   return GcsBucket(client.bucket(bucket_name), name, who)
 

@@ -273,7 +273,7 @@ def _handler(fake):
 
 
 def _serve(monkeypatch, fake):
-  monkeypatch.setenv("STORAGE_EMULATOR_HOST", fake.url)
+  monkeypatch.setenv("STORAGE_EMULATOR_HOST", fake.host)  # host:port, no scheme (tests/gcs.py's has http://)
   monkeypatch.setattr(workdir_lock, "HEARTBEAT_SECONDS", 0.1)
   monkeypatch.setattr(workdir_lock, "LEASE_SECONDS", 1.5)
 
