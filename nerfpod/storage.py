@@ -7,6 +7,7 @@
     local_copy(paths)                local copies of files in a temporary folder (for readers of local files only)
     forget_listings()                what was listed of a bucket is listed again on the next look
     check_reachable(path)            one sentence at once where a URL's storage cannot be connected to
+    gcs_bucket(url)                  google-cloud-storage's Bucket of a gs:// URL, its object name, whose credentials
 
 A local path takes exactly the route it always took (os, open). A URL goes to fsspec, which reads gs://
 through gcsfs (the `gcs` extra; gcsfs reads STORAGE_EMULATOR_HOST, for an emulator, and otherwise finds
@@ -19,9 +20,17 @@ Errors on a URL: a missing object is FileNotFoundError, as for a local file, so 
 it the same way; anything else (no network, no credentials, no access) is one UserError sentence naming the
 path. Before the first request to a storage endpoint, a process connects to it once with a short timeout,
 so that no network is one sentence at once rather than after a client's minute of retries.
+
+What fsspec does not do, writing an object only if its generation is the one expected (the workdir lock), goes
+through google-cloud-storage itself: gcs_bucket() gives its Bucket of a URL, on the same endpoint and with the
+credentials every Google client finds (google.auth.default(): gcloud's application-default credentials of a
+user, a service account's key file or an external account's configuration in GOOGLE_APPLICATION_CREDENTIALS,
+or the metadata server of a GCE or TPU VM); STORAGE_EMULATOR_HOST, where it is set, is an emulator that takes
+no credentials, as google-cloud-storage itself has it.
 """
 import contextlib
 import io
+import logging
 import os
 import posixpath
 import shutil
@@ -30,10 +39,13 @@ import sys
 import tempfile
 import threading
 import urllib.parse
+from typing import NamedTuple
 
 from nerfpod.errors import UserError
 
-GCS_ENDPOINT = "https://storage.googleapis.com"  # Cloud Storage, where STORAGE_EMULATOR_HOST is not set
+_CLOUD_STORAGE = "https://storage.googleapis.com"
+GCS_ENDPOINT = _CLOUD_STORAGE  # Cloud Storage, where STORAGE_EMULATOR_HOST is not set
+GCS_SCOPES = ("https://www.googleapis.com/auth/devstorage.read_write",)  # what gcs_bucket's credentials may do
 CONNECT_TIMEOUT_SECONDS = 10.0  # the first connection to a storage endpoint
 HEADER_BLOCK_BYTES = 64 * 1024  # what header_reader fetches at a time: an image header is in the first block
 CREDENTIALS_HINT = ("check the path, and for gs:// the network, your credentials (gcloud auth "
@@ -227,3 +239,73 @@ def local_copy(paths):
     yield folder
   finally:
     shutil.rmtree(folder, ignore_errors=True)
+
+
+class GcsBucket(NamedTuple):
+  """What gcs_bucket() gives: google-cloud-storage's Bucket, the object's name in it, and whose credentials its
+  requests carry, in words for a sentence ("service account a@b.iam.gserviceaccount.com (the key file ...)")."""
+  bucket: object  # google.cloud.storage.Bucket
+  name: str
+  credentials: str
+
+
+def gcs_bucket(url) -> GcsBucket:
+  """google-cloud-storage's Bucket of a gs:// URL (gs://BUCKET/NAME) and the object name NAME, with a client of
+  its own: on STORAGE_EMULATOR_HOST where it is set (an emulator: no credentials), else on GCS_ENDPOINT with the
+  credentials google.auth.default() finds (module docstring). Nothing is sent yet (check_reachable first, for
+  one sentence at once where there is no network). One sentence where the package is not installed; where
+  there are no credentials, google.auth.exceptions.DefaultCredentialsError, which the caller says in its words
+  (what it could not do, and the way out it has)."""
+  bucket_name, _, name = str(url).split("://", 1)[1].partition("/")
+  try:
+    import google.auth
+    from google.cloud import storage as gcs
+  except ImportError:
+    raise UserError(f"cannot use {url}: gs:// needs the google-cloud-storage package, which is not installed; "
+                    f"install the gcs extra (pip install 'nerfpod[gcs]').") from None
+  emulator = os.environ.get("STORAGE_EMULATOR_HOST")
+  if emulator:  # anonymous, as the client itself has it; a bare host:port is http, as for gcsfs
+    client = gcs.Client(project=None, client_options={"api_endpoint": emulator if "://" in emulator else
+                                                      "http://" + emulator})
+    who = "no credentials (the storage emulator at STORAGE_EMULATOR_HOST)"
+  else:
+    with _quiet("google.auth._default", "google.auth.compute_engine._metadata"):
+      credentials, _ = google.auth.default(scopes=GCS_SCOPES)
+    # Cloud Storage's own endpoint is the client's default (with its universe and mTLS rules); another one (a
+    # test's server) is named
+    custom = GCS_ENDPOINT.rstrip("/") != _CLOUD_STORAGE
+    client = gcs.Client(project=None, credentials=credentials,
+                        client_options={"api_endpoint": GCS_ENDPOINT} if custom else None)
+    who = _credentials_name(credentials)
+  return GcsBucket(client.bucket(bucket_name), name, who)
+
+
+@contextlib.contextmanager
+def _quiet(*names: str):
+  """The loggers `names` log errors only, meanwhile: google.auth warns at each place it looks for credentials
+  and finds none (off a VM: three pings of a metadata server), where the caller says so in one sentence."""
+  loggers = [logging.getLogger(name) for name in names]
+  levels = [logger.level for logger in loggers]
+  for logger in loggers:
+    logger.setLevel(logging.ERROR)
+  try:
+    yield
+  finally:
+    for logger, level in zip(loggers, levels):
+      logger.setLevel(level)
+
+
+def _credentials_name(credentials) -> str:
+  """Whose `credentials` (google.auth's) are, in words."""
+  kind = type(credentials).__module__
+  key_file = os.environ.get("GOOGLE_APPLICATION_CREDENTIALS")
+  where = f" (the key file {key_file})" if key_file else ""
+  if kind.startswith("google.auth.compute_engine"):
+    return "this VM's service account (the metadata server's)"
+  if kind == "google.oauth2.service_account":
+    return f"service account {credentials.service_account_email}{where}"
+  if key_file:
+    return f"the application-default credentials in {key_file}"
+  if kind == "google.oauth2.credentials":
+    return "gcloud's application-default credentials of a user"
+  return f"the application-default credentials ({type(credentials).__name__})"

@@ -7,8 +7,8 @@ its own (so that the runs a test starts reach it too) on a free port, with one b
       emulator.files("runs/a")             # the objects under a prefix, as names relative to it
 
 Every client nerfpod uses reads the emulator's address from its own variable:
-- STORAGE_EMULATOR_HOST: gcsfs (scenes, and the workdir's files through etils.epath and orbax),
-  google-cloud-storage (tensorboardX's event files) and nerfpod's workdir lock; no credentials are needed;
+- STORAGE_EMULATOR_HOST: gcsfs (scenes, and the workdir's files through etils.epath and orbax) and
+  google-cloud-storage (tensorboardX's event files, nerfpod's workdir lock); no credentials are needed;
 - TENSORSTORE_GCS_HTTP_URL: tensorstore's gcs driver (orbax's arrays, the render archive);
 - GCSFS_EXPERIMENTAL_ZB_HNS_SUPPORT=false stops gcsfs from probing each bucket for a zonal or hierarchical
   namespace over gRPC, which the emulator does not serve (the probe otherwise waits 60 s per bucket).
@@ -16,7 +16,8 @@ Every client nerfpod uses reads the emulator's address from its own variable:
 What the emulator (2026.7.19) gets wrong for these clients, patched in the serving process (`_patch`):
 - a media upload (uploadType=media) whose Content-Type is application/json has its body parsed as JSON
   instead of stored as bytes, and the server fails on it (RemoteDisconnected for the client): nerfpod's
-  workdir lock uploads lock.json that way. Its body is kept as bytes;
+  workdir lock once uploaded lock.json that way (its client now sends multipart uploads, below). Its body is
+  kept as bytes;
 - a multipart upload (uploadType=multipart: gcsfs's and google-cloud-storage's for small objects) goes
   through Python's email parser, which drops a last carriage return or line feed of the object (a JSON or
   text file's final newline, any binary file that ends in one). It is split at its boundaries byte for byte

@@ -3,11 +3,12 @@
     with WorkdirLock(workdir):   # process 0 of a training run; UserError if another live run holds it
       ...
 
-The lock says who holds it: {"host", "pid", "process_start", "since"}. It is created only if absent, atomically,
-on either storage (one small class each below, the rest is shared):
+The lock says who holds it: {"host", "pid", "process_start", "since", "id"} (id: random, so that two holds by one
+process differ). It is created only if absent, atomically, on either storage (one small class each below, the
+rest is shared):
 - a local (or network) directory: the file is created with O_CREAT | O_EXCL;
-- a gs:// workdir: the object is uploaded with the precondition ifGenerationMatch=0 (Cloud Storage's JSON API
-  answers 412 where it exists).
+- a gs:// workdir: the object is uploaded with the precondition ifGenerationMatch=0 (Cloud Storage answers 412
+  where it exists).
 While the run lasts, a thread beats every HEARTBEAT_SECONDS: it touches the file (its mtime changes), or uploads
 the object again with ifGenerationMatch=<the generation it holds> (its generation changes). A beat that finds
 the lock no longer this run's (another run took it over) stops beating and says so once on stderr. The run
@@ -17,45 +18,50 @@ delete with ifGenerationMatch=<its generation>).
 A lock that is there when a run starts is the holder's, unless the holder is gone:
 - on this host, the holder process no longer exists (its pid is gone, or now belongs to a process that started
   at another time): taken over at once;
-- on another host (its process cannot be seen from here), its heartbeat stopped: the lock has not beaten for
-  LEASE_SECONDS, by the storage's own clock (the file's mtime against this host's clock; the object's
-  `updated` against the Date of the server's answer, so that the hosts' clocks need not agree). A heartbeat
-  younger than that is watched for up to one lease: if the holder beats (a new mtime or generation), the run is
-  refused (within seconds, as it beats every HEARTBEAT_SECONDS); if not, the holder is taken as dead and the
-  lock taken over.
+- on another host (its process cannot be seen from here), its heartbeat stopped. A local lock has not beaten
+  for LEASE_SECONDS by the file's mtime against this host's clock; one younger than that is watched for the
+  rest of the lease. A gs:// lock is always watched for a whole lease by this host's monotonic clock: its
+  `updated` is the server's clock, which google-cloud-storage gives nothing to set against (this host's clock
+  may be an hour off), so its age is never judged from it. While watched, if the holder beats (a new mtime or
+  generation), the run is refused (within seconds, as it beats every HEARTBEAT_SECONDS); if not, the holder is
+  taken as dead and the lock taken over. (A run restarted on another host after a lost machine thus waits one
+  lease, LEASE_SECONDS, before it takes a gs:// workdir's lock over.)
 Taking over removes the stale lock in a way only one of the runs that found it stale succeeds in (the file is
 renamed away; the object is deleted with ifGenerationMatch=<the stale generation>), then creates it anew only if
 absent, so two runs that find the same stale lock do not both take it.
 
-On gs:// the lock speaks HTTP with the standard library: to STORAGE_EMULATOR_HOST where it is set (an emulator,
-no credentials), else to https://storage.googleapis.com with an access token from gcloud's application-default
-credentials of a user (`gcloud auth application-default login`) or else from the metadata server of a GCE or
-TPU VM (its service account). Without network or credentials, taking the lock is one sentence saying which.
-Workdirs of other URL schemes take no lock.
+On gs:// the lock goes through google-cloud-storage (nerfpod.storage.gcs_bucket): to STORAGE_EMULATOR_HOST where
+it is set (an emulator, no credentials), else to Cloud Storage with whatever credentials google.auth.default()
+finds: gcloud's application-default credentials of a user, a service account's key file or an external
+account's configuration (GOOGLE_APPLICATION_CREDENTIALS), or the metadata server of a GCE or TPU VM (its service
+account). Every call has a timeout and is retried by the library where that is worth it (429, 5xx, a lost
+connection; for at most RETRY_SECONDS), which the generation preconditions make safe: a retried write or delete
+whose first try did reach the service finds the generation changed, and a create or beat then finds the lock
+that is there to be its own. Without network (one connection is tried first, nerfpod.storage.check_reachable),
+credentials, access or the bucket, taking the lock is one sentence saying which. Workdirs of other URL schemes
+take no lock.
 
 Evaluation, rendering, the viewer and the exports only read a workdir: they neither take nor look at the lock.
 """
+import contextlib
 import datetime
-import email.utils
-import http.client
 import json
 import os
+import secrets
 import socket
 import sys
 import threading
 import time
-import urllib.error
-import urllib.parse
-import urllib.request
 from typing import NamedTuple
 
+from nerfpod import storage
 from nerfpod.errors import UserError
 
 NAME = "lock.json"
 HEARTBEAT_SECONDS = 5.0
 LEASE_SECONDS = 30.0
-GCS_ENDPOINT = "https://storage.googleapis.com"  # Cloud Storage, where STORAGE_EMULATOR_HOST is not set
-HTTP_TIMEOUT_SECONDS = 10.0  # for each request to Cloud Storage, the metadata server or gcloud's token endpoint
+HTTP_TIMEOUT_SECONDS = 10.0  # for each request to Cloud Storage (to connect, and then for its answer)
+RETRY_SECONDS = 20.0  # how long one call to Cloud Storage is retried (429, 5xx, a lost connection)
 
 
 def _process_start(pid: int) -> str | None:
@@ -93,7 +99,7 @@ class _Look(NamedTuple):
   """What one look at an existing lock finds."""
   holder: dict  # {} where unreadable
   version: object  # changes at every beat: the file's mtime, the object's generation
-  age: float  # seconds since its last beat, by the storage's clock
+  age: float | None  # seconds since its last beat, by the storage's clock; None: not known (watched a lease)
 
 
 class _LocalLock:
@@ -160,251 +166,186 @@ class _LocalLock:
         pass
 
 
-_DIRECT = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # an emulator, the metadata server
-_PROXIED = urllib.request.build_opener()  # Google's endpoints, through the proxy of the environment if any
+def _first_sentence(text: str) -> str:
+  """The first sentence of an error's words, on one line, without its full stop."""
+  return " ".join(str(text).split()).split(". ")[0].rstrip(".")[:200]
 
 
-def _send(opener, request) -> tuple[int, http.client.HTTPMessage, bytes]:
-  """The status, headers and body of `request`'s answer, whatever its status; OSError where none came."""
-  try:
-    with opener.open(request, timeout=HTTP_TIMEOUT_SECONDS) as response:
-      return response.status, response.headers, response.read()
-  except urllib.error.HTTPError as e:
-    with e:
-      return e.code, e.headers, e.read()
-  except urllib.error.URLError as e:
-    raise e.reason if isinstance(e.reason, OSError) else OSError(str(e.reason)) from None
-  except http.client.HTTPException as e:
-    raise OSError(f"bad answer: {e!r}") from None
-
-
-def _why(error: OSError) -> str:
-  return error.strerror or str(error) or type(error).__name__
-
-
-def _message(body: bytes) -> str:
-  """The first sentence of an error answer's message (Cloud Storage: {"error": {"message": ...}})."""
-  try:
-    error = json.loads(body)
-    message = error["error"] if isinstance(error["error"], str) else error["error"]["message"]
-  except (ValueError, KeyError, TypeError):
-    message = body.decode(errors="replace")
-  return " ".join(str(message).split()).split(". ")[0].rstrip(".")[:200]
+def _api_exceptions():
+  """google.api_core.exceptions, imported where a gs:// workdir is used (the gcs extra)."""
+  from google.api_core import exceptions
+  return exceptions
 
 
 class _GcsLock:
-  """gs://BUCKET/PATH/lock.json through Cloud Storage's JSON API: creating, beating and deleting are each
-  preconditioned on the object's generation (ifGenerationMatch), which every upload changes."""
+  """gs://BUCKET/PATH/lock.json through google-cloud-storage (nerfpod.storage.gcs_bucket): creating, beating and
+  deleting are each preconditioned on the object's generation (if_generation_match), which every upload changes.
+  Each call has a timeout (HTTP_TIMEOUT_SECONDS) and the library's retries for what is worth trying again (429,
+  5xx, a lost connection), for at most RETRY_SECONDS; the generation precondition that every write and delete
+  carries is what makes them safe to retry (google-cloud-storage's DEFAULT_RETRY_IF_GENERATION_SPECIFIED rule): a
+  retry of a write whose first try did reach the service finds the generation changed, and the lock then looks
+  whether what is there is its own."""
 
   def __init__(self, workdir: str):
     bucket, _, prefix = workdir[len("gs://"):].partition("/")
     self.bucket = bucket
     self.name = f"{prefix.strip('/')}/{NAME}" if prefix.strip("/") else NAME
     self.path = f"gs://{bucket}/{self.name}"
-    emulator = os.environ.get("STORAGE_EMULATOR_HOST", "")
-    if emulator and "://" not in emulator:
-      emulator = "http://" + emulator
-    self._emulator = emulator.rstrip("/")
-    self._endpoint = self._emulator or GCS_ENDPOINT.rstrip("/")
-    self._token, self._token_expiry, self._credentials = None, 0.0, "no credentials"
+    self._bucket, self._credentials = None, "no credentials"
     self._me, self._body, self._generation = None, b"", None
 
   # The four operations the lock uses.
 
   def create(self, me: dict) -> bool:
+    api = _api_exceptions()
     body = json.dumps(me).encode()
-    status, _, answer = self._call("POST", self._upload_url(ifGenerationMatch=0), body)
-    if status == 412:
-      return False
-    self._check(status, answer)
-    self._me, self._body, self._generation = me, body, int(json.loads(answer)["generation"])
+    blob = self._blob()
+    try:
+      with self._answers():
+        blob.upload_from_string(body, content_type="application/json", if_generation_match=0,
+                                timeout=HTTP_TIMEOUT_SECONDS, retry=self._retry_if_generation())
+      generation = blob.generation
+    except api.PreconditionFailed:
+      look = self.look()  # a retried create whose first try had made it finds its own lock there
+      if look is None or look.holder != me:
+        return False
+      generation = look.version
+    except api.NotFound as e:
+      raise UserError(f"could not take the lock {self.path}: Cloud Storage has no bucket {self.bucket} "
+                      f"({_why(e)}); check --workdir, or create the bucket first.") from None
+    self._me, self._body, self._generation = me, body, int(generation)
     return True
 
-  def _metadata(self) -> tuple[dict, float] | None:
-    """The object's metadata and the server's time of the answer, None where there is no object."""
-    status, headers, answer = self._call("GET", self._object_url())
-    if status == 404:
-      return None
-    self._check(status, answer)
-    try:
-      now = email.utils.parsedate_to_datetime(headers["Date"]).timestamp()
-    except (TypeError, ValueError):  # no Date header: this host's clock is all there is
-      now = time.time()
-    return json.loads(answer), now
-
   def version(self) -> int | None:
-    found = self._metadata()
-    return None if found is None else int(found[0]["generation"])
+    api = _api_exceptions()
+    blob = self._blob()
+    try:
+      with self._answers():
+        blob.reload(timeout=HTTP_TIMEOUT_SECONDS, retry=self._retry())
+    except api.NotFound:
+      return None
+    return int(blob.generation)
 
   def look(self) -> _Look | None:
-    found = self._metadata()
-    if found is None:
+    """The holder and generation of the lock that is there. Its age is not known: Cloud Storage's `updated` is
+    the server's clock, and google-cloud-storage does not give the server's time of an answer to set it against
+    (this host's clock may be far off the server's), so a lock from another host is watched for a lease."""
+    api = _api_exceptions()
+    blob = self._blob()
+    try:
+      with self._answers():
+        blob.reload(timeout=HTTP_TIMEOUT_SECONDS, retry=self._retry())
+        generation = int(blob.generation)
+        text = blob.download_as_bytes(if_generation_match=generation, timeout=HTTP_TIMEOUT_SECONDS,
+                                      retry=self._retry_if_generation())
+    except (api.NotFound, api.PreconditionFailed):  # removed or replaced meanwhile: the caller looks again
       return None
-    metadata, now = found
-    generation = int(metadata["generation"])
-    status, _, answer = self._call("GET", self._object_url(alt="media", ifGenerationMatch=generation))
-    if status in (404, 412):  # removed or replaced meanwhile: the caller looks again
-      return None
-    self._check(status, answer)
-    updated = datetime.datetime.fromisoformat(metadata["updated"]).timestamp()
-    return _Look(_parse_holder(answer.decode(errors="replace")), generation, now - updated)
+    return _Look(_parse_holder(text.decode(errors="replace")), generation, None)
 
   def beat(self) -> bool:
     """Uploads the lock again (a new generation); False where it is no longer this run's."""
-    status, _, answer = self._call("POST", self._upload_url(ifGenerationMatch=self._generation), self._body)
-    if status == 200:
-      self._generation = int(json.loads(answer)["generation"])
-      return True
-    if status in (404, 412):
-      look = self.look()  # a beat whose answer was lost may have made the generation that is there
+    api = _api_exceptions()
+    blob = self._blob()
+    try:
+      with self._answers():
+        blob.upload_from_string(self._body, content_type="application/json", if_generation_match=self._generation,
+                                timeout=HTTP_TIMEOUT_SECONDS, retry=self._retry_if_generation())
+    except (api.NotFound, api.PreconditionFailed):
+      look = self.look()  # a beat whose answer was lost (and then retried) may have made the generation there
       if look is not None and look.holder == self._me:
         self._generation = look.version
         return True
       return False
-    return True  # the service failed this time (429, 5xx): the next beat tries again
+    self._generation = int(blob.generation)
+    return True
 
   def remove_stale(self, look: _Look) -> None:
-    status, _, answer = self._call("DELETE", self._object_url(ifGenerationMatch=look.version))
-    if status not in (404, 412):  # another run took it first
-      self._check(status, answer)
+    self._delete(look.version)  # NotFound or PreconditionFailed: another run took it first
 
   def release(self) -> None:
-    self._call("DELETE", self._object_url(ifGenerationMatch=self._generation))  # not ours any more: left alone
+    self._delete(self._generation)  # not ours any more: left alone
 
-  # HTTP.
+  # google-cloud-storage.
 
-  def _object_url(self, **query) -> str:
-    url = (f"{self._endpoint}/storage/v1/b/{urllib.parse.quote(self.bucket, safe='')}/o/"
-           f"{urllib.parse.quote(self.name, safe='')}")
-    return url + ("?" + urllib.parse.urlencode(query) if query else "")
-
-  def _upload_url(self, **query) -> str:
-    query = urllib.parse.urlencode({"uploadType": "media", "name": self.name, **query},
-                                   quote_via=urllib.parse.quote)
-    return f"{self._endpoint}/upload/storage/v1/b/{urllib.parse.quote(self.bucket, safe='')}/o?{query}"
-
-  def _call(self, method: str, url: str, body: bytes | None = None) -> tuple[int, http.client.HTTPMessage, bytes]:
-    headers = {"Content-Type": "application/json"} if body is not None else {}
-    if not self._emulator:
-      headers["Authorization"] = f"Bearer {self._access_token()}"
-    request = urllib.request.Request(url, data=body, headers=headers, method=method)
+  def _delete(self, generation: int) -> None:
+    api = _api_exceptions()
     try:
-      return _send(_DIRECT if self._emulator else _PROXIED, request)
-    except OSError as e:
-      where = (f"the storage emulator at {self._emulator} (STORAGE_EMULATOR_HOST)" if self._emulator else
-               f"Cloud Storage at {self._endpoint}")
-      fix = ("start it or unset STORAGE_EMULATOR_HOST" if self._emulator else
-             "check this machine's network access to it")
-      raise UserError(f"could not take the lock {self.path}: {where} does not answer ({_why(e)}); {fix}, or pass "
-                      f"a local --workdir.") from None
+      with self._answers():
+        self._blob().delete(if_generation_match=generation, timeout=HTTP_TIMEOUT_SECONDS,
+                            retry=self._retry_if_generation())
+    except (api.NotFound, api.PreconditionFailed):
+      pass
 
-  def _check(self, status: int, answer: bytes) -> None:
-    if status in (200, 204):
-      return
-    what = f"HTTP {status}: {_message(answer)}"
-    if status in (401, 403):
-      raise UserError(f"could not take the lock {self.path}: Cloud Storage refused {self._credentials} ({what}); "
-                      f"give them write access to bucket {self.bucket}, or pass a local --workdir.")
-    if status == 404:
-      raise UserError(f"could not take the lock {self.path}: Cloud Storage has no bucket {self.bucket} ({what}); "
-                      f"check --workdir, or create the bucket first.")
-    raise UserError(f"could not take the lock {self.path}: Cloud Storage answered {what}; try again, or pass a "
-                    f"local --workdir.")
+  def _blob(self):
+    """The lock's Blob, on a client made at the first call (after one connection to its endpoint: no network
+    is one sentence at once)."""
+    if self._bucket is None:
+      storage.check_reachable(self.path)
+      from google.auth.exceptions import DefaultCredentialsError
+      try:
+        found = storage.gcs_bucket(self.path)
+      except DefaultCredentialsError as e:
+        raise UserError(f"could not take the lock {self.path}: there are no credentials for Cloud Storage "
+                        f"({_why(e)}); run `gcloud auth application-default login`, point "
+                        f"GOOGLE_APPLICATION_CREDENTIALS at a service account's key file, run on a VM with a "
+                        f"service account, or pass a local --workdir.") from None
+      self._bucket, self._credentials = found.bucket, found.credentials
+    return self._bucket.blob(self.name)
 
-  def _access_token(self) -> str:
-    """A bearer token for Cloud Storage, kept until a minute before it expires."""
-    if self._token is None or time.monotonic() > self._token_expiry - 60:
-      user = _user_credentials()
-      if user is not None:
-        self._credentials = f"the application-default credentials in {user[0]}"
-        token = _token_from_user(user, self.path)
-      else:
-        self._credentials = "this VM's service account"
-        token = _token_from_metadata_server(self.path)
-      self._token = token["access_token"]
-      self._token_expiry = time.monotonic() + float(token.get("expires_in", 300))
-    return self._token
+  @staticmethod
+  def _retry():
+    """google-cloud-storage's DEFAULT_RETRY, for at most RETRY_SECONDS: for reads."""
+    from google.cloud.storage.retry import DEFAULT_RETRY
+    return DEFAULT_RETRY.with_timeout(RETRY_SECONDS)
 
+  @staticmethod
+  def _retry_if_generation():
+    """DEFAULT_RETRY_IF_GENERATION_SPECIFIED, for at most RETRY_SECONDS: for writes and deletes, which it retries
+    only where they carry a generation precondition (every one of the lock's does)."""
+    from google.cloud.storage.retry import ConditionalRetryPolicy, is_generation_specified
+    return ConditionalRetryPolicy(_GcsLock._retry(), is_generation_specified, ["query_params"])
 
-def _user_credentials() -> tuple[str, dict] | None:
-  """gcloud's application-default credentials of a user (`gcloud auth application-default login`) and their
-  file, where there are some; a service account's key file is not one (the metadata server is asked instead)."""
-  path = os.environ.get("GOOGLE_APPLICATION_CREDENTIALS") or os.path.join(
-      os.environ.get("CLOUDSDK_CONFIG") or os.path.join(os.path.expanduser("~"), ".config", "gcloud"),
-      "application_default_credentials.json")
-  credentials = _json_file(path)
-  return (path, credentials) if credentials is not None and credentials.get("type") == "authorized_user" else None
-
-
-def _json_file(path: str | None) -> dict | None:
-  """The JSON object a credentials file holds, None where there is no such file or object."""
-  try:
-    with open(path) as f:
-      value = json.load(f)
-  except (OSError, ValueError, TypeError):
-    return None
-  return value if isinstance(value, dict) else None
-
-
-def _token(opener, request) -> tuple[dict | None, str]:
-  """The access token an endpoint answers `request` with, or None and why there is none."""
-  try:
-    status, _, answer = _send(opener, request)
-    if status == 200:
-      return json.loads(answer), ""
-    return None, f"HTTP {status}: {_message(answer)}"
-  except OSError as e:
-    return None, _why(e)
-  except ValueError:
-    return None, "not a token"
+  @contextlib.contextmanager
+  def _answers(self):
+    """NotFound and PreconditionFailed (the answers the lock expects) as they are, any other failure of a call
+    to Cloud Storage one sentence."""
+    api = _api_exceptions()
+    from google.auth import exceptions as auth
+    try:
+      yield
+    except (UserError, api.NotFound, api.PreconditionFailed):
+      raise
+    except Exception as e:  # noqa: BLE001 (what the client raises: HTTP answers, auth, connections)
+      error = e.cause if isinstance(e, api.RetryError) and e.cause is not None else e
+      if isinstance(error, (api.Unauthorized, api.Forbidden)):
+        raise UserError(f"could not take the lock {self.path}: Cloud Storage refused {self._credentials} "
+                        f"({_why(error)}); give them write access to bucket {self.bucket}, or pass a local "
+                        f"--workdir.") from None
+      if isinstance(error, auth.RefreshError):
+        raise UserError(f"could not take the lock {self.path}: {self._credentials} gave no access token "
+                        f"({_why(error)}); renew them (`gcloud auth application-default login`, a new key file), "
+                        f"or pass a local --workdir.") from None
+      if isinstance(error, api.GoogleAPICallError):
+        raise UserError(f"could not take the lock {self.path}: Cloud Storage answered {_why(error)}; try again, "
+                        f"or pass a local --workdir.") from None
+      raise UserError(f"could not take the lock {self.path}: Cloud Storage did not answer ({_why(error)}) "
+                      f"within {RETRY_SECONDS:g} s of retries; check this machine's network access to it, or "
+                      f"pass a local --workdir.") from None
 
 
-def _token_from_user(user: tuple[str, dict], lock: str) -> dict:
-  path, credentials = user
-  form = urllib.parse.urlencode({"grant_type": "refresh_token", "client_id": credentials.get("client_id", ""),
-                                 "client_secret": credentials.get("client_secret", ""),
-                                 "refresh_token": credentials.get("refresh_token", "")}).encode()
-  url = credentials.get("token_uri") or "https://oauth2.googleapis.com/token"
-  request = urllib.request.Request(url, data=form, method="POST",
-                                   headers={"Content-Type": "application/x-www-form-urlencoded"})
-  token, why = _token(_PROXIED, request)
-  if token is not None:
-    return token
-  raise UserError(f"could not take the lock {lock}: the application-default credentials in {path} could not be "
-                  f"turned into an access token at {url} ({why}); run `gcloud auth application-default login` "
-                  f"again, or pass a local --workdir.")
-
-
-class _UnsupportedCredentials(UserError):
-  """Credentials that Cloud Storage itself takes but this lock's small client cannot use (a service account's
-  key file, which needs RSA signing): the run goes on without a lock, saying so (as before there was one)."""
-
-
-def _service_account_key() -> str | None:
-  """GOOGLE_APPLICATION_CREDENTIALS where it names a service account's key file."""
-  path = os.environ.get("GOOGLE_APPLICATION_CREDENTIALS")
-  key = _json_file(path)
-  return path if key is not None and key.get("type") == "service_account" else None
-
-
-def _token_from_metadata_server(lock: str) -> dict:
-  host = os.environ.get("GCE_METADATA_HOST") or "metadata.google.internal"
-  request = urllib.request.Request(
-      f"http://{host}/computeMetadata/v1/instance/service-accounts/default/token",
-      headers={"Metadata-Flavor": "Google"})
-  token, why = _token(_DIRECT, request)
-  if token is not None:
-    return token
-  key = _service_account_key()
-  if key is not None:
-    raise _UnsupportedCredentials(f"no lock on {lock}: the service account key file {key} "
-                                  f"(GOOGLE_APPLICATION_CREDENTIALS) is not one the lock can use, and there is no "
-                                  f"metadata server ({why}); make sure one training run at a time writes this "
-                                  f"workdir (or use `gcloud auth application-default login`)")
-  raise UserError(f"could not take the lock {lock}: there are no credentials for Cloud Storage (no "
-                  f"application-default credentials of a user, and the metadata server of a GCE or TPU VM at "
-                  f"{host} gave no token: {why}); run `gcloud auth application-default login`, run on a VM with a "
-                  f"service account, or pass a local --workdir.")
+def _why(error: Exception) -> str:
+  """An error of the client in a few words: 'HTTP 403: Access denied' for an answer of the service (the message
+  of its JSON), the first of its arguments for others (google.auth's RefreshError: 'invalid_grant: ...')."""
+  api = _api_exceptions()
+  if isinstance(error, api.GoogleAPICallError) and error.code is not None:
+    try:
+      message = json.loads(error.response.text)["error"]["message"]
+    except (AttributeError, ValueError, KeyError, TypeError):  # no answer kept, or not Cloud Storage's JSON
+      message = error.message.split(": ", 1)[-1] if error.message.startswith(("GET ", "POST ", "DELETE ")) else \
+          error.message
+    return f"HTTP {int(error.code)}: {_first_sentence(message)}"
+  words = error.args[0] if error.args and isinstance(error.args[0], str) else str(error)
+  return _first_sentence(words) or type(error).__name__
 
 
 class WorkdirLock:
@@ -436,9 +377,9 @@ class WorkdirLock:
     holder = look.holder
     if holder.get("host") == socket.gethostname() and isinstance(holder.get("pid"), int):
       return not _alive(holder["pid"], holder.get("process_start"))
-    if look.age > LEASE_SECONDS:
+    if look.age is not None and look.age > LEASE_SECONDS:
       return True
-    deadline = time.monotonic() + LEASE_SECONDS - max(0.0, look.age)
+    deadline = time.monotonic() + LEASE_SECONDS - max(0.0, look.age or 0.0)
     while time.monotonic() < deadline:
       time.sleep(min(1.0, HEARTBEAT_SECONDS / 2))
       version = self._store.version()
@@ -454,14 +395,10 @@ class WorkdirLock:
     if self._store is None:
       return
     me = {"host": socket.gethostname(), "pid": os.getpid(), "process_start": _process_start(os.getpid()),
-          "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+          "since": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+          "id": secrets.token_hex(8)}
     for _ in range(10):  # each pass either takes the lock, refuses, or clears a stale one
-      try:
-        created = self._store.create(me)
-      except _UnsupportedCredentials as e:
-        print(f"nerfpod: warning: {e}", file=sys.stderr, flush=True)
-        return
-      if created:
+      if self._store.create(me):
         self._held = True
         self._thread = threading.Thread(target=self._beat, name="nerfpod-workdir-lock", daemon=True)
         self._thread.start()
