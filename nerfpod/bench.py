@@ -99,7 +99,7 @@ class _Trainer:
 
   def __init__(self, config):
     from nerfpod import distributed
-    from nerfpod.run import components, step
+    from nerfpod.run import components, step, train_state
     self.config = config
     self.comps = components.build(config)
     compiling = step.start_compiling(self.comps)  # as a run starts: the step compiles during the init
@@ -109,7 +109,7 @@ class _Trainer:
     # once, so the FLOPs of a step with a micro-batch scan are read off this one.
     self.unlooped_step_fn = step.for_program(self.comps, microbatches=1)
     self.batches = self.comps.batches(0)
-    self.key = components.rays_key(config.train.seed)
+    self.key = train_state.rays_key(config.train.seed, self.comps.mesh)
     self._to_global = lambda local: distributed.to_global(self.comps.mesh, local)
 
   def next_batch(self):

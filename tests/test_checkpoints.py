@@ -26,7 +26,7 @@ def _state(mesh, value: float):
 
 
 def _abstract(tree):
-  """ShapeDtypeStructs with shardings: what a restore fills (components.state_shapes for a train state)."""
+  """ShapeDtypeStructs with shardings: what a restore fills (train_state.state_shapes for a train state)."""
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding), tree)
 
 

@@ -11,19 +11,19 @@ from jax.sharding import Mesh
 from conftest import smoke_config
 from nerfpod import distributed
 from nerfpod.render import renderer
-from nerfpod.run import components
+from nerfpod.run import components, train_state
 from nerfpod.nerf import cameras, compositing
 
 
 def test_learning_rate_warms_up_linearly_then_decays_log_linearly_to_its_final_value():
   tc = smoke_config(**{"train.num_steps": 110, "train.lr_warmup_steps": 10, "train.lr_init": 1e-2,
                        "train.lr_final": 1e-4}).train
-  schedule = components.learning_rate_schedule(tc)
+  schedule = train_state.learning_rate_schedule(tc)
   for step, want in [(0, 0.0), (5, 5e-3), (10, 1e-2), (60, math.sqrt(1e-2 * 1e-4)), (110, 1e-4)]:
     assert float(schedule(step)) == pytest.approx(want, rel=1e-5, abs=1e-12), step
   # 35 of the 100 decay steps: lr_init * (lr_final / lr_init) ** (35 / 100).
   assert float(schedule(45)) == pytest.approx(1e-2 * (1e-2) ** 0.35, rel=1e-5)
-  no_warmup = components.learning_rate_schedule(smoke_config(**{"train.num_steps": 100,
+  no_warmup = train_state.learning_rate_schedule(smoke_config(**{"train.num_steps": 100,
                                                                 "train.lr_warmup_steps": 0}).train)
   assert float(no_warmup(0)) == pytest.approx(tc.lr_init)
 
@@ -32,7 +32,7 @@ def test_adams_decays_are_the_configs():
   """train.adam_b1 and train.adam_b2 reach Adam: after one step from zero, its moments are (1 - b1) g and
   (1 - b2) g^2."""
   config = smoke_config(**{"train.adam_b1": 0.8, "train.adam_b2": 0.99})
-  optimizer = components.make_optimizer(config.train)
+  optimizer = train_state.make_optimizer(config.train)
   params = {"w": jnp.zeros(3)}
   grads = {"w": jnp.array([1.0, -2.0, 0.5])}
   _, state = optimizer.update(grads, optimizer.init(params), params)
@@ -49,7 +49,7 @@ def test_gradient_clipping_scales_the_global_norm_to_the_limit_before_adam():
   def first_step(grad_clip):
     tc = smoke_config(**{"train.grad_clip": grad_clip, "train.lr_warmup_steps": 0, "train.lr_init": lr,
                          "train.lr_final": lr, "train.adam_eps": eps}).train
-    optimizer = components.make_optimizer(tc)
+    optimizer = train_state.make_optimizer(tc)
     params = jax.tree.map(jnp.zeros_like, grads)
     return optimizer.update(grads, optimizer.init(params), params)[0]
   for grad_clip, scale in ((2.5, 0.5), (10.0, 1.0), (0.0, 1.0)):  # 10: above the norm; 0: no clipping

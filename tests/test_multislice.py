@@ -10,7 +10,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
 from nerfpod import data, distributed, schema, scenes
-from nerfpod.run import components, step
+from nerfpod.run import components, step, train_state
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 
@@ -122,9 +122,9 @@ def test_a_tree_is_averaged_in_one_exchange_per_dtype_with_each_leafs_own_bits()
 def _train(mesh, config, num_steps, ordered=True):
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
-  optimizer = components.make_optimizer(config.train)
-  state = components.initial_state(model, optimizer, config.train.seed, mesh)
-  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, ordered_mean=ordered)
+  optimizer = train_state.make_optimizer(config.train)
+  state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, step.Options(ordered_mean=ordered))
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
                              slice(0, config.train.batch_size), 0.5, num_steps)
   losses = []

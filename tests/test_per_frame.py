@@ -10,7 +10,7 @@ from jax.sharding import Mesh
 
 from conftest import smoke_config
 from nerfpod import data, distributed, scenes
-from nerfpod.run import components, step
+from nerfpod.run import step, train_state
 from nerfpod.workdir import checkpoints
 from nerfpod.nerf import cameras, pose_correction
 from nerfpod.nerf import model as nerf_model
@@ -173,8 +173,8 @@ def _run_steps(mesh, config, num_steps, optimizer, state=None, first_step=0):
   split = scene.split("train")
   model = nerf_model.from_config(config, num_frames=len(split))
   if state is None:
-    state = components.initial_state(model, optimizer, config.train.seed, mesh)
-  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, random_background=True)
+    state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, step.Options(random_background=True))
   dataset = data.ray_batches(split, 0, config.train.batch_size, slice(0, config.train.batch_size), 0.5,
                              first_step + num_steps, with_frames=True)
   losses = []
@@ -208,7 +208,7 @@ def test_pose_corrections_have_their_own_learning_rate_and_a_resume_continues_ex
                                    "render.proposal_samples": (),  # a smaller program (8 devices vs 1 has them)
                                    "train.lr_warmup_steps": 0, "train.pose_lr_init": 1e-2,
                                    "train.pose_lr_final": 1e-2})
-  optimizer = components.make_optimizer(config.train)
+  optimizer = train_state.make_optimizer(config.train)
   mesh = Mesh(np.array(jax.devices()[:2]), (distributed.DATA_AXIS,))
   _, straight = _run_steps(mesh, config, 4, optimizer)
   _, half = _run_steps(mesh, config, 2, optimizer)

@@ -19,8 +19,8 @@ from conftest import smoke_config
 from nerfpod import distributed
 from nerfpod.run import evaluate, modes, preemption, train
 from nerfpod.workdir import checkpoints, files as workdir_files
-from nerfpod.run.step import make_train_step
-from nerfpod.run.components import TrainState
+from nerfpod.run.step import Options, make_train_step
+from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 
 # A restore that fails half way leaves orbax an asyncio callback that fires after its loop closed: noise.
@@ -132,11 +132,11 @@ def test_a_non_finite_state_is_never_saved_and_a_saved_one_counts_as_damaged(tmp
 def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in_a_row():
   config = smoke_config(**{"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
                            "model.mlp.skips": (), "train.batch_size": 64})
-  from nerfpod.run import components
+  from nerfpod.run import train_state
   from nerfpod.nerf import model as nerf_model
   mesh = _mesh(2)
   model, optimizer = nerf_model.from_config(config), optax.adam(1e-2)
-  state = components.initial_state(model, optimizer, 0, mesh)
+  state = train_state.initial_state(model, optimizer, 0, mesh)
   rng = np.random.default_rng(0)
   batch = {"origins": np.tile([0.0, 0.0, 4.0], (64, 1)).astype(np.float32),
            "directions": rng.normal(size=(64, 3)).astype(np.float32),
@@ -148,7 +148,7 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
   initial, kept = state, {}
   # The update under a conditional (CPUs) or selected after it (accelerators): the same skip, the same bits.
   for under_cond in (True, False):
-    step_fn = make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3), update_under_cond=under_cond)
+    step_fn = make_train_step(model, optimizer, mesh, 2.0, 6.0, jnp.ones(3), Options(update_under_cond=under_cond))
     state, metrics = step_fn(jax.tree.map(jnp.copy, initial), put(poisoned), jax.random.key(0))
     assert int(metrics["skipped"]) == 1 and not np.isfinite(float(metrics["loss"]))
     assert int(state.step) == 1  # the data moves on

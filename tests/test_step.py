@@ -9,16 +9,16 @@ from jax.sharding import PartitionSpec as P
 
 from conftest import smoke_config
 from nerfpod import data, distributed, scenes
-from nerfpod.run import compilation, components, step
+from nerfpod.run import compilation, step, train_state
 from nerfpod.nerf import model as nerf_model
 
 
 def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_options=None, hlo=None):
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
-  state = components.initial_state(model, optimizer, config.train.seed, mesh)
+  state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
-                                  microbatches=microbatches, compiler_options=compiler_options)
+                                  step.Options(microbatches=microbatches, compiler_options=compiler_options))
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
                              slice(0, config.train.batch_size), 0.5, num_steps)
   key = jax.random.key(7)
@@ -86,18 +86,19 @@ def test_random_background_makes_transparency_the_only_fit_for_empty_space():
   mesh = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   model = nerf_model.from_config(config)
   optimizer = optax.sgd(0.0)  # only the loss matters here
-  params = jax.device_get(components.initial_state(model, optimizer, 0, mesh).params)
+  params = jax.device_get(train_state.initial_state(model, optimizer, 0, mesh).params)
   rays = {"origins": np.tile([[0.0, 0.0, 4.0]], (64, 1)).astype(np.float32),
           "directions": np.tile([[0.0, 0.0, -1.0]], (64, 1)).astype(np.float32),
           "rgb": np.ones((64, 3), np.float32), "alpha": np.zeros(64, np.float32),  # white background rays
           "ray_ids": np.arange(64, dtype=np.int32)}
 
   step_fns = {random_background: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, (1.0, 1.0, 1.0),
-                                                      random_background) for random_background in (False, True)}
+                                                      step.Options(random_background))
+              for random_background in (False, True)}
 
   def loss(params, random_background):
     step_fn = step_fns[random_background]
-    state = components.TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
+    state = train_state.TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
     state = jax.device_put(jax.device_get(state), distributed.replicated(mesh))  # fresh: the step donates it
     _, metrics = step_fn(state, jax.device_put(rays, distributed.batch_sharding(mesh)), jax.random.key(0))
     return float(metrics["loss"])
@@ -144,13 +145,13 @@ def test_proposal_step_is_compiled_once_and_reports_its_losses():
   mesh = distributed.make_mesh()
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
-  optimizer = components.make_optimizer(config.train)
-  state = components.initial_state(model, optimizer, 0, mesh)
+  optimizer = train_state.make_optimizer(config.train)
+  state = train_state.initial_state(model, optimizer, 0, mesh)
   # Placed as the step returns it: replicated, spelt P(None, ...) per axis (the fresh state's P() is the same
   # placement spelt otherwise, which jit would key apart and compile once more for).
   state = jax.device_put(state, jax.tree.map(lambda x: NamedSharding(mesh, P(*[None] * x.ndim)), state))
-  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, random_background=True,
-                                  distortion_weight=0.01)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+                                  step.Options(random_background=True, distortion_weight=0.01))
   dataset = data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 4)
   programs = []
   for i in range(4):
@@ -171,15 +172,15 @@ def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_b
   step to round-off; pmean's step has one all-reduce and no exchanges, the ordered one exchanges."""
   config = smoke_config(**{"train.batch_size": 128})
   mesh = distributed.make_mesh()
-  optimizer = components.make_optimizer(config.train)
+  optimizer = train_state.make_optimizer(config.train)
   scene = scenes.load(config.data)
   model = nerf_model.from_config(config)
   dataset = data.ray_batches(scene.split("train"), 0, 128, slice(0, 128), 0.5, 1)
   batch = {k: jax.device_put(v, distributed.batch_sharding(mesh)) for k, v in dataset[0].items() if k != "step"}
   results, hlos = [], []
   for ordered in (True, False):
-    state = components.initial_state(model, optimizer, config.train.seed, mesh)
-    step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, ordered_mean=ordered)
+    state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+    step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, step.Options(ordered_mean=ordered))
     hlos.append(step_fn.lower(state, batch, jax.random.key(7)).compile().as_text())
     state, metrics = step_fn(state, batch, jax.random.key(7))
     results.append((float(metrics["loss"]), jax.device_get(state.params)))

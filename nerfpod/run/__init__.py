@@ -4,8 +4,9 @@
                  render_workdir
     trained      the one door to a trained workdir: its config, scene and newest checkpoint that reads back
                  whole, read-only (evaluation, rendering, the viewer and the exports start from it)
-    components   the one set-up value (Program without a scene, Components with one): model, optimiser,
-                 schedule, TrainState, mesh, ray bounds, batches and renderer, resolved once from the config
+    components   the one set-up value, Components (the scene optional: the pod tool's have none): model,
+                 optimiser, mesh, ray bounds, shapes, batches and renderer, resolved once from the config
+    train_state  TrainState, the optimiser and its learning-rate schedule, the initial state, the seeds' streams
     train        the loop: resume, steps, checkpoints, preemption, previews, one log line
     step         the train step: jax.shard_map over the mesh, gradient means, skip of non-finite updates
     evaluate     held-out views -> eval/metrics.json (PSNR, SSIM, LPIPS)

@@ -3,19 +3,16 @@
 `build(config)` loads the scene (a missing held-out split fails now, not after training), makes the device
 mesh, the model, the optimiser, the ray bounds, the train state's and the batch's shapes and placement
 (`jax.eval_shape` of the initialisation: nothing is computed until a run needs real parameters) and the
-compiled renderer. Every mode starts from these same pieces, so a checkpoint written by one mode restores in
-any other. `build_program(config, mesh, backend)` is the same without a scene: what the pod compile tool
-compiles, on a TPU topology's devices.
-
-Randomness is a function of (seed, what): the parameters and the rays draw from their own streams, folded
-into the seed; the train step folds in the step on top.
+compiled renderer: one frozen Components. Every mode starts from these same pieces, so a checkpoint written
+by one mode restores in any other. `build_program(config, mesh, backend)` is the same without a scene: what
+the pod compile tool compiles, on a TPU topology's devices. The train state, its optimiser and schedule are
+nerfpod.run.train_state's.
 """
 import dataclasses
 import os
 import sys
 from typing import Any
 
-import flax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,56 +21,10 @@ from jax.sharding import Mesh
 
 from nerfpod import data, distributed, scenes
 from nerfpod.render import camera_path, renderer
-from nerfpod.run import compilation
+from nerfpod.run import compilation, train_state
+from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
-from nerfpod.nerf import pose_correction
-
-# Tags folded into the seed so that each use of randomness has its own stream.
-_PARAMS_STREAM, _RAYS_STREAM = 0, 1
-
-
-@flax.struct.dataclass
-class TrainState:
-  step: jax.Array  # scalar int32: optimiser steps taken
-  params: Any
-  opt_state: Any
-
-
-def learning_rate_schedule(train_config, lr_init: float | None = None,
-                           lr_final: float | None = None) -> optax.Schedule:
-  """Linear warm-up to lr_init, then log-linear decay to lr_final at the last step (the original NeRF's);
-  train.lr_init and train.lr_final unless given."""
-  tc = train_config
-  lr_init = tc.lr_init if lr_init is None else lr_init
-  lr_final = tc.lr_final if lr_final is None else lr_final
-  decay_steps = max(1, tc.num_steps - tc.lr_warmup_steps)
-  decay = optax.exponential_decay(lr_init, decay_steps, lr_final / lr_init)
-  if tc.lr_warmup_steps <= 0:
-    return decay
-  warmup = optax.linear_schedule(0.0, lr_init, tc.lr_warmup_steps)
-  return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
-
-
-def _pose_labels(params):
-  """'pose' for the pose corrections, 'field' for every other parameter (appearance codes included)."""
-  def label(path, _):
-    return "pose" if any(getattr(k, "key", None) == pose_correction.PARAM for k in path) else "field"
-  return jax.tree_util.tree_map_with_path(label, params)
-
-
-def make_optimizer(train_config) -> optax.GradientTransformation:
-  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0). With
-  train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
-  train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser)."""
-  tc = train_config
-  adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
-  if tc.pose_refine:
-    pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
-                       weight_decay=tc.pose_weight_decay)
-    adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
-  return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if tc.grad_clip > 0 else adam
-
 
 def uses_frames(config) -> bool:
   """Whether the training batches carry each ray's training-frame index (per-frame appearance or poses)."""
@@ -112,26 +63,13 @@ def ndc_camera(config, scene) -> tuple[float, float, float, float] | None:
   return float(intr.fx), float(intr.fy), float(intr.width), float(intr.height)
 
 
-def rays_key(seed: int) -> jax.Array:
-  """The key of the rays' randomness (stratified jitter, random backgrounds); the step folds in the step."""
-  return jax.random.fold_in(jax.random.key(seed), _RAYS_STREAM)
-
-
-def _initializer(model, optimizer):
-  """key -> the initial TrainState (parameters from the key, optimiser state for them)."""
-  def init(key):
-    rays = jnp.zeros((2, 3), jnp.float32), jnp.ones((2, 3), jnp.float32)
-    params = model.init(key, *rays, 2.0, 6.0, jnp.zeros(3))
-    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
-  return init
-
-
 @dataclasses.dataclass(frozen=True)
-class Program:
-  """What compiling a config's train step and renderer needs, with or without its scene: the model
-  formulated for a backend, the optimiser, the ray bounds and background, and the train state's and the
-  global batch's shapes laid over a mesh. The pod compile tool builds one without a scene; every run builds
-  its Components, which are a Program with the scene it came from."""
+class Components:
+  """The one set-up value: what compiling and running a config's train step and renderer needs, resolved
+  once: the model formulated for a backend, the optimiser, the ray bounds and background, the train state's
+  and the global batch's shapes laid over a mesh, the compiler options; and a run's scene with its renderer
+  compiled on the run's mesh (build). The pod compile tool's have no scene (build_program): placeholders of
+  the same shapes and cost stand in for what the scene would resolve."""
   config: Any
   mesh: Mesh
   model: nerf_model.NeRF
@@ -142,6 +80,8 @@ class Program:
   state_shapes: TrainState  # jax.ShapeDtypeStruct leaves, replicated over `mesh`: what a restore fills
   batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over every mesh axis
   compiler_options: dict    # XLA options of the step and the renderer (compilation.compiler_options)
+  scene: scenes.Scene | None = None  # None: the pod compile tool's, without a scene
+  renderer: Any = None      # make_renderer() of the run's mesh, where there is a scene
 
   @property
   def render_model(self) -> nerf_model.NeRF:
@@ -154,20 +94,14 @@ class Program:
 
   def make_renderer(self, mesh: Mesh | None = None):
     """(params, origins, directions) -> rgb/depth/acc/disparity of `render_model`, compiled on `mesh`
-    (default the program's)."""
+    (default the components')."""
     return renderer.make_renderer(self.render_model, self.mesh if mesh is None else mesh, self.near, self.far,
                                 self.background, self.compiler_options)
 
 
-@dataclasses.dataclass(frozen=True)
-class Components(Program):
-  """A run's Program with its scene and its renderer compiled on the run's mesh."""
-  scene: scenes.Scene = None
-  renderer: Any = None  # make_renderer() of the run's mesh
-
   def init_state(self) -> TrainState:
     """The initial train state, created directly replicated on every device of the mesh."""
-    return initial_state(self.model, self.optimizer, self.config.train.seed, self.mesh)
+    return train_state.initial_state(self.model, self.optimizer, self.config.train.seed, self.mesh)
 
   def batches(self, start_step: int):
     """This host's slices of the global training batches from `start_step` on."""
@@ -179,19 +113,6 @@ class Components(Program):
     # next (the step runs meanwhile): a background thread would run on the cores that compute the step, and
     # its hand-offs cost more than the batch. On accelerators, a thread prepares them ahead.
     return data.iterator(dataset, start_step, background=jax.default_backend() != "cpu")
-
-
-def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:
-  """The initial train state of `model` and `optimizer` from `seed`, created replicated over `mesh`."""
-  key = jax.random.fold_in(jax.random.key(seed), _PARAMS_STREAM)
-  return jax.jit(_initializer(model, optimizer), out_shardings=distributed.replicated(mesh))(key)
-
-
-def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
-  """The train state's leaves as ShapeDtypeStructs replicated over `mesh`, without computing anything."""
-  shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
-  sharding = distributed.replicated(mesh)
-  return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
 
 
 def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool, with_frames: bool = False) -> dict:
@@ -217,7 +138,7 @@ _PLACEHOLDER_FRAMES = 100
 _PLACEHOLDER_NDC_CAMERA = (421.0, 421.0, 504.0, 378.0)
 
 
-def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Program:
+def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Components:
   """The step's and renderer's pieces for `config` on `mesh` (any devices: a TPU topology's too), the model
   formulated and compiled for `backend` (default JAX's). With `scene`, its ray bounds, NDC camera,
   background and alpha; without (the pod compile tool), placeholders of the same shapes and cost, the batch
@@ -234,11 +155,11 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
   model = nerf_model.from_config(config, ndc, backend, num_frames)
-  optimizer = make_optimizer(config.train)
-  return Program(config, mesh, model, optimizer, float(near), float(far), background,
-                 state_shapes(model, optimizer, mesh),
-                 batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),
-                 compilation.compiler_options(config, backend))
+  optimizer = train_state.make_optimizer(config.train)
+  return Components(config, mesh, model, optimizer, float(near), float(far), background,
+                    train_state.state_shapes(model, optimizer, mesh),
+                    batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),
+                    compilation.compiler_options(config, backend), scene=scene)
 
 
 # The share of a host's physical memory its images may take where data.host_memory_gib is 0: the rest is for
@@ -265,7 +186,7 @@ def build(config, mesh: Mesh | None = None) -> Components:
   """The pieces every mode needs (`mesh`: default, every device of every host in config.mesh.slices
   slices, distributed.make_mesh): the scene (a missing held-out split or a bad camera path file fails now,
   not after training; each host reads the training frames of its data.shards only, and says so in one
-  line), its Program and renderer."""
+  line), its model, optimiser, shapes and renderer."""
   shards = host_shards(config)
   scene = scenes.load(config.data, shards)
   train = scene.split("train")
@@ -276,6 +197,5 @@ def build(config, mesh: Mesh | None = None) -> Components:
     camera_path.read(config.orbit.path_file)
   if mesh is None:
     mesh = distributed.make_mesh(num_slices=config.mesh.slices or None)
-  program = build_program(config, mesh, scene=scene)
-  fields = {f.name: getattr(program, f.name) for f in dataclasses.fields(Program)}
-  return Components(**fields, scene=scene, renderer=program.make_renderer())
+  comps = build_program(config, mesh, scene=scene)
+  return dataclasses.replace(comps, renderer=comps.make_renderer())

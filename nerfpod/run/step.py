@@ -1,11 +1,13 @@
 """The train step: step(state, batch, key) -> (state, metrics), sharded over the device mesh.
 
-    make_train_step    the jitted step from its pieces (model, optimiser, mesh, ray bounds, loss weights)
-    for_program        the one mapping of a config's Program onto make_train_step (runs and the pod tool)
-    compile_fitted     compiled for a Program's shapes, with train.microbatches=0 fitted to a memory budget
+    make_train_step    the jitted step from its pieces (model, optimiser, mesh, ray bounds) and its Options
+    Options            the loss's settings, micro-batches and the backend's policy; Options.of(config, ...)
+    for_program        the step of a config's Components (runs and the pod tool)
+    compile_fitted     compiled for Components' shapes, with train.microbatches=0 fitted to a memory budget
     start_compiling    a run's step compiled in a background thread while its state initialises
 """
 import concurrent.futures
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -13,8 +15,9 @@ import optax
 from jax.sharding import PartitionSpec as P
 
 from nerfpod import distributed
-from nerfpod.run import compilation, components
-from nerfpod.run.components import Program, TrainState
+from nerfpod.run import compilation, train_state
+from nerfpod.run.components import Components
+from nerfpod.run.train_state import TrainState
 from nerfpod.render.metrics import mse_to_psnr
 from nerfpod.nerf import stepfun
 
@@ -25,11 +28,32 @@ def per_ray_uniforms(key, ray_ids, count: int):
   return jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(key, i), (count,)))(ray_ids)
 
 
-def make_train_step(model, optimizer, mesh, near: float, far: float, background,
-                    random_background: bool = False, microbatches: int = 1,
-                    compiler_options: dict | None = None, interlevel_weight: float = 1.0,
-                    distortion_weight: float = 0.0, ordered_mean: bool = True,
-                    update_under_cond: bool | None = None):
+@dataclasses.dataclass(frozen=True)
+class Options:
+  """How the step trains, beyond its model and data: the loss's settings (train.random_background,
+  train.interlevel_weight, train.distortion_weight), its micro-batches, and the backend's policy (the
+  gradient mean's order, the update under a conditional, XLA's options). `of(comps, ...)` is the one
+  mapping of a config's Components onto them; tests build their own."""
+  random_background: bool = False
+  microbatches: int = 1
+  interlevel_weight: float = 1.0
+  distortion_weight: float = 0.0
+  ordered_mean: bool = True
+  update_under_cond: bool | None = None  # None: compilation.update_under_cond() for JAX's backend
+  compiler_options: dict | None = None
+
+  @classmethod
+  def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
+    """Those of `comps`' config (`backend`: what the gradient mean and the update are chosen for, default
+    JAX's; the pod compile tool asks for 'tpu')."""
+    config = comps.config
+    tc = config.train
+    return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
+               compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
+               comps.compiler_options)
+
+
+def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
   """The jitted step(state, batch, key) -> (state, metrics); batch sharded over the mesh, state donated.
 
   Each device renders its rays and takes gradients of its mean squared error; gradients and losses are
@@ -52,6 +76,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   weights; both are also returned as metrics.
   """
   background = jnp.asarray(background, jnp.float32)
+  random_background, microbatches = options.random_background, options.microbatches
+  interlevel_weight, distortion_weight = options.interlevel_weight, options.distortion_weight
+  ordered_mean, update_under_cond = options.ordered_mean, options.update_under_cond
   if update_under_cond is None:
     update_under_cond = compilation.update_under_cond()
   # Every axis of the mesh: DATA_AXIS on one slice; (SLICE_AXIS, DATA_AXIS) on several, where the mean runs
@@ -138,22 +165,16 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
 
   step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), distributed.batch_spec(mesh), P()),
                        out_specs=(P(), P()))
-  return jax.jit(step, donate_argnums=0, compiler_options=compiler_options)
+  return jax.jit(step, donate_argnums=0, compiler_options=options.compiler_options)
 
 
-def for_program(program: Program, microbatches: int, backend: str | None = None):
-  """The jitted train step of `program` with `microbatches` micro-batches: the one place a config's
-  training settings become make_train_step's arguments (`backend`: what the gradient mean is chosen for,
-  default JAX's; the pod compile tool asks for 'tpu')."""
-  tc = program.config.train
-  return make_train_step(program.model, program.optimizer, program.mesh, program.near, program.far,
-                         program.background, tc.random_background, microbatches, program.compiler_options,
-                         tc.interlevel_weight, tc.distortion_weight,
-                         compilation.gradient_mean_is_ordered(program.config, backend),
-                         compilation.update_under_cond(backend))
+def for_program(comps: Components, microbatches: int, backend: str | None = None):
+  """The jitted train step of `comps` with `microbatches` micro-batches (`backend`: Options.of's)."""
+  return make_train_step(comps.model, comps.optimizer, comps.mesh, comps.near, comps.far, comps.background,
+                         Options.of(comps, microbatches, backend))
 
 
-def compile_fitted(program: Program, key, budget_bytes: int, backend: str | None = None):
+def compile_fitted(program: Components, key, budget_bytes: int, backend: str | None = None):
   """(micro-batches, compiled step, its bytes per device by XLA's analysis) for `program`'s state and batch
   shapes and `key` (a key, or its ShapeDtypeStruct). With train.microbatches=0: the fewest micro-batches
   whose step fits `budget_bytes` per device (compilation.fewest_microbatches), the compiled step being the
@@ -184,11 +205,11 @@ def compile_fitted(program: Program, key, budget_bytes: int, backend: str | None
   return count, compiled[count], need
 
 
-def compile_for_run(comps: components.Components):
+def compile_for_run(comps: Components):
   """A run's train step compiled ahead of time for its shapes, micro-batches fitted to this process's memory
   budget (compilation.memory_budget_bytes) where train.microbatches=0, which process 0 reports."""
   budget = compilation.memory_budget_bytes(comps.config)
-  count, compiled, need = compile_fitted(comps, components.rays_key(comps.config.train.seed), budget)
+  count, compiled, need = compile_fitted(comps, train_state.rays_key(comps.config.train.seed, comps.mesh), budget)
   if comps.config.train.microbatches == 0 and jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
@@ -199,7 +220,7 @@ def compile_for_run(comps: components.Components):
   return compiled
 
 
-def start_compiling(comps: components.Components) -> concurrent.futures.Future:
+def start_compiling(comps: Components) -> concurrent.futures.Future:
   """compile_for_run in a background thread, whose future is returned: XLA compiles without holding
   Python's lock, so the state's initialisation (itself a compilation) or restore overlaps the step's
   compilation, seconds off every start on a CPU. Tracing and lowering take the lock for a moment."""

@@ -8,11 +8,11 @@ from absl import logging
 
 from nerfpod import distributed
 from nerfpod.render import renderer, video
-from nerfpod.run import components, preemption, profiling
+from nerfpod.run import components, preemption, profiling, train_state
 from nerfpod.workdir import checkpoints
 from nerfpod.run import step as train_step
 from nerfpod.workdir.files import write_config, write_scene
-from nerfpod.run.components import TrainState
+from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 
 
@@ -108,7 +108,7 @@ class StepLog:
 
   def __init__(self, monitor, train_config, start_step: int, skips: SkipCount):
     self.monitor, self.skips = monitor, skips
-    self.learning_rate = jax.jit(components.learning_rate_schedule(train_config))  # of a step on the device
+    self.learning_rate = jax.jit(train_state.learning_rate_schedule(train_config))  # of a step on the device
     self.every, self.last, self.first = train_config.log_every, train_config.num_steps, start_step + 1
     self.pending = None  # (step, metrics on the device)
 
@@ -177,8 +177,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     state, start_step, position = _start(comps, workdir, ckpt)
     skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
     log = StepLog(monitor, tc, start_step, skips)
-    # Made on the mesh, replicated, once: a key on one device would be copied to every device at every step.
-    key = jax.jit(components.rays_key, static_argnums=0, out_shardings=distributed.replicated(comps.mesh))(tc.seed)
+    key = train_state.rays_key(tc.seed, comps.mesh)
     batches = comps.batches(start_step)
     if start_step < tc.num_steps:  # (a damaged newest checkpoint may have put start_step back)
       step_fn = (compiling or train_step.start_compiling(comps)).result()

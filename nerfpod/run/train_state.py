@@ -1,0 +1,98 @@
+"""The train state and what makes it: the optimiser and its learning-rate schedule, the initial parameters,
+the shapes a restore fills, and the streams of randomness.
+
+    TrainState              step, params, opt_state (a flax struct: what checkpoints hold)
+    learning_rate_schedule  warm-up, then log-linear decay (the original NeRF's)
+    make_optimizer          Adam (and AdamW for pose corrections), after gradient clipping
+    initial_state           the state from the seed, replicated over the mesh
+    state_shapes            its ShapeDtypeStructs, without computing anything
+    rays_key                the rays' key, replicated over the mesh
+
+Randomness is a function of (seed, what): the parameters and the rays draw from their own streams, folded
+into the seed; the train step folds in the step on top.
+"""
+from typing import Any
+
+import flax
+import jax
+import jax.numpy as jnp
+import optax
+from jax.sharding import Mesh
+
+from nerfpod import distributed
+from nerfpod.nerf import pose_correction
+
+# Tags folded into the seed so that each use of randomness has its own stream.
+_PARAMS_STREAM, _RAYS_STREAM = 0, 1
+
+
+@flax.struct.dataclass
+class TrainState:
+  step: jax.Array  # scalar int32: optimiser steps taken
+  params: Any
+  opt_state: Any
+
+
+def learning_rate_schedule(train_config, lr_init: float | None = None,
+                           lr_final: float | None = None) -> optax.Schedule:
+  """Linear warm-up to lr_init, then log-linear decay to lr_final at the last step (the original NeRF's);
+  train.lr_init and train.lr_final unless given."""
+  tc = train_config
+  lr_init = tc.lr_init if lr_init is None else lr_init
+  lr_final = tc.lr_final if lr_final is None else lr_final
+  decay_steps = max(1, tc.num_steps - tc.lr_warmup_steps)
+  decay = optax.exponential_decay(lr_init, decay_steps, lr_final / lr_init)
+  if tc.lr_warmup_steps <= 0:
+    return decay
+  warmup = optax.linear_schedule(0.0, lr_init, tc.lr_warmup_steps)
+  return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
+
+
+def _pose_labels(params):
+  """'pose' for the pose corrections, 'field' for every other parameter (appearance codes included)."""
+  def label(path, _):
+    return "pose" if any(getattr(k, "key", None) == pose_correction.PARAM for k in path) else "field"
+  return jax.tree_util.tree_map_with_path(label, params)
+
+
+def make_optimizer(train_config) -> optax.GradientTransformation:
+  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0). With
+  train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
+  train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser)."""
+  tc = train_config
+  adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
+  if tc.pose_refine:
+    pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
+                       weight_decay=tc.pose_weight_decay)
+    adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
+  return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if tc.grad_clip > 0 else adam
+
+
+def rays_key(seed: int, mesh: Mesh) -> jax.Array:
+  """The key of the rays' randomness (stratified jitter, random backgrounds), made replicated on `mesh`
+  (where the step takes it: a key on one device would be copied to every device at every step); the step
+  folds in the step."""
+  make = lambda: jax.random.fold_in(jax.random.key(seed), _RAYS_STREAM)
+  return jax.jit(make, out_shardings=distributed.replicated(mesh))()
+
+
+def _initializer(model, optimizer):
+  """key -> the initial TrainState (parameters from the key, optimiser state for them)."""
+  def init(key):
+    rays = jnp.zeros((2, 3), jnp.float32), jnp.ones((2, 3), jnp.float32)
+    params = model.init(key, *rays, 2.0, 6.0, jnp.zeros(3))
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer.init(params))
+  return init
+
+
+def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:
+  """The initial train state of `model` and `optimizer` from `seed`, created replicated over `mesh`."""
+  key = jax.random.fold_in(jax.random.key(seed), _PARAMS_STREAM)
+  return jax.jit(_initializer(model, optimizer), out_shardings=distributed.replicated(mesh))(key)
+
+
+def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
+  """The train state's leaves as ShapeDtypeStructs replicated over `mesh`, without computing anything."""
+  shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
+  sharding = distributed.replicated(mesh)
+  return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
