@@ -143,3 +143,13 @@ def test_every_config_resolves_as_the_snapshot_pins(name, arg):
     node[leaf] = ast.literal_eval(shown)
   assert config.to_json_best_effort() == json.dumps(tree)
   assert config.to_json_best_effort(sort_keys=True) == json.dumps(tree, sort_keys=True)
+
+
+@pytest.mark.parametrize("name,arg", [("default", "smoke"), ("llff", "scene=horns,big"), ("capture", None)])
+def test_a_runs_config_json_reads_back_as_the_config(tmp_path, name, arg):
+  """workdir.files.read_config (the viewer, exports) takes the config.json a run wrote, checked by the schema."""
+  from nerfpod.workdir import files
+  config = load_config(name, arg)
+  files.write_config(str(tmp_path), json.loads(config.to_json_best_effort()))
+  read = files.read_config(str(tmp_path))
+  assert read.to_json_best_effort(sort_keys=True) == config.to_json_best_effort(sort_keys=True)
