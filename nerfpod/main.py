@@ -24,8 +24,11 @@ from nerfpod.errors import UserError, fail, parse_flags
 MODES = {"train": "train (resuming from the workdir), evaluate the held-out views, render the orbit",
          "eval": "evaluate the workdir's newest checkpoint -> eval/metrics.json",
          "render": "render (or finish) the orbit of the workdir's newest checkpoint, and its videos"}
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
-                                          lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Config file, e.g. configs/default.py[:arg]; a field is overridden as "
+    "--config.section.name=value "
+    "(`python -m nerfpod.schema` lists every field, its default, range and meaning).",
+    lock_config=True)
 _WORKDIR = flags.DEFINE_string("workdir", None, "Where checkpoints, TensorBoard events, metrics and renders go.")
 _COORDINATOR = flags.DEFINE_string("coordinator_address", None,
                                    "host:port of process 0, for multi-process runs off TPU "

@@ -1,5 +1,8 @@
-"""The one config schema: every field of every config, its type and range, and the rules between fields.
+"""The one config schema: every field of every config, declared once in FIELDS (its default, the values it may
+hold and what it means), and the rules between fields.
 
+`defaults()` is the config of every field at its default: configs/default.py, which every other config starts
+from. `python -m nerfpod.schema` prints every field as its override, with its default, range and meaning.
 `validate(config)` checks a whole config at start-up, before any work, for every mode alike: it raises one
 ConfigError listing every mistake, one sentence each, naming the field and a valid value. The entry point
 runs it before JAX starts (a mistake costs nobody a device), and again with the device count once JAX runs.
@@ -9,7 +12,10 @@ This module imports no JAX (nor anything that does): checking a config takes mil
 """
 import dataclasses
 import math
+import textwrap
 from typing import Any, Callable
+
+import ml_collections
 
 from nerfpod import scenes
 from nerfpod.errors import UserError
@@ -24,11 +30,14 @@ class ConfigError(UserError):
 
 @dataclasses.dataclass(frozen=True)
 class Field:
-  """What a config field may hold: `accepts(value)` says whether it is valid, `means` says what is."""
+  """What a config field may hold: `accepts(value)` says whether it is valid, `means` says what is; and, once
+  declared in FIELDS, its `default` and `doc` (what it means, one line)."""
   accepts: Callable[[Any], bool]
   means: str    # "an integer >= 1", ...: completes "must be ..."
   example: Any  # a valid value, shown in the message
   bad: tuple = ()  # invalid values that a command line can give (for the tests that walk every field)
+  default: Any = None
+  doc: str = ""
 
   def message(self, name: str, value) -> str | None:
     if self.accepts(value):
@@ -119,114 +128,234 @@ def step_range() -> Field:
                "() or (first, last): two steps >= 1 with first <= last", (100, 110), ((0, 3), (5, 2), (1, 2, 3)))
 
 
-FIELDS: dict[str, Field] = {
-    "data.kind": choice(*scenes.KINDS),
-    "data.path": text(),
-    "data.downscale": integer(1),
-    "data.image_size": integer(2, example=100),
-    "data.pixel_center": number(0.0, 1.0, example=0.5),
-    "data.llffhold": integer(2, example=8),
-    "data.orient": choice("auto", "llff", "up", "pca", "none"),
-    "data.center": choice("auto", "focus", "poses", "none"),
-    "data.scale": number(0.0),
-    "data.space": choice("auto", *scenes.SPACES),
-    "data.shards": integer(1, example=4),
-    "data.host_memory_gib": number(0.0, example=64.0),
+def _declare(table: dict) -> dict[str, Field]:
+  """{name: (default, field, doc)} -> {name: the field with its default and doc}."""
+  return {name: dataclasses.replace(field, default=default, doc=doc)
+          for name, (default, field, doc) in table.items()}
 
-    "model.field": choice("mlp", "hashgrid"),
-    "model.use_viewdirs": boolean(),
-    "model.compute_dtype": choice("float32", "bfloat16"),
-    "model.appearance_dim": integer(0, example=16),
-    "model.mlp.num_frequencies": integer(0, 30, example=10),
-    "model.mlp.depth": integer(1, example=8),
-    "model.mlp.width": integer(1, example=256),
-    "model.mlp.skips": integers(0),
-    "model.mlp.viewdir_frequencies": integer(0, 30, example=4),
-    "model.mlp.density_activation": choice("relu", "softplus", "exp"),
-    "model.hashgrid.bound": number(above=0.0, example=1.5),
-    "model.hashgrid.num_levels": integer(1, example=16),
-    "model.hashgrid.features_per_level": integer(1, example=2),
-    "model.hashgrid.log2_table_size": integer(4, 30, example=19),
-    "model.hashgrid.base_resolution": integer(1, example=16),
-    "model.hashgrid.max_resolution": integer(1, example=2048),
-    "model.hashgrid.hidden_width": integer(1, example=64),
-    "model.hashgrid.geo_features": integer(0, example=15),
-    "model.proposal.num_levels": integer(1, example=5),
-    "model.proposal.log2_table_size": integer(4, 30, example=17),
-    "model.proposal.base_resolution": integer(1, example=16),
-    "model.proposal.max_resolution": integer(1, example=128),
-    "model.proposal.hidden_width": integer(1, example=16),
 
-    "render.num_samples": integer(1, example=64),
-    "render.num_importance": integer(0),
-    "render.eval_samples": integer(0, example=48),
-    "render.last_delta": number(0.0, example=1e10),
-    "render.proposal_samples": integers(2),
-    "render.near": number(example=2.0),
-    "render.far": number(example=6.0),
-    "render.space": choice("euclidean", "ndc", "contract"),
-    "render.spacing": choice("linear", "inverse"),
+# Every field of every config, declared once: "section.name": (its default, the values it may hold, what it means
+# with its unit). The defaults are the default job's (configs/default.py is `defaults()`); the other configs
+# start from it. The order is the config's own (config.json sorts it; the orbit archive's copy keeps it).
+# `python -m nerfpod.schema` prints them all.
+FIELDS: dict[str, Field] = _declare({
+    "data.kind": ("procedural", choice(*scenes.KINDS),
+        "scene format: 'procedural' (built in), 'tiny' (npz), 'blender' (folder), captures 'llff', 'colmap', "
+        "'nerfstudio', or 'auto' (told by data.path's files)"),
+    "data.path": ("", text(), "the npz file or scene folder; unused by the procedural scene"),
+    "data.downscale": (1, integer(1),
+        "integer factor the images are shrunk by (captures: images_N/ where it exists)"),
+    "data.image_size": (100, integer(2, example=100), "procedural scene: width and height of its images, pixels"),
+    "data.pixel_center": (0.5, number(0.0, 1.0, example=0.5),
+        "where in its pixel a ray passes: 0.5 centre, 0.0 corner (original code)"),
+    "data.llffhold": (8, integer(2, example=8),
+        "captures: every Nth frame (from the first) is held out as test and val"),
+    "data.orient": ("auto", choice("auto", "llff", "up", "pca", "none"),
+        "captures' rotation: 'llff' avg camera, 'up' mean up -> +z, 'pca', 'none'"),
+    "data.center": ("auto", choice("auto", "focus", "poses", "none"),
+        "captures' origin: 'focus' (what cameras look at), 'poses' (their mean), 'none'"),
+    "data.scale": (0.0, number(0.0),
+        "captures' scale factor; 0: LLFF near bound at 1/0.75, else farthest camera at 1"),
+    "data.space": ("auto", choice("auto", *scenes.SPACES),
+        "'object', 'forward_facing' (LLFF's default), 'unbounded' (COLMAP/nerfstudio's)"),
+    "data.shards": (1, integer(1, example=4),
+        "training frames split into this many shards (frame i -> i mod shards); each host reads only its own: a "
+        "multiple of every host count the run may use"),
+    "data.host_memory_gib": (0.0, number(0.0, example=64.0),
+        "images a host may hold (its shards + held-out), GiB; 0: half its memory"),
 
-    "train.num_steps": integer(0, example=1000),
-    "train.batch_size": integer(1, example=4096),
-    "train.microbatches": integer(0),
-    "train.lr_init": number(above=0.0, example=5e-4),
-    "train.lr_final": number(above=0.0, example=5e-5),
-    "train.lr_warmup_steps": integer(0),
-    "train.adam_eps": number(above=0.0, example=1e-15),
-    "train.adam_b1": number(0.0, 0.9999, example=0.9),
-    "train.adam_b2": number(0.0, 0.9999, example=0.99),
-    "train.random_background": boolean(),
-    "train.grad_clip": number(0.0),
-    "train.interlevel_weight": number(0.0, example=1.0),
-    "train.distortion_weight": number(0.0, example=0.002),
-    "train.near_gradient_distance": number(0.0, example=1.0),
-    "train.pose_refine": boolean(),
-    "train.pose_lr_init": number(above=0.0, example=1e-3),
-    "train.pose_lr_final": number(above=0.0, example=1e-4),
-    "train.pose_weight_decay": number(0.0, example=0.01),
-    "train.seed": integer(0),
-    "train.log_every": integer(1, example=100),
-    "train.image_every": integer(0, example=500),
-    "train.max_nonfinite_steps": integer(1, example=20),
-    "train.profile_steps": step_range(),
+    "model.field": ("hashgrid", choice("mlp", "hashgrid"),
+        "'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)"),
+    "model.use_viewdirs": (False, boolean(),
+        "feed the view direction to the colour head (view-dependent effects)"),
+    "model.compute_dtype": ("float32", choice("float32", "bfloat16"),
+        "matmul dtype: 'bfloat16' for mixed precision on TPU/GPU"),
+    "model.appearance_dim": (0, integer(0, example=16),
+        "width of a learned appearance code per training frame (GLO, NeRF-W), fed to the colour head; held-out "
+        "views get the codes' mean; 0: off"),
+    # model.mlp: NeRF's MLP: the Tiny NeRF tutorial's by default
+    "model.mlp.num_frequencies": (6, integer(0, 30, example=10),
+        "positional-encoding frequencies L of points; 0 switches it off"),
+    "model.mlp.depth": (8, integer(1, example=8), "number of hidden layers"),
+    "model.mlp.width": (256, integer(1, example=256), "units per hidden layer"),
+    "model.mlp.skips": ((4,), integers(0), "after these (0-based) layers the encoded input is concatenated again"),
+    "model.mlp.viewdir_frequencies": (4, integer(0, 30, example=4),
+        "positional-encoding frequencies of view directions"),
+    "model.mlp.density_activation": ("relu", choice("relu", "softplus", "exp"),
+        "'relu' (paper), 'softplus' or 'exp'"),
+    "model.hashgrid.bound": (1.5, number(above=0.0, example=1.5),
+        "the field lives in the box [-bound, bound]^3, world units"),
+    "model.hashgrid.num_levels": (8, integer(1, example=16), "resolution levels of the grid"),
+    "model.hashgrid.features_per_level": (2, integer(1, example=2), "features stored per grid vertex and level"),
+    "model.hashgrid.log2_table_size": (16, integer(4, 30, example=19),
+        "rows per level's table, log2; finer levels share them by hashing"),
+    "model.hashgrid.base_resolution": (16, integer(1, example=16), "cells per side of the coarsest level"),
+    "model.hashgrid.max_resolution": (256, integer(1, example=2048), "cells per side of the finest level"),
+    "model.hashgrid.hidden_width": (32, integer(1, example=64),
+        "units of the density and colour MLPs' hidden layers"),
+    "model.hashgrid.geo_features": (7, integer(0, example=15),
+        "features passed from the density MLP to the colour MLP"),
+    # model.proposal: proposal fields (render.proposal_samples): density only, in the hash grid's box,
+    # model.hashgrid.features_per_level wide
+    "model.proposal.num_levels": (5, integer(1, example=5),
+        "resolution levels of each proposal field's hash grid"),
+    "model.proposal.log2_table_size": (17, integer(4, 30, example=17), "rows per level's table, log2"),
+    "model.proposal.base_resolution": (16, integer(1, example=16), "cells per side of the coarsest level"),
+    "model.proposal.max_resolution": (128, integer(1, example=128), "cells per side of the finest level"),
+    "model.proposal.hidden_width": (16, integer(1, example=16), "units of its one hidden layer"),
 
-    "compile.cpu_ynnpack": boolean(),
-    "compile.cpu_memory_gib": number(above=0.0, example=3.0),
-    "compile.cpu_reuse_host_memory": boolean(),
-    "compile.gradient_mean": choice("auto", "ordered", "pmean"),
-    "compile.hashgrid_lookup": choice("auto", "gather", "matmul"),
-    "compile.matmul_max_rows": integer(0, example=30000),
+    "render.num_samples": (16, integer(1, example=64),
+        "samples per ray of the NeRF field (stratified ones where no proposals)"),
+    "render.num_importance": (0, integer(0),
+        "extra importance samples per ray for a fine network; 0: no fine network"),
+    "render.eval_samples": (0, integer(0, example=48),
+        "render.num_samples of every rendering that trains nothing (evaluation, previews, orbits, the viewer, "
+        "exports): more than in training gives a finer quadrature of the same field (docs/training.md); 0: "
+        "render.num_samples"),
+    "render.proposal_samples": ((32,), integers(2),
+        "intervals per ray of each proposal round, e.g. (64, 32): the NeRF field then gets render.num_samples "
+        "intervals drawn from the last; (): no proposals, render.num_samples stratified samples "
+        "(docs/training.md, Speed settings)"),
+    "render.last_delta": (0.0, number(0.0, example=1e10),
+        "length of the last sample's interval, world units (the paper: 1e10, opaque at the far end: use it only "
+        "with a fixed background colour)"),
+    "render.near": (-1.0, number(example=2.0), "ray start, world units; negative: the scene's own bound"),
+    "render.far": (-1.0, number(example=6.0), "ray end, world units; negative: the scene's own bound"),
+    "render.space": ("euclidean", choice("euclidean", "ndc", "contract"),
+        "where the field lives: 'euclidean' (the world), 'ndc' (forward-facing scenes: NDC rays, near/far in "
+        "[0, 1]), 'contract' (unbounded: mip-NeRF 360's contraction into the ball of radius 2)"),
+    "render.spacing": ("linear", choice("linear", "inverse"),
+        "samples even in distance ('linear') or in 1/distance ('inverse')"),
 
-    "mesh.slices": integer(0, example=2),
+    "train.num_steps": (1500, integer(0, example=1000), "optimiser steps"),
+    "train.batch_size": (1024, integer(1, example=4096), "rays per step, over all devices of all hosts"),
+    "train.microbatches": (1, integer(0),
+        "slices each device's rays are processed in (gradient accumulation); 0: as few as fit the memory (XLA's "
+        "analysis of the compiled step)"),
+    "train.lr_init": (1e-2, number(above=0.0, example=5e-4), "learning rate at the start (after warm-up)"),
+    "train.lr_final": (1e-3, number(above=0.0, example=5e-5),
+        "learning rate at the last step (log-linear decay in between)"),
+    "train.lr_warmup_steps": (50, integer(0), "linear warm-up from 0, steps"),
+    "train.adam_eps": (1e-15, number(above=0.0, example=1e-15),
+        "Adam's epsilon (1e-15 for hash grids, 1e-8 for MLPs)"),
+    "train.adam_b1": (0.9, number(0.0, 0.9999, example=0.9), "Adam's decay of the gradients' mean"),
+    "train.adam_b2": (0.999, number(0.0, 0.9999, example=0.99),
+        "Adam's decay of the squared gradients' mean (Instant-NGP: 0.99, which follows a hash grid's sparse "
+        "gradients faster)"),
+    "train.random_background": (True, boolean(), "data with alpha: composite training rays on random colours"),
+    "train.grad_clip": (0.0, number(0.0), "clip the global gradient norm to this; 0: no clipping"),
+    "train.interlevel_weight": (1.0, number(0.0, example=1.0),
+        "proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)"),
+    "train.distortion_weight": (0.0, number(0.0, example=0.002),
+        "proposal sampling: weight of the distortion loss (eq. 15); 0: off"),
+    "train.near_gradient_distance": (0.0, number(0.0, example=1.0),
+        "> 0: scale the field's gradients by min(1, (distance from the ray's origin / this)^2), world units: "
+        "fewer floaters in front of the cameras; 0: off"),
+    "train.pose_refine": (False, boolean(),
+        "learn an SE(3) correction of each training frame's pose (nerfacto's camera optimiser); held-out frames "
+        "keep their given poses"),
+    "train.pose_lr_init": (1e-4, number(above=0.0, example=1e-3),
+        "the corrections' own learning rate at the start (after warm-up); 1e-3 let them drift by degrees "
+        "(docs/results.md)"),
+    "train.pose_lr_final": (1e-5, number(above=0.0, example=1e-4),
+        "the corrections' own learning rate at the last step (log-linear decay, as train.lr_*)"),
+    "train.pose_weight_decay": (0.0, number(0.0, example=0.01),
+        "decoupled weight decay of the corrections (AdamW), pulls them to zero"),
+    "train.seed": (0, integer(0), "seeds the parameters, the ray batches and the stratified jitter"),
+    "train.log_every": (100, integer(1, example=100), "steps between TensorBoard scalars and console lines"),
+    "train.image_every": (500, integer(0, example=500),
+        "steps between rendered held-out views in TensorBoard; 0: never"),
+    "train.max_nonfinite_steps": (20, integer(1, example=20),
+        "stop (exit 2) after this many steps in a row with a non-finite loss or gradient; each such step is "
+        "skipped, its update never reaches the state"),
+    "train.profile_steps": ((), step_range(),
+        "(first, last): a jax.profiler trace of these steps into the workdir (TensorBoard's profile tab, xprof); "
+        "(): none"),
 
-    "checkpoint.every_steps": integer(1, example=500),
-    "checkpoint.max_to_keep": integer(1, example=3),
-    "checkpoint.preempted_exit_code": integer(3, 125, example=75),
+    "compile.cpu_ynnpack": (False, boolean(),
+        "CPU: let XLA hand dots to YNNPACK (its default); off, the steps ran faster on a 2-core CPU "
+        "(docs/results.md). Ignored on TPU/GPU."),
+    "compile.cpu_memory_gib": (3.0, number(above=0.0, example=3.0),
+        "CPU: memory the train step may use (all of a process's simulated devices together) when "
+        "train.microbatches=0; accelerators use their own size"),
+    "compile.cpu_reuse_host_memory": (True, boolean(),
+        "CPU: glibc's malloc keeps freed memory for the next step instead of unmapping it (faster steps on "
+        "2 cores for more peak memory; docs/results.md)"),
+    "compile.gradient_mean": ("auto", choice("auto", "ordered", "pmean"),
+        "'ordered' (the same bits on any topology: log2(N) exchanges), 'pmean' (one all-reduce) or 'auto' "
+        "(ordered on CPU, pmean on TPU/GPU; docs/scale.md)"),
+    "compile.hashgrid_lookup": ("auto", choice("auto", "gather", "matmul"),
+        "hash-grid levels: 'gather', 'matmul' (dense levels, no gather or scatter) or 'auto' (matmul on TPU, "
+        "gather elsewhere; docs/pod-compile.md)"),
+    "compile.matmul_max_rows": (30000, integer(0, example=30000),
+        "'matmul' applies to dense levels of at most this many rows"),
 
-    "eval.split": choice("test", "val", "train"),
-    "eval.max_views": integer(0),
-    "eval.chunk": integer(1, example=4096),
-    "eval.lpips_net": choice("alex", "vgg", "none"),
+    "mesh.slices": (0, integer(0, example=2),
+        "TPU slices joined by the data-centre network (DCN) the mesh spans; 0: as many as the devices report "
+        "(1 on CPU; a count > 1 there simulates slices, docs/scale.md#multi-slice)"),
 
-    "orbit.render_after_training": boolean(),
-    "orbit.path": choice("orbit", "spiral", "ellipse", "file"),
-    "orbit.path_file": text(),
-    "orbit.num_frames": integer(1, example=120),
-    "orbit.elevation": number(-90.0, 90.0, example=-30.0),
-    "orbit.radius": number(above=0.0, example=4.0),
-    "orbit.width": integer(0),
-    "orbit.height": integer(0),
-    "orbit.focal": number(0.0),
-    "orbit.chunk": integer(1, example=4096),
-    "orbit.fps": number(above=0.0, example=30.0),
+    "checkpoint.every_steps": (500, integer(1, example=500),
+        "steps between (asynchronous) checkpoints; one is always saved at the end"),
+    "checkpoint.max_to_keep": (3, integer(1, example=3), "newest checkpoints kept on disk"),
+    "checkpoint.preempted_exit_code": (75, integer(3, 125, example=75),
+        'exit status after a preemption/SIGTERM/Ctrl-C saved a step (75: EX_TEMPFAIL of sysexits.h, "try again": '
+        'schedulers requeue on it)'),
 
-    "monitor.wandb.mode": choice("disabled", "online", "offline"),
-    "monitor.wandb.project": text(),
-    "monitor.wandb.entity": text(),
-    "monitor.wandb.name": text(),
-    "monitor.wandb.tags": strings(),
-}
+    "eval.split": ("test", choice("test", "val", "train"), "held-out split the final metrics are computed on"),
+    "eval.max_views": (0, integer(0), "evaluate at most this many views of the split; 0: all"),
+    "eval.chunk": (4096, integer(1, example=4096),
+        "rays rendered per device call, over all devices (bounds memory)"),
+    "eval.lpips_net": ("alex", choice("alex", "vgg", "none"),
+        "LPIPS network: 'alex' (the papers'), 'vgg', or 'none'; needs nerfpod[lpips]"),
+
+    "orbit.render_after_training": (True, boolean(), "render the orbit (archive + videos) when training ends"),
+    "orbit.path": ("orbit", choice("orbit", "spiral", "ellipse", "file"),
+        "camera path: 'orbit' (the tutorial's circle), 'spiral' (LLFF's, from the capture's cameras), 'ellipse' "
+        "(mip-NeRF 360's), 'file' (orbit.path_file)"),
+    "orbit.path_file": ("", text(), "orbit.path=file: a nerfstudio camera_path.json (its size, fov and fps rule)"),
+    "orbit.num_frames": (120, integer(1, example=120),
+        "frames of the path (orbit: over one full turn; spiral: over two turns)"),
+    "orbit.elevation": (-30.0, number(-90.0, 90.0, example=-30.0),
+        "degrees, the tutorial's sign: -30 is 30 degrees above the z = 0 plane"),
+    "orbit.radius": (4.0, number(above=0.0, example=4.0),
+        "distance of the cameras from the origin they look at, world units"),
+    "orbit.width": (0, integer(0), "frame width, pixels; 0: the eval split's"),
+    "orbit.height": (0, integer(0), "frame height, pixels; 0: from the width with the eval split's aspect"),
+    "orbit.focal": (0.0, number(0.0), "focal length, pixels; 0: the eval split's field of view at this width"),
+    "orbit.chunk": (4096, integer(1, example=4096),
+        "rays each host feeds per call of the whole-slice renderer (bounds memory)"),
+    "orbit.fps": (30.0, number(above=0.0, example=30.0), "frames per second of the exported videos"),
+
+    # monitor: TensorBoard always; Weights & Biases as well (the wandb extra)
+    "monitor.wandb.mode": ("disabled", choice("disabled", "online", "offline"),
+        "'online', 'offline' (a local run folder for `wandb sync`) or 'disabled'"),
+    "monitor.wandb.project": ("", text(), "W&B project; '': $WANDB_PROJECT, else 'nerfpod'"),
+    "monitor.wandb.entity": ("", text(), "W&B user or team; '': $WANDB_ENTITY, else your default entity"),
+    "monitor.wandb.name": ("", text(), "the run's display name; '': $WANDB_NAME, else the workdir's folder name"),
+    "monitor.wandb.tags": ((), strings(), 'the run\'s tags, e.g. ("lego", "hashgrid"); (): $WANDB_TAGS'),
+})
+
+
+def defaults() -> ml_collections.ConfigDict:
+  """A config of every field at its default (the default job, configs/default.py), in FIELDS' order."""
+  config = ml_collections.ConfigDict()
+  for name, field in FIELDS.items():
+    *sections, leaf = name.split(".")
+    node = config
+    for section in sections:
+      if section not in node:
+        node[section] = ml_collections.ConfigDict()
+      node = node[section]
+    node[leaf] = field.default
+  return config
+
+
+def describe() -> str:
+  """Every field as its override with the default, the values it may hold and what it means: one paragraph
+  each (`python -m nerfpod.schema`)."""
+  return "\n".join(f"--config.{name}={_show(field.default)}  ({field.means})\n"
+                   + textwrap.fill(field.doc, 100, initial_indent="    ", subsequent_indent="    ")
+                   for name, field in FIELDS.items())
 
 
 def _rules(c: dict) -> list[str]:
@@ -376,3 +505,7 @@ def validate(config, device_count: int | None = None) -> None:
   found = problems(config, device_count)
   if found:
     raise ConfigError(found)
+
+
+if __name__ == "__main__":
+  print(describe())

@@ -1,6 +1,8 @@
 """The configs: every one loads, keeps the names scripts rely on, and documents its fields."""
-import re
+import ast
+import json
 
+import ml_collections
 import pytest
 
 from conftest import REPO, load_config
@@ -33,13 +35,17 @@ def test_config_arguments_are_parsed_and_unknown_ones_refused():
     load_config("blender", "scen=chair")
 
 
-def test_every_field_of_the_default_config_has_a_comment():
-  source = (REPO / "configs" / "default.py").read_text()
-  body = source[source.index("def get_config"):source.index("def shrink_for_smoke")]
-  assignments = [line for line in body.splitlines() if re.match(r"\s+c\.[a-z_.]+ = ", line)
-                 and "ConfigDict()" not in line]
-  assert len(assignments) > 40
-  assert [line for line in assignments if "#" not in line] == []
+def test_every_field_is_declared_once_with_a_valid_default_and_what_it_means():
+  """nerfpod/schema.py's FIELDS is the one declaration; configs/default.py is its defaults."""
+  from nerfpod import schema
+  assert len(schema.FIELDS) > 40
+  for name, field in schema.FIELDS.items():
+    assert field.accepts(field.default), (name, field.default)
+    assert field.doc and "\n" not in field.doc and field.doc == " ".join(field.doc.split()), name
+  assert load_config("default").to_dict() == schema.defaults().to_dict()
+  listing = schema.describe()
+  for name, field in schema.FIELDS.items():
+    assert f"--config.{name}={schema._show(field.default)}  ({field.means})" in listing, name
 
 
 def test_tiny_config_is_the_tutorials_model_and_blender_the_papers():
@@ -78,3 +84,72 @@ def test_the_big_variants_are_accelerator_sized_and_keep_their_kind(name, arg):
     assert _get(big, dotted) == _get(small, dotted), dotted  # the same kind of scene, only bigger
   assert schema.problems(big) == []
   assert load_config(name, arg + ",smoke").train.num_steps <= 20  # big and smoke together shrink
+
+
+# Every config file with the arguments the docs and tests call it with: the snapshot below pins what each
+# resolves to (tests/data/README.md says how it was made).
+SNAPSHOT = REPO / "tests" / "data" / "configs_snapshot.json"
+SNAPSHOT_CASES = [
+    ("default", None), ("default", "smoke"), ("tiny", None), ("tiny", "smoke"),
+    ("tiny_fast", None), ("tiny_fast", "smoke"), ("tiny_fast", "path=/x/tiny.npz"),
+    ("blender", None), ("blender", "smoke"), ("blender", "scene=chair"), ("blender", "scene=lego,smoke"),
+    ("blender_fast", None), ("blender_fast", "smoke"), ("blender_fast", "scene=lego,cpu"),
+    ("blender_fast", "scene=lego,cpu,smoke"),
+    ("llff", None), ("llff", "smoke"), ("llff", "scene=horns"), ("llff", "scene=horns,big"),
+    ("llff", "scene=horns,big,smoke"),
+    ("capture", None), ("capture", "smoke"), ("capture", "path=/x/cup,downscale=2"), ("capture", "path=/x/cup,big"),
+    ("capture", "path=/x/cup,downscale=1,big"), ("capture", "path=/x/cup,big,smoke"),
+]
+
+
+def _ordered_fields(config) -> list[tuple[str, str]]:
+  """(dotted name, repr of the value) of every field, in the config's own order (as to_json_best_effort
+  writes it): the repr tells an int from a float and a tuple from a list."""
+  def walk(node, prefix):
+    for key in json.loads(node.to_json_best_effort()):  # the insertion order (ConfigDict.keys() sorts)
+      value = node[key]
+      if isinstance(value, ml_collections.ConfigDict):
+        yield from walk(value, f"{prefix}{key}.")
+      else:
+        yield f"{prefix}{key}", repr(value)
+  return list(walk(config, ""))
+
+
+def resolved_configs() -> dict:
+  """{"fields": the default config's [name, repr] in order, "configs": {"name:arg": {name: repr} where it
+  differs from the default}} of every case of SNAPSHOT_CASES."""
+  default = _ordered_fields(load_config("default"))
+  out = {"fields": [list(f) for f in default], "configs": {}}
+  for name, arg in SNAPSHOT_CASES:
+    fields = _ordered_fields(load_config(name, arg))
+    assert [n for n, _ in fields] == [n for n, _ in default], (name, arg)
+    out["configs"][f"{name}:{arg or ''}"] = {n: v for (n, v), (_, d) in zip(fields, default) if v != d}
+  return out
+
+
+@pytest.mark.parametrize("name,arg", SNAPSHOT_CASES)
+def test_every_config_resolves_as_the_snapshot_pins(name, arg):
+  """The same field names in the same order, the same values of the same types, and the same JSON."""
+  snapshot = json.loads(SNAPSHOT.read_text())
+  expected = dict(snapshot["fields"]) | snapshot["configs"][f"{name}:{arg or ''}"]
+  config = load_config(name, arg)
+  assert _ordered_fields(config) == list(expected.items())
+  tree = {}
+  for dotted, shown in expected.items():
+    *parents, leaf = dotted.split(".")
+    node = tree
+    for part in parents:
+      node = node.setdefault(part, {})
+    node[leaf] = ast.literal_eval(shown)
+  assert config.to_json_best_effort() == json.dumps(tree)
+  assert config.to_json_best_effort(sort_keys=True) == json.dumps(tree, sort_keys=True)
+
+
+@pytest.mark.parametrize("name,arg", [("default", "smoke"), ("llff", "scene=horns,big"), ("capture", None)])
+def test_a_runs_config_json_reads_back_as_the_config(tmp_path, name, arg):
+  """workdir.files.read_config (the viewer, exports) takes the config.json a run wrote, checked by the schema."""
+  from nerfpod.workdir import files
+  config = load_config(name, arg)
+  files.write_config(str(tmp_path), json.loads(config.to_json_best_effort()))
+  read = files.read_config(str(tmp_path))
+  assert read.to_json_best_effort(sort_keys=True) == config.to_json_best_effort(sort_keys=True)

@@ -5,7 +5,7 @@ import ml_collections
 import pytest
 
 import procs
-from conftest import load_config, smoke_config
+from conftest import REPO, load_config, smoke_config
 from nerfpod import scenes, schema
 from nerfpod.errors import UserError
 
@@ -47,6 +47,26 @@ def test_every_bad_value_of_every_field_is_one_sentence_naming_the_field_and_a_v
     assert found[0].replace("e.g. ", "").count(". ") == 0 and found[0].endswith(")."), found  # one sentence
     with pytest.raises(UserError):
       schema.validate(_with(smoke_config(), name, value))
+
+
+
+MESSAGES = REPO / "tests" / "data" / "schema_messages.json"
+
+
+def bad_value_messages() -> list[list[str]]:
+  """[field, repr of a bad value, the one sentence] for every bad value (and a value of the wrong type) of
+  every field, on the smoke config, in the schema's order (tests/data/README.md says how it was made)."""
+  out = []
+  for name, field in schema.FIELDS.items():
+    for value in field.bad + (_wrong_type(field),):
+      out += [[name, repr(value), message] for message in schema.problems(_with(smoke_config(), name, value))]
+  return out
+
+
+def test_every_bad_value_is_the_sentence_the_snapshot_pins():
+  # Sorted: the fields are checked in the config's own order, where render.last_delta now follows
+  # render.proposal_samples (as configs/default.py listed them before the schema declared them).
+  assert sorted(bad_value_messages()) == sorted(json.loads(MESSAGES.read_text()))
 
 
 @pytest.mark.parametrize("overrides,message", [

@@ -40,8 +40,11 @@ from nerfpod.pod import chips
 ABOUT = "compile a config for a TPU pod topology here, and report memory and time"
 # Its own flags (not absl's global ones): tools.pod_tables imports this module beside flags of its own.
 FLAGS = flags.FlagValues()
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/default.py[:arg].",
-                                          flag_values=FLAGS, lock_config=True)
+_CONFIG = config_flags.DEFINE_config_file(
+    "config", None, "Config file, e.g. configs/default.py[:arg]; a field is overridden as "
+    "--config.section.name=value "
+    "(`python -m nerfpod.schema` lists every field, its default, range and meaning).",
+    flag_values=FLAGS, lock_config=True)
 _TOPOLOGY = flags.DEFINE_string("topology", None, "The pod: an accelerator type, e.g. v4-32, v5e-64 (= "
                                 "v5litepod-64), v5p-128, v6e-64; several, comma-separated.", flag_values=FLAGS)
 _SLICES = flags.DEFINE_integer("slices", 1, "Multi-slice: this many slices of the --topology pod, joined by the "
