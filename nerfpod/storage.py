@@ -8,6 +8,7 @@
     forget_listings()                what was listed of a bucket is listed again on the next look
     check_reachable(path)            one sentence at once where a URL's storage cannot be connected to
     gcs_bucket(url)                  google-cloud-storage's Bucket of a gs:// URL, its object name, whose credentials
+    path(p)                          the path object of what is written (a workdir's files, exports): etils.epath
 
 A local path takes exactly the route it always took (os, open). A URL goes to fsspec, which reads gs://
 through gcsfs (the `gcs` extra; gcsfs reads STORAGE_EMULATOR_HOST, for an emulator, and otherwise finds
@@ -20,6 +21,10 @@ Errors on a URL: a missing object is FileNotFoundError, as for a local file, so 
 it the same way; anything else (no network, no credentials, no access) is one UserError sentence naming the
 path. Before the first request to a storage endpoint, a process connects to it once with a short timeout,
 so that no network is one sentence at once rather than after a client's minute of retries.
+
+What nerfpod writes (a workdir's config.json, scene.json and metrics, the exports) goes through path(p): an
+etils.epath.Path, local or gs://, the type orbax's checkpoints take too, which reaches gs:// through the same
+gcsfs (and its STORAGE_EMULATOR_HOST) as the reads above.
 
 What fsspec does not do, writing an object only if its generation is the one expected (the workdir lock), goes
 through google-cloud-storage itself: gcs_bucket() gives its Bucket of a URL, on the same endpoint and with the
@@ -53,6 +58,13 @@ CREDENTIALS_HINT = ("check the path, and for gs:// the network, your credentials
 
 _reached: set[str] = set()
 _reached_lock = threading.Lock()
+
+
+def path(p):
+  """The path object of `p` (local, or a URL such as gs://bucket/folder/file) for what is written and for
+  orbax (module docstring)."""
+  from etils import epath
+  return epath.Path(p)
 
 
 def is_url(path) -> bool:

@@ -17,9 +17,9 @@ import os
 
 import jax
 import numpy as np
-from etils import epath
 from PIL import Image
 
+from nerfpod import storage
 from nerfpod.workdir import files as workdir_files
 from nerfpod.errors import UserError
 from nerfpod.export import trained as trained_lib
@@ -43,7 +43,7 @@ def check(args) -> None:
 def export(args, trained: trained_lib.Trained, out: str) -> dict:
   scene = trained.comps.scene
   corrections = pose_correction.of_params(trained.params)
-  folder = epath.Path(out).parent
+  folder = storage.path(out).parent
   frames, lists, written = [], {}, {}  # written: id(split) -> its file names (val and test may be one split)
   distorted = any(s.cameras.is_distorted for s in scene.splits.values())
   total = sum(len(s) for s in scene.splits.values())

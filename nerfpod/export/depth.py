@@ -12,9 +12,9 @@ import io
 import jax
 import numpy as np
 from absl import flags
-from etils import epath
 from PIL import Image
 
+from nerfpod import storage
 from nerfpod.workdir import files as workdir_files
 from nerfpod.errors import UserError
 from nerfpod.export import trained as trained_lib
@@ -51,7 +51,7 @@ def z_depth(points_Nx3, c2w_4x4) -> np.ndarray:
 def export(args, trained: trained_lib.Trained, out: str) -> dict:
   config, comps = trained.config, trained.comps
   split = comps.scene.split(args.split)
-  folder = epath.Path(out)
+  folder = storage.path(out)
   units = 1.0 if args.normalized else 1.0 / trained.scale  # output units per scene unit
   poses = trained.poses_out(split.poses, args.normalized)
   views = []

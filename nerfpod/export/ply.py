@@ -5,12 +5,14 @@ points with optional normals and colours, and triangle faces; and OBJ for meshes
     write_obj(path, points_Nx3, colours_Nx3=None, normals_Nx3=None, faces_Fx3=None, comments=())
 
 Colours are float in [0, 1] (stored as uchar red, green, blue in PLY; as the widely read `v x y z r g b`
-extension in OBJ). Paths may be local or gs:// (etils.epath); the file is written whole or not at all.
+extension in OBJ). Paths may be local or gs:// (nerfpod.storage.path); the file is written whole or not at
+all.
 """
 import io
 
 import numpy as np
-from etils import epath
+
+from nerfpod import storage
 
 
 def _uint8(colours) -> np.ndarray:
@@ -18,7 +20,7 @@ def _uint8(colours) -> np.ndarray:
 
 
 def _write(path, data: bytes) -> None:
-  path = epath.Path(path)
+  path = storage.path(path)
   path.parent.mkdir(parents=True, exist_ok=True)
   tmp = path.parent / f"{path.name}.tmp"
   tmp.write_bytes(data)

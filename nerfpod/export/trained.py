@@ -11,10 +11,9 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-from etils import epath
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import distributed
+from nerfpod import distributed, storage
 from nerfpod.render import renderer
 from nerfpod.run.trained import Trained
 from nerfpod.errors import UserError
@@ -45,10 +44,10 @@ class Progress:
 def output_path(out: str | None, default: str, workdir: str, kind: str) -> str:
   """--out (default: WORKDIR/exports/`default`), checked writable before any work: its folder is made and a
   probe file written and removed (local paths; gs:// is left to its own errors)."""
-  path = str(out) if out else str(epath.Path(workdir) / "exports" / default)
+  path = str(out) if out else str(storage.path(workdir) / "exports" / default)
   if "://" in path or jax.process_index() != 0:
     return path
-  target = epath.Path(path)
+  target = storage.path(path)
   folder = target if kind == "folder" else target.parent
   if target.exists() and (target.is_dir() != (kind == "folder")):
     raise UserError(f"--out={path} is an existing {'file' if kind == 'folder' else 'folder'}; pass a "

@@ -9,6 +9,7 @@ import os
 
 from absl import flags
 
+from nerfpod import storage
 from nerfpod.render import archive, video
 from nerfpod.errors import UserError
 
@@ -17,8 +18,8 @@ ABOUT = "the orbit archive (renders/orbit.zarr) to videos and a contact sheet"
 
 def find_archive(path: str) -> str:
   """The archive that `path` names: the folder itself, or a workdir's renders/orbit.zarr."""
-  if archive.is_url(path):  # gs://...: no cheap existence checks; a workdir unless it names a .zarr
-    return path if path.rstrip("/").endswith(".zarr") else archive.join(path, archive.ORBIT)
+  if storage.is_url(path):  # gs://...: no cheap existence checks; a workdir unless it names a .zarr
+    return path if path.rstrip("/").endswith(".zarr") else storage.join(path, archive.ORBIT)
   in_workdir = os.path.join(path, archive.ORBIT)
   if not os.path.exists(os.path.join(path, "zarr.json")) and os.path.isdir(in_workdir):
     return in_workdir

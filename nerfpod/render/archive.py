@@ -17,8 +17,8 @@ import tempfile
 
 import numpy as np
 import tensorstore as ts
-from etils import epath
 
+from nerfpod import storage
 from nerfpod.render import video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing
@@ -33,19 +33,10 @@ def intrinsics_json(intr: cameras.Intrinsics) -> dict:
           "cy": intr.cy}
 
 
-def is_url(path: str) -> bool:
-  return "://" in str(path)
-
-
-def join(folder: str, *names: str) -> str:
-  """A path under `folder`, a local path or a URL (gs://bucket/...)."""
-  return "/".join([str(folder).rstrip("/"), *names]) if is_url(folder) else os.path.join(folder, *names)
-
-
 def _kvstore(path: str, name: str = ""):
   """Tensorstore's key-value store for a folder: the local file system, or a URL it knows (gs://...)."""
-  if is_url(path):
-    return join(path, name).rstrip("/") + "/"
+  if storage.is_url(path):
+    return storage.join(path, name).rstrip("/") + "/"
   return {"driver": "file", "path": os.path.join(os.path.abspath(path), name).rstrip("/") + "/"}
 
 
@@ -164,18 +155,18 @@ class Archive:
     """Videos and contact sheet of a complete archive, named after it (orbit_rgb.mp4, ...); see
     nerfpod.render.video.write_media. Returns (paths written, contact sheet image)."""
     self.check_complete()
-    parent, name = str(self.path).rstrip("/").rsplit("/", 1) if is_url(self.path) else os.path.split(
+    parent, name = str(self.path).rstrip("/").rsplit("/", 1) if storage.is_url(self.path) else os.path.split(
         os.path.abspath(os.path.normpath(self.path)))
     out_dir = out_dir or parent
     write = functools.partial(video.write_media, self.read_frame, self.num_frames, self.attributes["near"],
                               self.attributes["far"], prefix=name.removesuffix(".zarr"),
                               fps=fps or self.attributes.get("fps", 30), formats=formats)
-    if not is_url(out_dir):
+    if not storage.is_url(out_dir):
       return write(out_dir)
     with tempfile.TemporaryDirectory() as local:  # ffmpeg writes local files; then they are copied over
       files, sheet = write(local)
       copies = []
       for file in files:
-        copies.append(join(out_dir, os.path.basename(file)))
-        epath.Path(file).copy(epath.Path(copies[-1]), overwrite=True)
+        copies.append(storage.join(out_dir, os.path.basename(file)))
+        storage.path(file).copy(storage.path(copies[-1]), overwrite=True)
     return copies, sheet

@@ -2,8 +2,8 @@
 
 import jax
 import numpy as np
-from etils import epath
 
+from nerfpod import storage
 from nerfpod.render import lpips, metrics, renderer, video
 from nerfpod.workdir import files as workdir_files
 
@@ -98,7 +98,7 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
   if why_not:
     result["lpips_note"] = why_not
   if jax.process_index() == 0:
-    workdir_files.write_json(epath.Path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
+    workdir_files.write_json(storage.path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
     if writer is not None:
       for name in METRICS:
         if result["mean"][name] is not None:

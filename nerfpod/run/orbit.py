@@ -36,7 +36,7 @@ from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 
 from nerfpod.render import archive as archives
-from nerfpod import distributed
+from nerfpod import distributed, storage
 from nerfpod.render import camera_path, renderer, video
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, compositing, paths
@@ -234,7 +234,7 @@ def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
   """
   config = comps.config
   attributes = archive_attributes(comps, step)
-  path = archives.join(workdir, archives.ORBIT)
+  path = storage.join(workdir, archives.ORBIT)
   archive = open_for_render(path, attributes)
   written = archive.written_by()
   me, count = jax.process_index(), jax.process_count()
@@ -280,7 +280,7 @@ def render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
     if "gif" in formats:
       print("orbit: no ffmpeg for mp4s (pip install imageio-ffmpeg): writing gifs instead", flush=True)
     files, sheet = archive.export(fps=attributes["fps"], formats=formats)
-    shown = [f.removeprefix(str(workdir)).lstrip("/") if archives.is_url(f) else os.path.relpath(f, workdir)
+    shown = [f.removeprefix(str(workdir)).lstrip("/") if storage.is_url(f) else os.path.relpath(f, workdir)
              for f in files]
     print(f"orbit: wrote {', '.join(shown)}", flush=True)
     if writer is not None:

@@ -18,9 +18,8 @@ from typing import Any
 
 import jax
 import numpy as np
-from etils import epath
 
-from nerfpod import distributed, schema
+from nerfpod import distributed, schema, storage
 from nerfpod.nerf import poses as pose_math
 from nerfpod.run import compilation, components
 from nerfpod.workdir import checkpoints, files as workdir_files
@@ -114,7 +113,7 @@ def restore(workdir: str, config=None) -> Trained:
     raise checkpoints.none_reads_back_whole(workdir, damaged)
   step, state = found
   transform = np.asarray(comps.scene.transform, np.float64)
-  scene_json = epath.Path(workdir) / "scene.json"
+  scene_json = storage.path(workdir) / "scene.json"
   if scene_json.exists():  # what the run trained with (the loader gives the same from the same data)
     transform = np.asarray(json.loads(scene_json.read_text())["capture_to_scene"], np.float64)
   if jax.process_index() == 0:

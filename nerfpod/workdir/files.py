@@ -5,14 +5,13 @@
     read_config        a run's config from its config.json, checked by the schema (the viewer, exports)
     write_json         whole or not at all (PATH.tmp, then renamed); also eval/metrics.json
 
-Paths go through etils.epath, so a workdir may be a gs:// bucket. The checkpoints themselves are
+Paths go through nerfpod.storage.path, so a workdir may be a gs:// bucket. The checkpoints themselves are
 nerfpod.workdir.checkpoints'.
 """
 import json
 import os
 
 import ml_collections
-from etils import epath
 
 from nerfpod import schema, storage
 from nerfpod.errors import UserError
@@ -36,7 +35,7 @@ def check_workdir(workdir: str, writable: bool) -> None:
   made or written. gs:// paths are left to their own errors."""
   if "://" in str(workdir):
     return
-  path = epath.Path(workdir)
+  path = storage.path(workdir)
   if path.exists() and not path.is_dir():
     raise UserError(f"--workdir={workdir} is an existing file, not a folder; pass a folder (a new one for a new "
                     f"run).")
@@ -54,7 +53,7 @@ def check_workdir(workdir: str, writable: bool) -> None:
 
 def saved_config(workdir: str) -> dict | None:
   """The workdir's config.json, None where there is none; a malformed one is a UserError."""
-  path = epath.Path(workdir) / "config.json"
+  path = storage.path(workdir) / "config.json"
   if not path.exists():
     return None
   try:
@@ -90,7 +89,7 @@ def write_json(path, value, sort_keys: bool = False) -> None:
   """Writes `value` as indented JSON to `path` (local or gs://) whole or not at all: a local file into
   PATH.tmp, then renamed (the folder created); an object in a bucket in one upload, which creates it whole or
   not at all (a bucket has no rename: it would copy the object and delete the first)."""
-  path = epath.Path(path)
+  path = storage.path(path)
   # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
   text = json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False)
   if "://" in str(path):
@@ -111,20 +110,20 @@ def write_json(path, value, sort_keys: bool = False) -> None:
 
 def write_config(workdir: str, config_json: dict) -> None:
   """Writes workdir/config.json (the resolved config) whole or not at all; call on process 0 only."""
-  write_json(epath.Path(workdir) / "config.json", config_json, sort_keys=True)
+  write_json(storage.path(workdir) / "config.json", config_json, sort_keys=True)
 
 
 def write_scene(workdir: str, scene_json: dict) -> None:
   """Writes workdir/scene.json (the scene's name, format, space, ray bounds and the capture -> scene
   similarity, so that renders and exports can be mapped back to a capture's frame); call on process 0 only."""
-  write_json(epath.Path(workdir) / "scene.json", scene_json)
+  write_json(storage.path(workdir) / "scene.json", scene_json)
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
   """The run's config from workdir/config.json (earlier field names renamed), checked by the schema; a
   missing, unreadable or unreachable one is one sentence. For the tools that take only a --workdir."""
   storage.check_reachable(workdir)  # no network: one sentence now, not after a bucket client's retries
-  path = epath.Path(workdir) / "config.json"
+  path = storage.path(workdir) / "config.json"
   try:
     text = path.read_text()
   except FileNotFoundError:
