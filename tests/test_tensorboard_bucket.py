@@ -109,6 +109,27 @@ def test_a_killed_writer_s_flushed_scalars_are_in_the_bucket(emulator):
   writer.close()
 
 
+def test_an_event_object_s_name_is_never_taken_from_another_upload(emulator):
+  """Objects are created only where there is none of the name: a writer that finds its next name taken goes
+  on to the one after it, unless the object there is its own upload (a retry of one that was stored)."""
+  url = f"gs://{emulator.bucket}/runs/names/events.out.tfevents.1795800000.host"
+  first = monitor.BucketEventFile(url)
+  first.write(b"first")
+  first.flush()
+  second = monitor.BucketEventFile(url)
+  second.number = 0  # as if it had listed the bucket before the first's upload
+  second.write(b"second")
+  second.flush()
+  again = monitor.BucketEventFile(url)
+  again.number = 1  # the second's upload again, as a client's retry sends it
+  again.write(b"second")
+  again.close()
+  assert emulator.files("runs/names") == ["events.out.tfevents.1795800000.host.00000000",
+                                          "events.out.tfevents.1795800000.host.00000001"]
+  assert [emulator.read(f"runs/names/{name}") for name in emulator.files("runs/names")] == [b"first", b"second"]
+  assert (second.number, again.number) == (2, 2)
+
+
 def test_a_local_workdir_keeps_one_event_file(tmp_path):
   writer = monitor.summary_writer(str(tmp_path))
   _log(writer, [100, 200, 300])
