@@ -6,6 +6,13 @@ add_table / add_video / flush / close go to TensorBoard and, with config.monitor
 'offline', to W&B as well. Training (Monitor), evaluation and the orbit call only the Writer, so both sinks
 get the same values at the same steps.
 
+TensorBoard in a bucket (a gs:// workdir): Cloud Storage objects cannot be appended to, and tensorboardX's own
+gs:// writer uploads the whole event file again at each flush, which sends a run's events N/2 times over N
+flushes. The Writer's event file there is a series of objects instead, NAME.00000000, NAME.00000001, ...
+(NAME: tensorboardX's event file name, in the workdir itself), each flush uploading only what was written
+since the last one (BucketEventFile); TensorBoard reads every events.out.tfevents.* file of a folder, in name
+order, as one run. A local workdir has tensorboardX's one event file, as before.
+
 W&B (the `wandb` extra): the run's id is kept in workdir/wandb.json, so a resumed run continues the same W&B
 run; the same file records the last step W&B got and the metrics it got at that step, and a resumed run
 (which re-trains the steps after its newest checkpoint) sends W&B nothing below that step nor any metric
@@ -36,11 +43,98 @@ def summary_writer(workdir: str, config=None, **kwargs):
   if jax.process_index() != 0:
     return None
   import tensorboardX
-  tensorboard = tensorboardX.SummaryWriter(logdir=workdir, **kwargs)
+  tensorboard = tensorboardX.SummaryWriter(logdir=_bucket_events_logdir(str(workdir)), **kwargs)
   wandb_run = None
   if config is not None and config.monitor.wandb.mode != "disabled":
     wandb_run = WandbRun.start(workdir, config)
   return Writer(tensorboard, wandb_run)
+
+
+BUCKET_EVENTS_SCHEME = "nerfpod-gs"  # tensorboardX's logdir for a gs:// workdir: its files are BucketEventFiles
+SEGMENT_DIGITS = 8  # NAME.00000000: names that sort in upload order for 10^8 flushes (31 years at one per 10 s)
+
+
+def _bucket_events_logdir(workdir: str) -> str:
+  """What tensorboardX is given as the logdir of `workdir`: itself, unless it is in a bucket (gs://), where
+  tensorboardX's writer factory for BUCKET_EVENTS_SCHEME writes BucketEventFiles to the same folder."""
+  if not workdir.startswith("gs://"):
+    return workdir
+  from tensorboardX import record_writer
+  record_writer.register_writer_factory(BUCKET_EVENTS_SCHEME, _BucketEventFiles)
+  return BUCKET_EVENTS_SCHEME + workdir[len("gs"):]
+
+
+class _BucketEventFiles:
+  """tensorboardX's writer factory (record_writer.register_writer_factory) for BUCKET_EVENTS_SCHEME paths."""
+
+  @staticmethod
+  def open(path: str) -> "BucketEventFile":
+    return BucketEventFile("gs" + path[len(BUCKET_EVENTS_SCHEME):])
+
+  @staticmethod
+  def directory_check(path: str) -> None:
+    """A bucket needs no folder made."""
+
+
+class BucketEventFile:
+  """An event file at gs://BUCKET/NAME as a series of objects NAME.00000000, NAME.00000001, ...: each flush
+  uploads what was written since the previous flush as the next object, so each byte goes up once.
+
+  tensorboardX calls write (a record in four pieces) and flush under one lock, so that an object holds whole
+  records: TensorBoard reads the objects of a folder in name order as one stream of events. The numbers go on
+  after those already in the bucket (a writer opened again in the same second, so with the same NAME), and an
+  object is created only where there is none of its name. Bytes that fail to upload (the network, the
+  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet."""
+
+  def __init__(self, url: str):
+    self.url = url
+    self.bucket_name, _, self.name = url[len("gs://"):].partition("/")
+    self.pending = bytearray()  # written since the last upload
+    self.bucket = None
+    self.number = None  # the next object's, known at the first upload
+    self.failed = False  # the last upload failed (and said so)
+
+  def write(self, data: bytes) -> None:
+    self.pending += data
+
+  def flush(self) -> None:
+    if not self.pending:
+      return
+    try:
+      self._upload(bytes(self.pending))
+    except Exception as e:  # noqa: BLE001 (the client's errors vary: no network, no access, ...)
+      if not self.failed:
+        _warn(f"TensorBoard events could not be uploaded to {self.url} ({_reason(e)}); the next flush tries "
+              f"again.")
+      self.failed = True
+      return
+    self.pending.clear()
+    self.failed = False
+
+  def close(self) -> None:
+    self.flush()
+    if self.pending:
+      _warn(f"{len(self.pending)} bytes of TensorBoard events could not be uploaded to {self.url}: lost.")
+      self.pending.clear()
+
+  def _upload(self, data: bytes) -> None:
+    from google.api_core import exceptions
+    from google.cloud import storage
+    if self.bucket is None:
+      self.bucket = storage.Client().bucket(self.bucket_name)
+    if self.number is None:
+      numbers = [blob.name[len(self.name) + 1:] for blob in self.bucket.list_blobs(prefix=self.name + ".")]
+      self.number = 1 + max((int(n) for n in numbers if n.isdigit()), default=-1)
+    while True:
+      blob = self.bucket.blob(f"{self.name}.{self.number:0{SEGMENT_DIGITS}d}")
+      try:
+        blob.upload_from_string(data, content_type="application/octet-stream", if_generation_match=0)
+      except exceptions.PreconditionFailed:  # the name is taken: by this upload (a retry of one that was
+        if blob.download_as_bytes() != data:  # stored, its answer lost) or by another writer's, then the next
+          self.number += 1
+          continue
+      self.number += 1
+      return
 
 
 class Writer:

@@ -5,6 +5,7 @@ its own (so that the runs a test starts reach it too) on a free port, with one b
       emulator.env                         # what a process needs to use it (below)
       url = emulator.upload(local_folder, "scene")     # -> gs://nerfpod-test/scene
       emulator.files("runs/a")             # the objects under a prefix, as names relative to it
+      emulator.received_bytes()            # the bytes of every request body it has received so far
 
 Every client nerfpod uses reads the emulator's address from its own variable:
 - STORAGE_EMULATOR_HOST: gcsfs (scenes, and the workdir's files through etils.epath and orbax) and
@@ -31,6 +32,9 @@ What the emulator (2026.7.19) gets wrong for these clients, patched in the servi
   ("Malformed StorageGeneration") without them; the workdir lock creates lock.json only if absent. They are
   enforced, and downloads carry the generation, as Cloud Storage does.
 
+The serving process also prints one line (RECEIVED, then a count) for each request body it reads, so that a
+test can measure how much its clients upload (received_bytes).
+
 Run as a script, `python tests/gcs.py PORT BUCKET` serves until it is killed.
 """
 import os
@@ -43,6 +47,7 @@ import urllib.request
 import pytest
 
 BUCKET = "nerfpod-test"
+RECEIVED = "nerfpod-test-emulator received"  # a line of the serving process's output: the bytes of a request body
 # gcsfs reads this when it is imported: set before any test imports it (this module is imported at collection).
 os.environ.setdefault("GCSFS_EXPERIMENTAL_ZB_HNS_SUPPORT", "false")
 
@@ -67,6 +72,15 @@ def _multipart_related(raw: bytes, content_type: str) -> dict:
 def _patch():
   """Fixes the emulator's uploads (the module's docstring)."""
   from gcp_storage_emulator import server
+  read_raw_data = server._read_raw_data
+
+  def read_and_count(request_handler):  # every request body goes through here (server._read_data, below)
+    raw = read_raw_data(request_handler)
+    if raw:
+      print(RECEIVED, len(raw), flush=True)
+    return raw
+
+  server._read_raw_data = read_and_count
   read_data = server._read_data
 
   def read_uploads_exactly(request_handler, query):
@@ -220,6 +234,12 @@ class Emulator:
     fs = self.filesystem()
     root = f"{self.bucket}/{prefix.strip('/')}"
     return sorted(p[len(root) + 1:] for p in fs.find(root))
+
+  def received_bytes(self) -> int:
+    """The bytes of all the request bodies (uploads, mostly) the emulator has received so far."""
+    self.log.flush()
+    return sum(int(line.split()[-1]) for line in self.log_path.read_text(errors="replace").splitlines()
+               if line.startswith(RECEIVED))
 
   def read(self, name: str) -> bytes:
     return self.filesystem().cat_file(f"{self.bucket}/{name}")

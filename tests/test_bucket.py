@@ -297,8 +297,8 @@ def test_the_smoke_job_from_and_into_a_bucket_is_killed_resumes_and_ends_as_a_lo
     jax.tree.map(np.testing.assert_array_equal, got, wanted)
   files = emulator.files("runs/smoke")
   assert {"config.json", "scene.json", "renders/orbit_rgb.mp4"} <= set(files)
-  # TensorBoard: the resumed run's scalars. (The killed run's own were still in its writer's buffer: an event
-  # file in a bucket is uploaded whole at each flush, every 10 s, and that run was killed sooner.)
+  # TensorBoard: the resumed run's scalars. (The killed run's own may still have been in its writer's buffer:
+  # what it writes goes up at each flush, every 10 s, and that run may have been killed sooner.)
   events = tmp_path / "events"
   events.mkdir()
   for name in files:
