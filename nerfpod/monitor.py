@@ -30,7 +30,8 @@ import time
 
 import jax
 import numpy as np
-from etils import epath
+
+from nerfpod import storage
 
 WANDB_RECORD = "wandb.json"  # in the workdir: {"id", "step", "keys"}
 WANDB_STEP = "step"          # the W&B metric every other metric is plotted against
@@ -198,7 +199,7 @@ def to_uint8_hwc(image, dataformats: str = "HWC") -> np.ndarray:
 def read_wandb_record(workdir: str) -> dict:
   """workdir/wandb.json: {"id": the W&B run's id, "step": the last step W&B got, "keys": the metrics it got
   at that step}; {} where there is none (or it cannot be read: a new W&B run then starts)."""
-  path = epath.Path(workdir) / WANDB_RECORD
+  path = storage.path(workdir) / WANDB_RECORD
   try:
     record = json.loads(path.read_text())
   except (OSError, ValueError):
@@ -211,7 +212,7 @@ def new_run_id() -> str:
   return "".join(secrets.choice(string.ascii_lowercase + string.digits) for _ in range(8))
 
 
-def _write_json(path: epath.Path, value: dict) -> None:
+def _write_json(path, value: dict) -> None:
   """Whole or not at all (PATH.tmp, then renamed)."""
   tmp = path.parent / f"{path.name}.tmp"
   tmp.write_text(json.dumps(value, indent=2))
@@ -227,7 +228,7 @@ class WandbRun:
   nothing below the last step W&B got (workdir/wandb.json) nor a metric it already has at that step."""
 
   def __init__(self, run, workdir: str, record: dict):
-    self.run, self.path = run, epath.Path(workdir) / WANDB_RECORD
+    self.run, self.path = run, storage.path(workdir) / WANDB_RECORD
     self.record = {"id": record["id"], "step": record.get("step"), "keys": list(record.get("keys", []))}
     self.pending_step, self.pending = None, {}
     self.copies = []  # local copies of gs:// videos, removed at the end
@@ -244,8 +245,8 @@ class WandbRun:
       record = read_wandb_record(workdir)
       if not record:  # the id first: a run killed during wandb.init still resumes the same W&B run
         record = {"id": new_run_id(), "step": None, "keys": []}
-        epath.Path(workdir).mkdir(parents=True, exist_ok=True)
-        _write_json(epath.Path(workdir) / WANDB_RECORD, record)
+        storage.path(workdir).mkdir(parents=True, exist_ok=True)
+        _write_json(storage.path(workdir) / WANDB_RECORD, record)
       local = "://" not in str(workdir)
       try:  # a private setting of W&B's: where a version no longer has it, W&B's own default
         settings = wandb.Settings(x_transaction_log_flush_interval=WANDB_FLUSH_SECONDS)
@@ -289,7 +290,7 @@ class WandbRun:
       if "://" in path:  # W&B reads local files: a local copy of a gs:// video first
         self.copies.append(tempfile.mkdtemp(prefix="nerfpod-wandb-"))
         local = os.path.join(self.copies[-1], os.path.basename(path))
-        epath.Path(path).copy(epath.Path(local), overwrite=True)
+        storage.path(path).copy(storage.path(local), overwrite=True)
       self.add(step, key, wandb.Video(local, format=os.path.splitext(local)[1].lstrip(".") or None))
     self._safely(add)
 

@@ -168,3 +168,38 @@ def test_eval_samples_render_the_trained_field_with_a_finer_quadrature(smoke_on_
   assert want["weights"].shape == (64, 3 * config.render.num_samples)
   coarse = renderer.render_rays(comps.renderer, params, comps.mesh, origins, directions, 64)
   assert np.abs(got["depth"] - coarse["depth"]).max() > 1e-4  # another quadrature of the same field
+
+
+def test_batches_the_host_cannot_hold_are_refused_before_any_work(tmp_path, monkeypatch):
+  """Each host holds its share of a global batch in several copies at once (in use, on its devices, and on
+  accelerators prepared ahead): a train.batch_size whose copies exceed components.BATCH_MEMORY_SHARE of the
+  host's memory is one sentence naming the field and a size that fits, before the scene loads; no workdir is
+  left behind."""
+  from nerfpod.run import modes
+  from nerfpod.errors import UserError
+  monkeypatch.setattr(components, "_physical_memory_bytes", lambda: 64 * 2**20)  # a 64 MiB host
+  # 2 copies x 48 bytes x 2**20 rays = 96 MiB > 16 MiB; 16 MiB / 96 bytes = 174,762 rays -> 174,760 (x 8).
+  with pytest.raises(UserError, match=r"^train.batch_size=1048576 rays would make this host hold 0.1 GiB of "
+                                      r"training batches at once \(2 copies of its share\), more than the 0.0 GiB "
+                                      r"\(25% of its memory\) they may take; set --config.train.batch_size to at "
+                                      r"most 174760 \(a multiple of the 8 devices\)\.$"):
+    modes.train_and_evaluate(smoke_config(**{"train.batch_size": 2**20}), str(tmp_path / "run"))
+  assert not (tmp_path / "run").exists()
+  components.check_batches_fit_host(smoke_config(**{"train.batch_size": 174760}))  # the size it names fits
+
+
+def test_a_step_no_device_could_hold_is_refused_before_the_workdir_holds_anything(tmp_path, monkeypatch):
+  """A fixed train.microbatches whose step needs more than a device has (XLA's memory analysis of the very
+  step compiled) is one sentence naming the fields and what to set, before config.json or any checkpoint."""
+  from nerfpod.run import compilation, modes
+  from nerfpod.errors import UserError
+  monkeypatch.setattr(compilation, "device_memory_bytes", lambda: 2**10)  # a 1 KiB device
+  with pytest.raises(UserError, match=r"^the train step of train.batch_size=256 \(32 rays per device\) in 1 "
+                                      r"micro-batch\(es\) needs [\d.]+ GiB per device by XLA's analysis, more than "
+                                      r"the 0.0 GiB a device has; set --config.train.microbatches=0 \(the fewest "
+                                      r"that fit, found at start-up\) or more than 1, or a smaller "
+                                      r"--config.train.batch_size\.$"):
+    modes.train_and_evaluate(smoke_config(), str(tmp_path))
+  written = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
+  # TensorBoard's event file is opened before training; no config.json, scene.json, checkpoint or lock.
+  assert [w for w in written if not w.startswith("events.out.tfevents.")] == [], written

@@ -110,6 +110,15 @@ def memory_budget_bytes(config) -> int:
   return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
 
 
+def device_memory_bytes() -> int:
+  """What one device has: an accelerator's memory as it reports it; on a CPU, the host's physical memory
+  shared by this process's simulated devices."""
+  stats = jax.local_devices()[0].memory_stats() or {}
+  if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
+    return int(stats["bytes_limit"])
+  return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / jax.local_device_count())
+
+
 def step_memory_bytes(compiled) -> int | None:
   """What one device needs to run a compiled step, from XLA's own buffer assignment: its arguments, outputs
   and temporaries, less the outputs that reuse (donated) arguments' buffers. None where XLA reports none."""

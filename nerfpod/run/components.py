@@ -172,7 +172,39 @@ def host_memory_budget_bytes(config) -> int:
   data.host_memory_gib, or HOST_MEMORY_SHARE of the host's physical memory where that is 0."""
   if config.data.host_memory_gib > 0:
     return int(config.data.host_memory_gib * 2**30)
-  return int(HOST_MEMORY_SHARE * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+  return int(HOST_MEMORY_SHARE * _physical_memory_bytes())
+
+
+def _physical_memory_bytes() -> int:
+  return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+# The share of a host's physical memory its training batches may take (the host's share of each global batch,
+# those prepared ahead and the copy on its devices): the half HOST_MEMORY_SHARE leaves is also the runtime's,
+# the compiled programs' and, on a CPU, the simulated devices'.
+BATCH_MEMORY_SHARE = 0.25
+BATCH_BYTES_PER_RAY = 48  # origins, directions, rgb (3 float32 each), ray id, alpha, frame (4 bytes each)
+PREFETCHED_BATCHES = 4    # data.iterator's, on accelerators
+
+
+def check_batches_fit_host(config) -> None:
+  """Refuses, before any work, a train.batch_size whose batches this host could not hold: its share of each
+  global batch, BATCH_BYTES_PER_RAY a ray, as many times as there are copies of it at once (the one in use,
+  its copy on the devices, and on accelerators PREFETCHED_BATCHES prepared ahead), must fit
+  BATCH_MEMORY_SHARE of the host's physical memory."""
+  tc = config.train
+  copies = 2 + (PREFETCHED_BATCHES if jax.default_backend() != "cpu" else 0)
+  per_ray = BATCH_BYTES_PER_RAY * copies / jax.process_count()
+  limit = BATCH_MEMORY_SHARE * _physical_memory_bytes()
+  need = tc.batch_size * per_ray
+  if need <= limit:
+    return
+  fits = int(limit // per_ray) // jax.device_count() * jax.device_count()
+  raise UserError(f"train.batch_size={tc.batch_size} rays would make this host hold {need / 2**30:,.1f} GiB of "
+                  f"training batches at once ({copies} copies of its share), more than the "
+                  f"{limit / 2**30:,.1f} GiB ({BATCH_MEMORY_SHARE:.0%} of its memory) they may take; set "
+                  f"--config.train.batch_size to at most {max(fits, jax.device_count())} (a multiple of the "
+                  f"{jax.device_count()} devices).")
 
 
 def host_shards(config) -> scenes.Shards:
@@ -187,6 +219,7 @@ def build(config, mesh: Mesh | None = None) -> Components:
   slices, distributed.make_mesh): the scene (a missing held-out split or a bad camera path file fails now,
   not after training; each host reads the training frames of its data.shards only, and says so in one
   line), its model, optimiser, shapes and renderer."""
+  check_batches_fit_host(config)
   shards = host_shards(config)
   scene = scenes.load(config.data, shards)
   train = scene.split("train")

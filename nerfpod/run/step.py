@@ -18,6 +18,7 @@ from nerfpod import distributed
 from nerfpod.run import compilation, train_state
 from nerfpod.run.components import Components
 from nerfpod.run.train_state import TrainState
+from nerfpod.errors import UserError
 from nerfpod.render.metrics import mse_to_psnr
 from nerfpod.nerf import stepfun
 
@@ -210,6 +211,16 @@ def compile_for_run(comps: Components):
   budget (compilation.memory_budget_bytes) where train.microbatches=0, which process 0 reports."""
   budget = compilation.memory_budget_bytes(comps.config)
   count, compiled, need = compile_fitted(comps, train_state.rays_key(comps.config.train.seed, comps.mesh), budget)
+  capacity = compilation.device_memory_bytes()
+  if need is not None and need > capacity:  # not a budget: what the device has (fitted ones are said below)
+    tc = comps.config.train
+    per_device = tc.batch_size // comps.mesh.size
+    more = (f"set --config.train.microbatches=0 (the fewest that fit, found at start-up) or more than {count}, "
+            f"or a smaller --config.train.batch_size" if tc.microbatches else
+            "set a smaller --config.train.batch_size")
+    raise UserError(f"the train step of train.batch_size={tc.batch_size} ({per_device} rays per device) in "
+                    f"{count} micro-batch(es) needs {need / 2**30:,.1f} GiB per device by XLA's analysis, more "
+                    f"than the {capacity / 2**30:,.1f} GiB a device has; {more}.")
   if comps.config.train.microbatches == 0 and jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"

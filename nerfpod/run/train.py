@@ -125,28 +125,30 @@ class StepLog:
       self.monitor.scalars(step, self.skips.with_total(jax.device_get(metrics)), lr)
 
 
-def _start(comps: components.Components, workdir: str, ckpt) -> tuple[TrainState, int, dict | None]:
-  """(state, first step, data position): the newest checkpoint's, or a new state; then (process 0) the
-  workdir's config.json and scene.json and the run's first lines."""
-  config, tc = comps.config, comps.config.train
-  start_step, position = 0, None
-  if ckpt.latest_step() is not None:
-    state, position = ckpt.restore(comps.state_shapes)
-    start_step = int(position["next_step"])
-    logging.info("resumed from step %d", start_step)
-  else:
-    state = comps.init_state()
-  if jax.process_index() == 0:
-    write_config(workdir, json.loads(config.to_json_best_effort()))
-    write_scene(workdir, comps.scene.description())
-    slices = distributed.num_slices(comps.mesh)
-    print(f"nerfpod: JAX {jax.__version__} on {jax.default_backend()}: {jax.device_count()} x "
-          f"{jax.devices()[0].device_kind}", flush=True)
-    print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
-          f"{jax.process_count()} process(es), {jax.device_count()} device(s)"
-          f"{f' in {slices} slices' if slices > 1 else ''}, "
-          f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
+def _restore_or_init(comps: components.Components, ckpt) -> tuple[TrainState, int, dict | None]:
+  """(state, first step, data position): the newest checkpoint's, or a new state."""
+  if ckpt.latest_step() is None:
+    return comps.init_state(), 0, None
+  state, position = ckpt.restore(comps.state_shapes)
+  start_step = int(position["next_step"])
+  logging.info("resumed from step %d", start_step)
   return state, start_step, position
+
+
+def _announce(comps: components.Components, workdir: str, start_step: int) -> None:
+  """(Process 0) the workdir's config.json and scene.json, and the run's first lines."""
+  if jax.process_index() != 0:
+    return
+  config, tc = comps.config, comps.config.train
+  write_config(workdir, json.loads(config.to_json_best_effort()))
+  write_scene(workdir, comps.scene.description())
+  slices = distributed.num_slices(comps.mesh)
+  print(f"nerfpod: JAX {jax.__version__} on {jax.default_backend()}: {jax.device_count()} x "
+        f"{jax.devices()[0].device_kind}", flush=True)
+  print(f"nerfpod: scene {comps.scene.name} ({len(comps.scene.split('train'))} training views), "
+        f"{jax.process_count()} process(es), {jax.device_count()} device(s)"
+        f"{f' in {slices} slices' if slices > 1 else ''}, "
+        f"steps {start_step}..{tc.num_steps}, {tc.batch_size} rays/step", flush=True)
 
 
 def _preview(comps: components.Components, params, monitor, step: int) -> None:
@@ -174,16 +176,18 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   try:
     # The step compiles while the state is restored or initialised (not when training is already done).
     compiling = train_step.start_compiling(comps) if (ckpt.latest_step() or 0) < tc.num_steps else None
-    state, start_step, position = _start(comps, workdir, ckpt)
-    skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
-    log = StepLog(monitor, tc, start_step, skips)
-    key = train_state.rays_key(tc.seed, comps.mesh)
-    batches = comps.batches(start_step)
+    state, start_step, position = _restore_or_init(comps, ckpt)
     if start_step < tc.num_steps:  # (a damaged newest checkpoint may have put start_step back)
+      # A step the devices cannot hold is refused here, before the workdir holds anything of this run.
       step_fn = (compiling or train_step.start_compiling(comps)).result()
       if jax.process_count() > 1:
         # Every process has compiled before the first step: wait for all of them (see wait_for_all).
         distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
+    _announce(comps, workdir, start_step)
+    skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
+    log = StepLog(monitor, tc, start_step, skips)
+    key = train_state.rays_key(tc.seed, comps.mesh)
+    batches = comps.batches(start_step)
 
     with jax.transfer_guard(TRANSFER_GUARD):  # (the tests: 'disallow', every transfer an explicit one)
       for step in range(start_step, tc.num_steps):
