@@ -57,10 +57,17 @@ INITIAL_PULL_BACK = 1.3   # a new page's camera: this many times farther back th
 
 def check_port_free(host: str, port: int) -> None:
   """Refuses a port that another program holds (viser would quietly move to the next free one, and the
-  user would open the wrong page). Port 0: any free port, picked when the server starts."""
+  user would open the wrong page). Port 0: any free port, picked when the server starts.
+
+  The probe binds as viser's server will (websockets on asyncio's create_server: SO_REUSEADDR on POSIX), so a
+  port whose only users are connections in TIME_WAIT (a viewer that served pages and stopped, for a minute
+  after) passes, as the server's own bind would; on Linux and macOS SO_REUSEADDR never binds over a listening
+  socket, so a port another program serves on is still refused. (On Windows it would: left off there.)"""
   if port == 0:
     return
   with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+    if os.name == "posix":
+      s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
       s.bind((host, port))
     except OSError as e:

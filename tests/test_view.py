@@ -483,3 +483,46 @@ def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_pat
     assert len(viewer._frustums) == sum(len(s) for s in comps.scene.splits.values())
   finally:
     viewer.close()
+
+
+def _time_wait_port() -> int:
+  """A port whose only user is a connection in TIME_WAIT, as a viewer that served pages leaves it for a minute
+  after it stops: the server side closes first (so TIME_WAIT lands on the server's port), then the client,
+  then the listener."""
+  with socket.socket() as listener:
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's server (asyncio) binds
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    served, _ = listener.accept()
+    served.close()
+    client.recv(1)  # the server's FIN arrived
+    client.close()
+    time.sleep(0.1)  # the client's FIN reaches the server's side: TIME_WAIT
+  return port
+
+
+def test_a_port_left_in_time_wait_by_a_stopped_viewer_is_free(tmp_path):
+  from nerfpod import view
+  port = _time_wait_port()
+  with socket.socket() as plain:  # the connection really is in TIME_WAIT: a bind without SO_REUSEADDR fails
+    with pytest.raises(OSError):
+      plain.bind(("127.0.0.1", port))
+  view.check_port_free("127.0.0.1", port)  # viser's own bind would succeed: so does the check
+
+
+@pytest.mark.parametrize("reuse", [False, True])
+def test_a_port_a_live_listener_holds_is_refused_even_by_a_probe_with_so_reuseaddr(reuse):
+  from nerfpod import view
+  from nerfpod.errors import UserError
+  with socket.socket() as busy:
+    if reuse:  # a server that binds as viser's does (SO_REUSEADDR): still a listener, still refused
+      busy.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    port = busy.getsockname()[1]
+    with pytest.raises(UserError, match=rf"cannot listen on 127.0.0.1:{port} \(.*\); another program uses it: pick "
+                                        r"another with --port \(or stop that program\)."):
+      view.check_port_free("127.0.0.1", port)
+
