@@ -43,6 +43,7 @@ import types
 import numpy as np
 from absl import flags, logging
 
+from nerfpod import distributed
 from nerfpod.render import camera_path as camera_paths
 from nerfpod.render import renderer, video
 from nerfpod.run import trained as run_trained
@@ -457,6 +458,7 @@ def run(argv=None):
   args = _parse(sys.argv[1:] if argv is None else argv)
   logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
   checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
+  distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU: the CPU
   try:
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)

@@ -526,3 +526,28 @@ def test_a_port_a_live_listener_holds_is_refused_even_by_a_probe_with_so_reusead
                                         r"another with --port \(or stop that program\)."):
       view.check_port_free("127.0.0.1", port)
 
+
+# In a fresh interpreter (the tests' own has picked the CPU already): what `nerfpod view` leaves JAX's platform
+# at, stopping at a missing workdir; no GPU plugin is pretended (as tests/test_platform.py does).
+VIEW_PLATFORM_PROBE = r"""
+import json, sys, jax
+from nerfpod import distributed, view
+distributed.pjrt_plugins = lambda: set()
+try:
+  view.run([f"--workdir={sys.argv[1]}"])
+except SystemExit as e:
+  code = e.code
+print(json.dumps({"code": code, "platforms": jax.config.jax_platforms}))
+"""
+
+
+def test_the_viewer_keeps_jax_off_an_absent_tpu_as_train_and_export_do(tmp_path):
+  pytest.importorskip("libtpu")  # the `tpu` extra: its runtime installed, no TPU chip here
+  env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+  env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+  done = subprocess.run([sys.executable, "-c", VIEW_PLATFORM_PROBE, str(tmp_path / "missing")], env=env,
+                        capture_output=True, text=True, timeout=120)
+  assert done.returncode == 0, done.stderr
+  out = json.loads(done.stdout.strip().splitlines()[-1])
+  assert out == {"code": 2, "platforms": "cpu"}, (out, done.stderr[-2000:])
+  assert "TPU" not in done.stderr, done.stderr[-2000:]
