@@ -43,6 +43,7 @@ import types
 import numpy as np
 from absl import flags, logging
 
+from nerfpod import distributed
 from nerfpod.render import camera_path as camera_paths
 from nerfpod.render import renderer, video
 from nerfpod.run import trained as run_trained
@@ -57,10 +58,17 @@ INITIAL_PULL_BACK = 1.3   # a new page's camera: this many times farther back th
 
 def check_port_free(host: str, port: int) -> None:
   """Refuses a port that another program holds (viser would quietly move to the next free one, and the
-  user would open the wrong page). Port 0: any free port, picked when the server starts."""
+  user would open the wrong page). Port 0: any free port, picked when the server starts.
+
+  The probe binds as viser's server will (websockets on asyncio's create_server: SO_REUSEADDR on POSIX), so a
+  port whose only users are connections in TIME_WAIT (a viewer that served pages and stopped, for a minute
+  after) passes, as the server's own bind would; on Linux and macOS SO_REUSEADDR never binds over a listening
+  socket, so a port another program serves on is still refused. (On Windows it would: left off there.)"""
   if port == 0:
     return
   with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+    if os.name == "posix":
+      s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
       s.bind((host, port))
     except OSError as e:
@@ -450,6 +458,7 @@ def run(argv=None):
   args = _parse(sys.argv[1:] if argv is None else argv)
   logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
   checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
+  distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU: the CPU
   try:
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)

@@ -430,3 +430,47 @@ def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_pat
     done = run(kind, "--help")
     # absl's help spells a yes/no flag --[no]NAME
     assert done.returncode == 0 and "--[no]normalized" in done.stdout and "--workdir" in done.stdout, done.stderr
+
+
+def test_a_mesh_resolution_that_cannot_fit_in_memory_is_refused_before_any_work(smoke_workdir, tmp_path, capsys,
+                                                                                 monkeypatch):
+  """--resolution is weighed against this host's available memory before anything is restored or written: a
+  grid that cannot fit is one sentence (exit code 2) naming the memory it would take and the largest that fits;
+  one that fits exports as before, saying its progress."""
+  from nerfpod.export import mesh
+  monkeypatch.setattr(mesh, "available_memory_bytes", lambda: 16 * 2 ** 20)  # 16 MiB
+  fits = mesh.largest_resolution(mesh.MEMORY_SHARE * 16 * 2 ** 20)
+  assert 8 <= fits < 96 and mesh.memory_bytes(fits) <= 12 * 2 ** 20 < mesh.memory_bytes(fits + 1)
+  out = tmp_path / "exports" / "mesh.ply"
+  with pytest.raises(SystemExit) as refused:
+    export_tool.run(["mesh", f"--workdir={smoke_workdir}", f"--out={out}", "--resolution=96"])
+  assert refused.value.code == 2
+  captured = capsys.readouterr()
+  assert (f"nerfpod: error: --resolution=96 would take about {mesh._gib(mesh.memory_bytes(96))} of memory (its 96^3 "
+          f"density grid and marching cubes' working memory) but this host has 16 MiB available; pass "
+          f"--resolution={fits} or less.") in captured.err, captured.err
+  assert "restored" not in captured.out and not (tmp_path / "exports").exists()  # nothing restored or made
+  # A resolution that fits: the density pass reports its progress, and the export is written as before.
+  with pytest.raises(UserError, match=r"spans (\S+) to (\S+)\)") as level:
+    _export("mesh", f"--workdir={smoke_workdir}", f"--out={out}", "--resolution=24", "--level=1000")
+  import re
+  low, high = map(float, re.search(r"spans (\S+) to (\S+)\)", str(level.value)).groups())
+  _export("mesh", f"--workdir={smoke_workdir}", f"--out={out}", "--resolution=24", f"--level={(low + high) / 2}")
+  assert "nerfpod: export: mesh: density 24/24 planes" in capsys.readouterr().out
+  assert len(_read_ply(out)["face"]) > 0
+
+
+def test_a_long_mesh_export_says_its_time_and_memory_up_front(smoke_workdir, tmp_path, capsys, monkeypatch):
+  """Field queries a second are measured before the density pass; an export expected to take longer than
+  SAY_ESTIMATE_SECONDS says how long and how much memory before it starts."""
+  import re
+  from nerfpod.export import mesh
+  monkeypatch.setattr(mesh, "SAY_ESTIMATE_SECONDS", 0.0)  # every export counts as long
+  with pytest.raises(UserError, match="the density never crosses --level=1000"):
+    _export("mesh", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'mesh.ply'}", "--resolution=96", "--level=1000")
+  lines = capsys.readouterr().out.splitlines()
+  (estimate,) = [i for i, line in enumerate(lines) if "mesh: a 96^3 grid (" in line]
+  assert re.search(r"field queries at \S+ a second measured, then marching cubes\) takes about \d+ s and "
+                   r"\d+ MiB of memory", lines[estimate]), lines[estimate]
+  (done,) = [i for i, line in enumerate(lines) if "mesh: density 96/96 planes" in line]
+  assert estimate < done

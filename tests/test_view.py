@@ -483,3 +483,71 @@ def test_the_viewer_builds_every_scene_kind_from_config_json_alone(kind, tmp_pat
     assert len(viewer._frustums) == sum(len(s) for s in comps.scene.splits.values())
   finally:
     viewer.close()
+
+
+def _time_wait_port() -> int:
+  """A port whose only user is a connection in TIME_WAIT, as a viewer that served pages leaves it for a minute
+  after it stops: the server side closes first (so TIME_WAIT lands on the server's port), then the client,
+  then the listener."""
+  with socket.socket() as listener:
+    listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as viser's server (asyncio) binds
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    port = listener.getsockname()[1]
+    client = socket.create_connection(("127.0.0.1", port))
+    served, _ = listener.accept()
+    served.close()
+    client.recv(1)  # the server's FIN arrived
+    client.close()
+    time.sleep(0.1)  # the client's FIN reaches the server's side: TIME_WAIT
+  return port
+
+
+def test_a_port_left_in_time_wait_by_a_stopped_viewer_is_free(tmp_path):
+  from nerfpod import view
+  port = _time_wait_port()
+  with socket.socket() as plain:  # the connection really is in TIME_WAIT: a bind without SO_REUSEADDR fails
+    with pytest.raises(OSError):
+      plain.bind(("127.0.0.1", port))
+  view.check_port_free("127.0.0.1", port)  # viser's own bind would succeed: so does the check
+
+
+@pytest.mark.parametrize("reuse", [False, True])
+def test_a_port_a_live_listener_holds_is_refused_even_by_a_probe_with_so_reuseaddr(reuse):
+  from nerfpod import view
+  from nerfpod.errors import UserError
+  with socket.socket() as busy:
+    if reuse:  # a server that binds as viser's does (SO_REUSEADDR): still a listener, still refused
+      busy.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    port = busy.getsockname()[1]
+    with pytest.raises(UserError, match=rf"cannot listen on 127.0.0.1:{port} \(.*\); another program uses it: pick "
+                                        r"another with --port \(or stop that program\)."):
+      view.check_port_free("127.0.0.1", port)
+
+
+# In a fresh interpreter (the tests' own has picked the CPU already): what `nerfpod view` leaves JAX's platform
+# at, stopping at a missing workdir; no GPU plugin is pretended (as tests/test_platform.py does).
+VIEW_PLATFORM_PROBE = r"""
+import json, sys, jax
+from nerfpod import distributed, view
+distributed.pjrt_plugins = lambda: set()
+try:
+  view.run([f"--workdir={sys.argv[1]}"])
+except SystemExit as e:
+  code = e.code
+print(json.dumps({"code": code, "platforms": jax.config.jax_platforms}))
+"""
+
+
+def test_the_viewer_keeps_jax_off_an_absent_tpu_as_train_and_export_do(tmp_path):
+  pytest.importorskip("libtpu")  # the `tpu` extra: its runtime installed, no TPU chip here
+  env = {k: v for k, v in os.environ.items() if k != "JAX_PLATFORMS"}
+  env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+  done = subprocess.run([sys.executable, "-c", VIEW_PLATFORM_PROBE, str(tmp_path / "missing")], env=env,
+                        capture_output=True, text=True, timeout=120)
+  assert done.returncode == 0, done.stderr
+  out = json.loads(done.stdout.strip().splitlines()[-1])
+  assert out == {"code": 2, "platforms": "cpu"}, (out, done.stderr[-2000:])
+  assert "TPU" not in done.stderr, done.stderr[-2000:]

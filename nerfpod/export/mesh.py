@@ -9,7 +9,15 @@ Vertices and normals are written in the capture's own coordinates (the inverse o
 scene similarity in scene.json), or in the normalised scene's with --normalized. A contracted (unbounded)
 scene's mesh covers its bounded part only: the unit ball (b = 1), inside the contraction; a forward-facing
 (NDC) scene is refused (its field lives in NDC space; export a point cloud).
+
+Before any work, --resolution is weighed against this host's available memory (memory_bytes: the n^3 grid and
+marching cubes' working memory): one that cannot fit is refused in one sentence naming the largest that
+would. A long export measures its field queries a second first and says its time and memory up front; the
+density pass prints its progress.
 """
+import os
+import time
+
 import jax
 import numpy as np
 from absl import flags
@@ -20,6 +28,21 @@ from nerfpod.export import ply, trained as trained_lib
 ABOUT = "a coloured triangle mesh (PLY or OBJ) by marching cubes on the density"
 DEFAULT_OUT = "mesh.ply"
 MISSING = "mesh export needs scikit-image (marching cubes): pip install 'nerfpod[mesh]'"
+
+# Marching cubes' working memory, in units of the float32 density grid it reads: skimage.measure.marching_cubes
+# (Lewiner) keeps a few slices of cell data and grows its vertex and face arrays with the surface it finds.
+# Measured (peak rise of the process's resident memory, and tracemalloc's peak) at N = 64, 128, 192: a smooth
+# surface (a sphere) 0.5x, 0.06x, 0.02x the grid; a sphere with 1% of the grid points as isolated specks (the
+# floaters of a partly trained field) 2.6x, 1.2x, 0.8x; pure noise (a surface in every cell) 42x, 43x, 45x.
+# 2x covers every trained field measured and leaves room for the vertices' colours and normals queried after
+# it; a field of pure noise is no scene and may still run out.
+MARCHING_CUBES_FACTOR = 2.0
+SLAB_POINTS = 2_000_000      # grid points per density query (one slab of x-planes)
+SLAB_BYTES_PER_POINT = 64    # a slab's points (float64, then float32 for the devices) and their densities
+MEMORY_SHARE = 0.75          # of this host's available memory, the most an export may plan to take
+# Marching cubes on one core: 18-25 million grid points a second (measured at N = 128, 256 on a 2-core test machine).
+MARCHING_CUBES_POINTS_PER_SECOND = 20e6
+SAY_ESTIMATE_SECONDS = 30.0  # an export expected to take longer says its time up front
 
 
 def define_flags(flag_values) -> None:
@@ -41,6 +64,68 @@ def check(args) -> None:
     import skimage.measure  # noqa: F401
   except ImportError:
     raise UserError(f"{MISSING}.") from None
+  check_memory(args.resolution)
+
+
+def memory_bytes(n: int) -> int:
+  """What a mesh export at --resolution=n takes at its peak: the n^3 float32 density grid, marching cubes'
+  working memory (MARCHING_CUBES_FACTOR grids) and one slab of query points."""
+  return int(4 * n ** 3 * (1 + MARCHING_CUBES_FACTOR) + SLAB_BYTES_PER_POINT * min(n ** 3, max(n * n, SLAB_POINTS)))
+
+
+def available_memory_bytes() -> int:
+  """This host's memory available to a new allocation (MemAvailable: free plus reclaimable caches), or the
+  free pages where /proc/meminfo is not."""
+  try:
+    with open("/proc/meminfo") as meminfo:
+      for line in meminfo:
+        if line.startswith("MemAvailable:"):
+          return int(line.split()[1]) * 1024
+  except OSError:
+    pass
+  return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def largest_resolution(budget: float) -> int:
+  """The largest n whose export fits in `budget` bytes (0 if not even the smallest does)."""
+  n = int(round((max(budget, 0) / (4 * (1 + MARCHING_CUBES_FACTOR))) ** (1 / 3))) + 1
+  while n > 0 and memory_bytes(n) > budget:
+    n -= 1
+  return n
+
+
+def _gib(size: float) -> str:
+  return f"{size / 2 ** 30:.1f} GiB" if size >= 2 ** 30 else f"{size / 2 ** 20:.0f} MiB"
+
+
+def check_memory(n: int) -> None:
+  """Refuses, before any work, a --resolution whose grid and marching cubes would not fit in this host's
+  available memory (MEMORY_SHARE of it), naming the largest one that would."""
+  need, available = memory_bytes(n), available_memory_bytes()
+  if need <= MEMORY_SHARE * available:
+    return
+  fits = largest_resolution(MEMORY_SHARE * available)
+  way_out = (f"pass --resolution={fits} or less" if fits >= 8
+             else "free some memory (not even --resolution=8 fits)")
+  raise UserError(f"--resolution={n} would take about {_gib(need)} of memory (its {n}^3 density grid and marching "
+                  f"cubes' working memory) but this host has {_gib(available)} available; {way_out}.")
+
+
+def _duration(seconds: float) -> str:
+  if seconds < 120:
+    return f"{seconds:.0f} s"
+  if seconds < 7200:
+    return f"{seconds / 60:.0f} min"
+  return f"{seconds / 3600:.1f} h"
+
+
+def _queries_per_second(query, points_Nx3) -> float:
+  """Field queries a second on this host's devices, timed on one query of `points_Nx3` after a first that
+  compiles the program (the density pass uses that same program and chunk size)."""
+  query.density(points_Nx3)
+  started = time.perf_counter()
+  query.density(points_Nx3)
+  return len(points_Nx3) / max(time.perf_counter() - started, 1e-9)
 
 
 def export(args, trained: trained_lib.Trained, out: str) -> dict:
@@ -55,13 +140,24 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
   query = trained_lib.FieldQuery(trained, max(config.eval.chunk, 65536))
   density = np.empty((n, n, n), np.float32)
   plane = np.stack(np.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
-  slabs = max(1, min(n, 2_000_000 // (n * n)))  # x-planes per query: ~2M points
+  slabs = max(1, min(n, SLAB_POINTS // (n * n)))  # x-planes per query: ~2M points
+  slab_of = lambda xs: np.concatenate([np.concatenate([np.full((len(plane), 1), x), plane], 1) for x in xs])
+  if n ** 3 >= 8 * query.chunk:  # worth a measurement: one chunk of the first slab, timed once compiled
+    rate = _queries_per_second(query, slab_of(axis[:slabs])[:query.chunk])
+    seconds = n ** 3 / rate + n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND
+    if seconds >= SAY_ESTIMATE_SECONDS:
+      trained_lib.say(f"mesh: a {n}^3 grid ({n ** 3:.3g} field queries at {rate:.3g} a second measured, then marching "
+                      f"cubes) takes about {_duration(seconds)} and {_gib(memory_bytes(n))} of memory")
   progress = trained_lib.Progress("mesh: density", n, "planes")
+  started = time.perf_counter()
   for start in range(0, n, slabs):
     xs = axis[start:start + slabs]
-    points = np.concatenate([np.concatenate([np.full((len(plane), 1), x), plane], 1) for x in xs])
-    density[start:start + len(xs)] = query.density(points).reshape(len(xs), n, n)
-    progress.update(start + len(xs))
+    density[start:start + len(xs)] = query.density(slab_of(xs)).reshape(len(xs), n, n)
+    done, spent = start + len(xs), time.perf_counter() - started
+    progress.update(done, f", about {_duration(spent * (n - done) / done)} left" if done < n else "")
+  if n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND >= SAY_ESTIMATE_SECONDS / 3:
+    trained_lib.say(f"mesh: marching cubes on the {n}^3 grid (about "
+                    f"{_duration(n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND)}, one core)")
   if not np.isfinite(density).all():
     raise UserError(f"the field's density is not finite at some grid points; the checkpoint of step {trained.step} "
                     f"is damaged or diverged.")
