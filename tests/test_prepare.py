@@ -396,6 +396,55 @@ def test_an_out_folder_that_holds_something_else_is_refused(tmp_path, capsys):
   assert code == 2 and "is a file; pass a folder path" in err
 
 
+def _jpegs(folder, n, truncate=()):
+  """n JPEG photos of the textured scene (160x120) in `folder`; those indexed in `truncate` cut to their first
+  half, as a copy that broke off."""
+  folder.mkdir(parents=True)
+  for i, c2w in enumerate(ring_poses(n)):
+    path = folder / f"photo_{i:02d}.jpg"
+    Image.fromarray(render_textured(c2w, 160, 120, 144.0)).save(path, quality=95)
+    if i in truncate:
+      data = path.read_bytes()
+      path.write_bytes(data[:len(data) // 2])
+  return folder
+
+
+def _no_features(*args, **kwargs):
+  raise AssertionError("feature extraction started")
+
+
+def test_an_out_that_cannot_be_written_is_one_sentence_before_any_work(tmp_path, capsys, monkeypatch):
+  monkeypatch.setattr(sfm, "stage_features", _no_features)
+  photos = _jpegs(tmp_path / "photos", 5)
+  (tmp_path / "afile").write_text("x")
+  for out in (tmp_path / "afile" / "capture", tmp_path / "afile" / "deeper" / "capture"):
+    code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={out}")
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"--out {out} is inside {tmp_path / 'afile'}, which is a file, not a folder; pass a folder path" in err
+    assert (tmp_path / "afile").read_text() == "x" and stdout == ""
+  # A folder this user may not write (as root, permissions do not bite: the probe is made to fail instead).
+  locked = tmp_path / "locked"
+  locked.mkdir()
+  if os.geteuid() != 0:
+    locked.chmod(0o500)
+  else:
+    def refused(folder):
+      raise PermissionError(13, "Permission denied", folder)
+    monkeypatch.setattr(prepare, "_probe", refused)
+  try:
+    code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={locked / 'new' / 'capture'}")
+  finally:
+    locked.chmod(0o700)
+  assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+  assert f"--out {locked / 'new' / 'capture'} cannot be written (Permission denied); pass a folder path" in err
+  assert os.listdir(locked) == [] and stdout == ""
+
+
+def test_the_out_probe_leaves_nothing(tmp_path):
+  prepare._probe(str(tmp_path / "a" / "b"))
+  assert os.listdir(tmp_path) == []
+
+
 @needs_pycolmap
 def test_too_few_images_registered_keeps_the_work_for_a_rerun(tmp_path, capsys):
   noise = tmp_path / "noise"

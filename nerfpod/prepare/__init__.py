@@ -108,8 +108,30 @@ def parse(argv) -> types.SimpleNamespace:
   return types.SimpleNamespace(**FLAGS.flag_values_dict())
 
 
+def _probe(folder: str):
+  """Makes `folder` (and the folders above it that are missing), writes and removes a file in it, then removes
+  the folders it made: OSError where this user cannot write there; nothing is left either way."""
+  missing, up = [], os.path.abspath(folder)
+  while not os.path.exists(up):
+    missing.append(up)
+    up = os.path.dirname(up)
+  try:
+    os.makedirs(folder, exist_ok=True)
+    probe = os.path.join(folder, f".nerfpod-prepare-probe-{os.getpid()}")
+    with open(probe, "w"):
+      pass
+    os.remove(probe)
+  finally:
+    for made in missing:  # deepest first
+      try:
+        os.rmdir(made)
+      except OSError:
+        break
+
+
 def _check_out(out: str, overwrite: bool, input_path: str):
-  """Refuses an --out that is not ours to write."""
+  """Refuses an --out that is not ours to write, before any work: its folder is probed (_probe), as the work
+  folder DIR.partial and DIR itself are made there."""
   if os.path.abspath(out) == os.path.abspath(input_path):
     raise UserError(f"--out {out} is the input itself; pass a new folder for the capture, e.g. "
                     f"--out={out}_capture.")
@@ -122,6 +144,18 @@ def _check_out(out: str, overwrite: bool, input_path: str):
     if not overwrite:
       raise UserError(f"--out {out} already holds a prepared capture; pass --overwrite to prepare it again, or "
                       f"choose another --out.")
+  parent = os.path.dirname(os.path.abspath(out))
+  above = parent
+  while not os.path.exists(above):
+    above = os.path.dirname(above)
+  if not os.path.isdir(above):
+    raise UserError(f"--out {out} is inside {above}, which is a file, not a folder; pass a folder path for the "
+                    f"capture (it is created).")
+  try:
+    _probe(parent)
+  except OSError as e:
+    raise UserError(f"--out {out} cannot be written ({e.strerror or e}); pass a folder path this user may "
+                    f"write.") from None
 
 
 def _load_state(work: str) -> dict:
