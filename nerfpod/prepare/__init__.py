@@ -98,6 +98,8 @@ flags.DEFINE_integer("threads", _threads(), "CPU threads (default: this machine'
                      flag_values=FLAGS)
 flags.DEFINE_bool("overwrite", False, "Start again: replace an earlier prepare's capture at --out and its "
                   "unfinished work.", flag_values=FLAGS)
+flags.DEFINE_bool("skip_bad_images", False, "Photos: leave out those that are damaged (truncated, or not "
+                  "decoding), with a warning naming them, rather than stopping.", flag_values=FLAGS)
 flags.DEFINE_bool("verbose", False, "Show COLMAP's own log.", flag_values=FLAGS)
 
 
@@ -173,6 +175,10 @@ def prepare(args) -> dict:
   src = frames.scan_input(args.input)
   out = os.path.normpath(args.out)
   _check_out(out, args.overwrite, args.input)
+  if src.kind == "photos":  # every photo decoded before the long stages; a damaged one named now
+    warning = frames.check_photos(src, args.skip_bad_images, args.threads)
+    if warning:
+      print(f"nerfpod: warning: {warning}", file=sys.stderr, flush=True)
   try:
     import pycolmap
   except ImportError as e:
@@ -291,7 +297,8 @@ def prepare(args) -> dict:
   summary = {
       "version": 1,
       "out": out,
-      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **info},
+      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **info,
+                **({"damaged_left_out": src.damaged} if src.damaged else {})},
       "options": {"num_frames": args.num_frames, "matching": matching, "mapper": args.mapper,
                   "cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size,
                   "min_registered": args.min_registered, "threads": args.threads},
