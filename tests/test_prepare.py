@@ -370,13 +370,17 @@ def test_bad_inputs_are_one_sentence_and_exit_2(tmp_path, capsys):
   write_video(short, [np.full((64, 64, 3), 60 * i, np.uint8) for i in range(3)])
   _bad(capsys, tmp_path, f"--input={short}", match="gave only 3 frame(s), and structure from motion needs at least 5")
   assert not (tmp_path / "capture.partial").exists()  # the input's fault: no work kept
+  cut = tmp_path / "cut.mp4"  # a copy that broke off (ffmpeg writes the index last, so it is lost)
+  cut.write_bytes(short.read_bytes()[:short.stat().st_size // 2])
+  _bad(capsys, tmp_path, f"--input={cut}", match="cut.mp4 is not a video that ffmpeg can read")
   mixed = tmp_path / "mixed"
   mixed.mkdir()
   for i in range(5):
     Image.new("RGB", (40, 30) if i else (30, 40)).save(mixed / f"{i}.png")
   _bad(capsys, tmp_path, f"--input={mixed}", "--cameras=shared", match="--cameras=shared needs images of one size")
   (mixed / "5.jpg").write_bytes(b"\xff\xd8 broken")
-  _bad(capsys, tmp_path, f"--input={mixed}", match="5.jpg is not a readable image")
+  _bad(capsys, tmp_path, f"--input={mixed}",
+       match="5.jpg is damaged (cannot identify image file); remove it, or pass --skip_bad_images")
 
 
 def test_an_out_folder_that_holds_something_else_is_refused(tmp_path, capsys):
@@ -394,6 +398,126 @@ def test_an_out_folder_that_holds_something_else_is_refused(tmp_path, capsys):
   (tmp_path / "afile").write_text("x")
   code, _, err = run_prepare(capsys, f"--input={photos}", f"--out={tmp_path / 'afile'}")
   assert code == 2 and "is a file; pass a folder path" in err
+
+
+def _jpegs(folder, n, truncate=()):
+  """n JPEG photos of the textured scene (160x120) in `folder`; those indexed in `truncate` cut to their first
+  half, as a copy that broke off."""
+  folder.mkdir(parents=True)
+  for i, c2w in enumerate(ring_poses(n)):
+    path = folder / f"photo_{i:02d}.jpg"
+    Image.fromarray(render_textured(c2w, 160, 120, 144.0)).save(path, quality=95)
+    if i in truncate:
+      data = path.read_bytes()
+      path.write_bytes(data[:len(data) // 2])
+  return folder
+
+
+def _no_features(*args, **kwargs):
+  raise AssertionError("feature extraction started")
+
+
+def test_a_damaged_photo_is_named_before_any_feature_extraction(tmp_path, capsys, monkeypatch):
+  monkeypatch.setattr(sfm, "stage_features", _no_features)
+  photos = _jpegs(tmp_path / "photos", 6, truncate=(3,))
+  out = tmp_path / "a" / "capture"
+  start = time.monotonic()
+  code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={out}")
+  assert code == 2 and "Traceback" not in err and err.count("\n") == 1, err
+  assert err.startswith(f"nerfpod: error: {photos / 'photo_03.jpg'} is damaged (image file is truncated"), err
+  assert err.rstrip().endswith("; remove it, or pass --skip_bad_images to go on without it."), err
+  assert time.monotonic() - start < 10 and "[2/5]" not in stdout
+  assert not (tmp_path / "a").exists()  # no --out, no work folder, not even the folder above them
+  # A rerun says the same (nothing was kept that would hide it), and several are one sentence.
+  assert run_prepare(capsys, f"--input={photos}", f"--out={out}")[2] == err
+  (photos / "photo_04.jpg").write_bytes(b"\xff\xd8 not a jpeg at all")
+  code, _, err = run_prepare(capsys, f"--input={photos}", f"--out={out}")
+  assert code == 2 and err.count("\n") == 1, err
+  assert f"2 images in {photos} are damaged: photo_03.jpg (image file is truncated" in err
+  assert "photo_04.jpg (cannot identify image file)" in err and "remove them, or pass --skip_bad_images" in err
+
+
+def test_skip_bad_images_leaves_the_damaged_photos_out(tmp_path, capsys, monkeypatch):
+  photos = _jpegs(tmp_path / "photos", 7, truncate=(1, 5))
+  out = tmp_path / "capture"
+
+  def stop(db_path, image_dir, names, *args):
+    assert names == [f"photo_{i:02d}.jpg" for i in (0, 2, 3, 4, 6)] == sorted(os.listdir(image_dir))
+    raise KeyboardInterrupt
+  monkeypatch.setattr(sfm, "stage_features", stop)
+  code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={out}", "--skip_bad_images")
+  assert code == 130, err
+  warning, interrupted = err.strip().splitlines()
+  assert warning.startswith(f"nerfpod: warning: leaving out 2 damaged image(s) in {photos} (--skip_bad_images): "
+                            f"photo_01.jpg (image file is truncated"), warning
+  assert "photo_05.jpg (" in warning and "the same command resumes" in interrupted
+  assert "linking 5 photos" in stdout
+  # Where too few are left, the too-few sentence says why.
+  (photos / "photo_06.jpg").unlink()
+  code, _, err = run_prepare(capsys, f"--input={photos}", f"--out={out}", "--skip_bad_images", "--overwrite")
+  assert code == 2 and "holds 4 image(s) (after leaving out 2 damaged), and structure from motion needs at " \
+      "least 5" in err, err
+
+
+def test_damaged_photos_decision(tmp_path):
+  """check_photos: what decodes stays; a truncated JPEG or PNG, or a file that is no image, is damaged; the
+  sentence names at most MAX_NAMED of them; PIL's LOAD_TRUNCATED_IMAGES, where something turned it on, is off
+  while checking and restored after."""
+  from PIL import ImageFile
+  folder = _jpegs(tmp_path / "p", 6, truncate=(0,))
+  Image.fromarray(render_textured(ring_poses(1)[0], 160, 120, 144.0)).save(folder / "z.png")
+  data = (folder / "z.png").read_bytes()
+  (folder / "z.png").write_bytes(data[:len(data) // 2])
+  assert frames.decode_error(str(folder / "photo_01.jpg")) is None
+  assert "truncated" in frames.decode_error(str(folder / "photo_00.jpg"))
+  assert frames.decode_error(str(folder / "z.png"))
+  ImageFile.LOAD_TRUNCATED_IMAGES = True
+  try:
+    src = frames.scan_input(str(folder))
+    with pytest.raises(UserError, match=r"2 images in .* are damaged: photo_00.jpg \(image file is truncated"):
+      frames.check_photos(src, skip_bad=False, threads=2)
+    assert ImageFile.LOAD_TRUNCATED_IMAGES
+  finally:
+    ImageFile.LOAD_TRUNCATED_IMAGES = False
+  warning = frames.check_photos(src, skip_bad=True)
+  assert src.files == [f"photo_{i:02d}.jpg" for i in range(1, 6)] and len(src.sizes) == len(src.rotated) == 5
+  assert "leaving out 2 damaged image(s)" in warning and "photo_00.jpg (" in warning and "z.png (" in warning
+  many = {f"{i}.jpg": "image file is truncated" for i in range(8)}
+  message = frames.damaged_message("dir", many)
+  assert message.startswith("8 images in dir are damaged: 0.jpg (image file is truncated), ") and \
+      "4.jpg (image file is truncated) and 3 more; remove them" in message and "5.jpg" not in message
+
+
+def test_an_out_that_cannot_be_written_is_one_sentence_before_any_work(tmp_path, capsys, monkeypatch):
+  monkeypatch.setattr(sfm, "stage_features", _no_features)
+  photos = _jpegs(tmp_path / "photos", 5)
+  (tmp_path / "afile").write_text("x")
+  for out in (tmp_path / "afile" / "capture", tmp_path / "afile" / "deeper" / "capture"):
+    code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={out}")
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"--out {out} is inside {tmp_path / 'afile'}, which is a file, not a folder; pass a folder path" in err
+    assert (tmp_path / "afile").read_text() == "x" and stdout == ""
+  # A folder this user may not write (as root, permissions do not bite: the probe is made to fail instead).
+  locked = tmp_path / "locked"
+  locked.mkdir()
+  if os.geteuid() != 0:
+    locked.chmod(0o500)
+  else:
+    def refused(folder):
+      raise PermissionError(13, "Permission denied", folder)
+    monkeypatch.setattr(prepare, "_probe", refused)
+  try:
+    code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={locked / 'new' / 'capture'}")
+  finally:
+    locked.chmod(0o700)
+  assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+  assert f"--out {locked / 'new' / 'capture'} cannot be written (Permission denied); pass a folder path" in err
+  assert os.listdir(locked) == [] and stdout == ""
+
+
+def test_the_out_probe_leaves_nothing(tmp_path):
+  prepare._probe(str(tmp_path / "a" / "b"))
+  assert os.listdir(tmp_path) == []
 
 
 @needs_pycolmap

@@ -98,6 +98,8 @@ flags.DEFINE_integer("threads", _threads(), "CPU threads (default: this machine'
                      flag_values=FLAGS)
 flags.DEFINE_bool("overwrite", False, "Start again: replace an earlier prepare's capture at --out and its "
                   "unfinished work.", flag_values=FLAGS)
+flags.DEFINE_bool("skip_bad_images", False, "Photos: leave out those that are damaged (truncated, or not "
+                  "decoding), with a warning naming them, rather than stopping.", flag_values=FLAGS)
 flags.DEFINE_bool("verbose", False, "Show COLMAP's own log.", flag_values=FLAGS)
 
 
@@ -108,8 +110,30 @@ def parse(argv) -> types.SimpleNamespace:
   return types.SimpleNamespace(**FLAGS.flag_values_dict())
 
 
+def _probe(folder: str):
+  """Makes `folder` (and the folders above it that are missing), writes and removes a file in it, then removes
+  the folders it made: OSError where this user cannot write there; nothing is left either way."""
+  missing, up = [], os.path.abspath(folder)
+  while not os.path.exists(up):
+    missing.append(up)
+    up = os.path.dirname(up)
+  try:
+    os.makedirs(folder, exist_ok=True)
+    probe = os.path.join(folder, f".nerfpod-prepare-probe-{os.getpid()}")
+    with open(probe, "w"):
+      pass
+    os.remove(probe)
+  finally:
+    for made in missing:  # deepest first
+      try:
+        os.rmdir(made)
+      except OSError:
+        break
+
+
 def _check_out(out: str, overwrite: bool, input_path: str):
-  """Refuses an --out that is not ours to write."""
+  """Refuses an --out that is not ours to write, before any work: its folder is probed (_probe), as the work
+  folder DIR.partial and DIR itself are made there."""
   if os.path.abspath(out) == os.path.abspath(input_path):
     raise UserError(f"--out {out} is the input itself; pass a new folder for the capture, e.g. "
                     f"--out={out}_capture.")
@@ -122,6 +146,18 @@ def _check_out(out: str, overwrite: bool, input_path: str):
     if not overwrite:
       raise UserError(f"--out {out} already holds a prepared capture; pass --overwrite to prepare it again, or "
                       f"choose another --out.")
+  parent = os.path.dirname(os.path.abspath(out))
+  above = parent
+  while not os.path.exists(above):
+    above = os.path.dirname(above)
+  if not os.path.isdir(above):
+    raise UserError(f"--out {out} is inside {above}, which is a file, not a folder; pass a folder path for the "
+                    f"capture (it is created).")
+  try:
+    _probe(parent)
+  except OSError as e:
+    raise UserError(f"--out {out} cannot be written ({e.strerror or e}); pass a folder path this user may "
+                    f"write.") from None
 
 
 def _load_state(work: str) -> dict:
@@ -139,6 +175,10 @@ def prepare(args) -> dict:
   src = frames.scan_input(args.input)
   out = os.path.normpath(args.out)
   _check_out(out, args.overwrite, args.input)
+  if src.kind == "photos":  # every photo decoded before the long stages; a damaged one named now
+    warning = frames.check_photos(src, args.skip_bad_images, args.threads)
+    if warning:
+      print(f"nerfpod: warning: {warning}", file=sys.stderr, flush=True)
   try:
     import pycolmap
   except ImportError as e:
@@ -257,7 +297,8 @@ def prepare(args) -> dict:
   summary = {
       "version": 1,
       "out": out,
-      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **info},
+      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **info,
+                **({"damaged_left_out": src.damaged} if src.damaged else {})},
       "options": {"num_frames": args.num_frames, "matching": matching, "mapper": args.mapper,
                   "cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size,
                   "min_registered": args.min_registered, "threads": args.threads},
