@@ -4,6 +4,7 @@ resume after SIGKILL, elastic restore, preemption by SIGTERM, a dead peer, and a
 Every run is the same 24-step job; its uninterrupted result on 1 process x 8 devices (this pytest process)
 is the reference every other run must end at.
 """
+import json
 import os
 import random
 import re
@@ -26,7 +27,7 @@ pytestmark = pytest.mark.slow
 NUM_STEPS = 24
 OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.every_steps": 6,
              "checkpoint.max_to_keep": 3, "train.log_every": 10, "train.image_every": 0,
-             "eval.max_views": 1, "orbit.render_after_training": False,
+             "eval.max_views": 2, "orbit.render_after_training": False,
              # Real captures' per-frame appearance codes, replicated and averaged like the rest: the equality and
              # resume checks below cover them too. (Pose refinement, which makes every step about 80% dearer,
              # is checked 8 devices against 1 and through a resume in tests/test_per_frame.py.)
@@ -86,6 +87,11 @@ def test_two_processes_as_two_slices_and_one_device_follow_the_same_trajectory(r
     pod.wait_ok(RUN_TIMEOUT)
   assert "2 process(es), 8 device(s) in 2 slices" in pod.output(0)
   assert_params_close(tmp_path / "pod", reference["params"], **SAME_SUMS)
+  # The same parameters, bit for bit, evaluated by the 2 processes (each rendering its share of every view's
+  # rays) give exactly 1 process's eval/metrics.json: every view's PSNR and SSIM, and their means.
+  pod_metrics = json.loads((tmp_path / "pod" / "eval" / "metrics.json").read_text())
+  assert len(pod_metrics["views"]) == 2
+  assert pod_metrics == json.loads((reference["workdir"] / "eval" / "metrics.json").read_text())
 
   # Each process loaded its own half of every global batch, and the halves make up the whole batch.
   config = smoke_config(**OVERRIDES)
