@@ -218,9 +218,9 @@ def local_shards(num_shards: int, mesh: Mesh | None = None) -> tuple[tuple[int, 
 def to_global(mesh: Mesh, local_tree):
   """Host-local batch slices (leading axis) -> global arrays sharded over the mesh's data axis. The whole tree
   in one call: with one process, one batched transfer instead of one per leaf (the training loop makes a batch
-  every step, on the cores the step computes on)."""
-  # The transfer itself, so allowed where a transfer guard is on (the tests': nerfpod.run.train.TRANSFER_GUARD):
-  # with several processes, JAX counts its copy to the devices as an implicit one.
+  every step, on the cores the step computes on). An explicit host -> device transfer: with several processes
+  JAX builds the arrays through make_array_from_callback, whose puts jax.transfer_guard counts as implicit
+  (with one process it is a jax.device_put), so the training loop's guard (train.TRANSFER_GUARD) allows it here."""
   with jax.transfer_guard_host_to_device("allow"):
     return jax.make_array_from_process_local_data(batch_sharding(mesh), jax.tree.map(np.asarray, local_tree))
 

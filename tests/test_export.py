@@ -244,6 +244,68 @@ def test_cameras_round_trip_through_the_nerfstudio_loader_to_the_same_rays(smoke
       np.testing.assert_allclose(got[1], want[1], atol=2e-5)
 
 
+def test_points_mesh_and_depth_in_the_captures_frame_are_the_normalized_ones_through_the_inverse_similarity(
+    smoke_workdir, tmp_path):
+  """With a capture -> scene similarity T(X) = s R (X - c) in scene.json (s != 1, a rotation, a translation), the
+  point cloud's points and normals, the mesh's vertices and normals, and the depth maps (with their poses)
+  written in the capture's frame are the --normalized export's through T's inverse, computed here in closed
+  form: X = R^T Y / s + c, normals R^T n, depths / s."""
+  import json
+  import re
+  import shutil
+  from nerfpod.nerf import poses as pose_math
+  workdir = tmp_path / "run"
+  shutil.copytree(smoke_workdir, workdir)
+  scale, angle, center = 0.25, 0.7, np.array([3.0, -1.0, 2.0])
+  rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+  scene_json = json.loads((workdir / "scene.json").read_text())
+  scene_json["capture_to_scene"] = pose_math.similarity(scale, rotation, center).tolist()
+  (workdir / "scene.json").write_text(json.dumps(scene_json))
+
+  def to_capture(points):
+    return np.asarray(points, np.float64) @ rotation / scale + center  # row-wise R^T y / s + c
+
+  def xyz(vertex, names="xyz"):
+    return np.stack([vertex[n] for n in names], 1).astype(np.float64)
+
+  def both(kind, *flags):
+    """The export in the capture's frame and --normalized, each read back."""
+    got = {}
+    for name, extra in (("capture", ()), ("normalized", ("--normalized",))):
+      out = tmp_path / f"{kind}_{name}{'' if kind == 'depth' else '.ply'}"
+      _export(kind, f"--workdir={workdir}", f"--out={out}", *flags, *extra)
+      got[name] = out if kind == "depth" else _read_ply(out)
+    return got["capture"], got["normalized"]
+
+  capture, normalized = both("pointcloud", "--num_points=200", "--min_opacity=0.05")
+  a, b = capture["vertex"], normalized["vertex"]
+  assert len(a) == len(b) > 0
+  assert np.abs(to_capture(xyz(b)) - xyz(b)).max() > 1  # a far-off frame: the comparison below can tell
+  np.testing.assert_allclose(xyz(a), to_capture(xyz(b)), rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(xyz(a, ("nx", "ny", "nz")), xyz(b, ("nx", "ny", "nz")) @ rotation, atol=1e-5)
+  np.testing.assert_array_equal(xyz(a, ("red", "green", "blue")), xyz(b, ("red", "green", "blue")))
+
+  with pytest.raises(UserError, match=r"spans (\S+) to (\S+)\)") as refused:  # the 20-step density's range
+    _export("mesh", f"--workdir={workdir}", f"--out={tmp_path / 'none.ply'}", "--resolution=16", "--level=1e9")
+  low, high = map(float, re.search(r"spans (\S+) to (\S+)\)", str(refused.value)).groups())
+  capture, normalized = both("mesh", "--resolution=16", f"--level={(low + high) / 2}")
+  a, b = capture["vertex"], normalized["vertex"]
+  assert len(a) == len(b) > 0
+  np.testing.assert_array_equal(capture["face"]["vertex_indices"], normalized["face"]["vertex_indices"])
+  np.testing.assert_allclose(xyz(a), to_capture(xyz(b)), rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(xyz(a, ("nx", "ny", "nz")), xyz(b, ("nx", "ny", "nz")) @ rotation, atol=1e-5)
+
+  capture, normalized = both("depth", "--split=test", "--format=npy", "--min_opacity=0.1")
+  views = [json.loads((folder / "depth.json").read_text())["views"] for folder in (capture, normalized)]
+  for a, b in list(zip(*views))[:2]:
+    depth_a, depth_b = np.load(capture / a["file"]), np.load(normalized / b["file"])
+    assert (depth_b > 0).any()
+    np.testing.assert_allclose(depth_a, depth_b / scale, rtol=1e-5)
+    pose_a, pose_b = np.asarray(a["transform_matrix"]), np.asarray(b["transform_matrix"])
+    np.testing.assert_allclose(pose_a[:3, 3], to_capture(pose_b[None, :3, 3])[0], atol=1e-9)
+    np.testing.assert_allclose(pose_a[:3, :3], rotation.T @ pose_b[:3, :3], atol=1e-9)
+
+
 def test_a_pose_refined_run_exports_its_training_frames_corrected_poses(smoke_workdir, tmp_path):
   """Training frames: the corrected pose (in the capture's frame) and the given one beside it; held-out frames:
   their given poses."""

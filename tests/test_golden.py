@@ -61,3 +61,41 @@ def test_under_users_own_compiler_flags_the_smoke_job_gives_the_same_recorded_va
   assert sorted(losses) == list(range(1, 21)), message
   assert got == pytest.approx(LOSSES, rel=RTOL, abs=0), message
   assert got_eval == pytest.approx(EVAL, rel=RTOL, abs=0), message
+
+
+# The README's headline (README.md, docs/results.md): the default job's mean PSNR, SSIM and LPIPS (AlexNet) over
+# the 8 test views, per CPU vendor (XLA:CPU's code differs by instruction set, and so do the last bits of a
+# 1,500-step run). The Xeon's: 2026-11-25, commit 50076e9 (docs/results.md); the EPYC's: 2026-11-27, commit
+# 124c5be (this test's first run: 28.990986 dB, SSIM 0.9626169, LPIPS 0.0139422; 3 min 45 s, the machine shared).
+HEADLINE = {"GenuineIntel": {"psnr": 28.8156, "ssim": 0.96159, "lpips": 0.013436},
+            "AuthenticAMD": {"psnr": 28.9910, "ssim": 0.96262, "lpips": 0.013942}}
+
+
+def _cpu_vendor() -> str:
+  import pathlib
+  cpuinfo = pathlib.Path("/proc/cpuinfo")
+  lines = cpuinfo.read_text().splitlines() if cpuinfo.exists() else []
+  return next((l.split(":", 1)[1].strip() for l in lines if l.startswith("vendor_id")), "unknown")
+
+
+@pytest.mark.slow  # the whole default job (1,500 steps, the 8 test views with LPIPS): minutes on 2 cores
+def test_the_default_job_gives_the_readmes_headline_metrics(tmp_path):
+  """`nerfpod train --config=configs/default.py` as a user runs it (one CPU device, XLA's default flags) gives
+  the README's mean PSNR, SSIM and LPIPS to 4 significant digits: the figures recorded for this machine's CPU
+  vendor (HEADLINE). Another CPU of the same vendor may differ in the last digits (another instruction set,
+  other code from XLA:CPU); on a known vendor a change of the figures fails here, so the README is re-measured
+  with it. (Without the orbit, which computes nothing that training or evaluation do.)"""
+  import json
+  import procs
+  vendor = _cpu_vendor()
+  if vendor not in HEADLINE:
+    pytest.skip(f"no headline figures recorded for CPU vendor {vendor!r} (only {sorted(HEADLINE)})")
+  result = procs.run_main("--config=configs/default.py", f"--workdir={tmp_path}",
+                          "--config.orbit.render_after_training=False", devices_per_process=1,
+                          env={"XLA_FLAGS": ""}, timeout=900)
+  assert result.returncode == 0, result.stderr[-3000:]
+  metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+  assert metrics["step"] == 1500 and metrics["split"] == "test" and len(metrics["views"]) == 8
+  got = {k: f"{metrics['mean'][k]:.4g}" for k in HEADLINE[vendor]}
+  want = {k: f"{v:.4g}" for k, v in HEADLINE[vendor].items()}
+  assert got == want, f"{vendor}: README's {want}, got {got} (full: {metrics['mean']})"

@@ -112,6 +112,7 @@ def test_a_tree_is_averaged_in_one_exchange_per_dtype_with_each_leafs_own_bits()
   on_devices = jax.tree.map(lambda v: jax.device_put(v, NamedSharding(mesh, P(axes))), tree)
   together = jax.device_get(mean(on_devices))
   hlo = mean.lower(on_devices).compile().as_text()
+  # XLA's HLO op name (jaxlib 0.10.2): renamed, nothing is found and the count fails.
   assert len(re.findall(r"= \S+ collective-permute(-start)?\(", hlo)) == 3 * 2, hlo.count("collective-permute")
   for name in tree:
     want = np.asarray(mean(on_devices[name]))[0]

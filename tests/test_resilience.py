@@ -277,6 +277,7 @@ def test_the_loop_moves_data_between_host_and_devices_only_explicitly(tmp_path, 
       self.pending[1]["loss"] * 2.0  # a host value (2.0) sent to the device without jax.device_put
 
   monkeypatch.setattr(train.StepLog, "flush", flush_implicitly)
+  # JAX's wording (jax 0.10.2); a JAX that words it otherwise fails the match, and the test with it.
   with pytest.raises(jax.errors.JaxRuntimeError, match="Disallowed host-to-device transfer"):
     modes.train_and_evaluate(smoke_config(**{"train.num_steps": 2}), str(tmp_path))
 

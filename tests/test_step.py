@@ -124,9 +124,11 @@ def test_cpu_compiler_options_change_kernels_not_results():
   hlo_default, hlo_ours = [], []
   losses_default, params_default = _run_steps(mesh, config, 3, sgd, hlo=hlo_default)
   losses_ours, params_ours = _run_steps(mesh, config, 3, sgd, compiler_options=options, hlo=hlo_ours)
+  # XLA:CPU's name for the fusions it hands to YNNPACK (jaxlib 0.10.2): where a jaxlib no longer makes them by
+  # default, or names them otherwise, both checks would see nothing, so that fails here (look again at whether
+  # compilation.CPU_WITHOUT_YNNPACK is still needed, and at what the HLO now calls them).
+  assert "__ynn_fusion" in hlo_default[0], "no __ynn_fusion in the step compiled with XLA's defaults"
   assert "__ynn_fusion" not in hlo_ours[0]
-  if "__ynn_fusion" not in hlo_default[0]:
-    pytest.skip("this jaxlib's XLA no longer hands the step to YNNPACK by default: nothing to compare")
   np.testing.assert_allclose(losses_ours, losses_default, rtol=1e-5)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_ours, params_default)
 
