@@ -2,7 +2,10 @@
 nerfpod.run.modes.train_and_evaluate, must give the training losses and held-out metrics recorded here, so that a
 change that shifts results everywhere (a model, sampling, optimiser or data change) no longer passes unseen.
 
-The tolerance, rtol 1e-5, from measurements (2-core x86 CPU, jax 0.8, the code of 2025-11):
+The values were recorded with jax 0.8 and the code of 2025-11, and still hold with today's pins
+(constraints.txt: jax/jaxlib 0.10.2, flax 0.12.8, optax 0.2.8, orbax-checkpoint 0.12.8; checked again on
+2026-11-27 after the package's renovation, on an AMD EPYC). The tolerance, rtol 1e-5, from measurements
+(2-core x86 CPU, jax 0.8, the code of 2025-11):
 - between runs of the same code: the same bits (the whole job is deterministic: losses, parameters, metrics
   and orbit frames; also the same bits as the commit before the package's restructuring, 2bfd0b1);
 - between device counts (1, 2, 4 and 8 devices, one process), the summation order of the gradient mean
