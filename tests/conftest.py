@@ -6,6 +6,7 @@ import tempfile
 
 import jax
 
+import gcs  # (imports no JAX; sets gcsfs's settings before any test imports it)
 import procs  # (imports no JAX)
 
 # The test processes' XLA flags (procs.TEST_XLA_FLAGS: the same bits, compiled in less time), set before JAX
@@ -99,6 +100,20 @@ def smoke_run(tmp_path_factory):
     patch.setattr(monitor, "Monitor", Recording)
     metrics = modes.train_and_evaluate(smoke_config(**SMOKE_RUN_OVERRIDES, **SMOKE_RUN_EVAL), str(workdir))
   return types.SimpleNamespace(workdir=workdir, losses=losses, metrics=metrics)
+
+
+@pytest.fixture(scope="module")
+def emulator(tmp_path_factory):
+  """tests/gcs.py's Cloud Storage emulator (skips, saying why, where the test extra lacks it), with this
+  process's environment pointing every storage client at it."""
+  with gcs.Emulator(tmp_path_factory.mktemp("emulator") / "emulator.log") as server:
+    with pytest.MonkeyPatch.context() as patch:
+      for name, value in server.env.items():
+        patch.setenv(name, value)
+      import gcsfs
+      gcsfs.GCSFileSystem.clear_instance_cache()  # one made for another emulator keeps its address
+      yield server
+      gcsfs.GCSFileSystem.clear_instance_cache()
 
 
 # The longest test files, with their seconds in a whole run on the 2-core machine (2026-11-25, commit 8c2adbc,

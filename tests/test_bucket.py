@@ -4,8 +4,6 @@ data.kind=auto too); a missing object, or no way to reach the storage, is one se
 trained from a bucket scene into a bucket workdir, killed and run again, ends with the parameters, metrics
 and orbit frames of the same job run uninterrupted on local files."""
 import json
-import os
-import pathlib
 import time
 
 import jax
@@ -13,7 +11,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-import gcs
 import procs
 from conftest import smoke_config
 from nerfpod.render import archive as archives
@@ -24,19 +21,6 @@ from nerfpod.scenes import procedural
 from test_captures import CAPTURE_KINDS as CAPTURES, data_config as _config, write_capture_kinds, write_images
 
 SIZE = 16  # the loaders' scenes: the procedural scene's first frames at 16x16, images_2/ at 8x8
-
-
-@pytest.fixture(scope="module")
-def emulator(tmp_path_factory):
-  """The emulator, with this process's environment pointing every storage client at it."""
-  with gcs.Emulator(tmp_path_factory.mktemp("emulator") / "emulator.log") as server:
-    with pytest.MonkeyPatch.context() as patch:
-      for name, value in server.env.items():
-        patch.setenv(name, value)
-      import gcsfs
-      gcsfs.GCSFileSystem.clear_instance_cache()  # one made for another emulator keeps its address
-      yield server
-      gcsfs.GCSFileSystem.clear_instance_cache()
 
 
 def write_blender(root, scene, splits=("train", "val", "test")):

@@ -88,7 +88,8 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
               "absl": "absl-py", "tensorboardX": "tensorboardx", "PIL": "pillow", "imageio": "imageio",
               "etils": "etils", "viser": "viser", "pycolmap": "pycolmap",
               "imageio_ffmpeg": "imageio-ffmpeg", "wandb": "wandb", "skimage": "scikit-image", "fsspec": "fsspec",
-              "jax_plugins": "jax"}  # (the namespace JAX finds its PJRT plugins in, e.g. a GPU's)
+              "jax_plugins": "jax",  # (the namespace JAX finds its PJRT plugins in, e.g. a GPU's)
+              "google": "google-cloud-storage"}  # (google.cloud.storage, and google.auth that it brings)
   import ast
   found = set()
   for path in (REPO / "nerfpod").rglob("*.py"):

@@ -6,26 +6,10 @@ import os
 import socket
 import time
 
-import pytest
-
-import gcs
 from nerfpod import monitor
 
 FLUSHES = 40  # a run's flushes: the whole-file writer sends about FLUSHES / 2 times its events
 TAGS = ("train/loss", "train/psnr", "train/learning_rate")
-
-
-@pytest.fixture(scope="module")
-def emulator(tmp_path_factory):
-  """The emulator, with this process's environment pointing every storage client at it."""
-  with gcs.Emulator(tmp_path_factory.mktemp("emulator") / "emulator.log") as server:
-    with pytest.MonkeyPatch.context() as patch:
-      for name, value in server.env.items():
-        patch.setenv(name, value)
-      import gcsfs
-      gcsfs.GCSFileSystem.clear_instance_cache()  # one made for another emulator keeps its address
-      yield server
-      gcsfs.GCSFileSystem.clear_instance_cache()
 
 
 def _value(tag: str, step: int) -> float:
