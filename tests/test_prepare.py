@@ -362,7 +362,10 @@ def test_bad_inputs_are_one_sentence_and_exit_2(tmp_path, capsys):
   _bad(capsys, tmp_path, f"--input={few / '0.png'}", match="is a single image")
   clip = tmp_path / "clip.mp4"
   clip.write_bytes(b"not a video at all" * 100)
-  _bad(capsys, tmp_path, f"--input={clip}", match="is not a video that ffmpeg can read")
+  line = _bad(capsys, tmp_path, f"--input={clip}", match="is not a video that ffmpeg can read")
+  # ffmpeg's own last line (FFmpeg 7's wording, imageio-ffmpeg's binary), never cut mid-word
+  assert "clip.mp4 is not a video that ffmpeg can read (Error opening input files: Invalid data found when " \
+         "processing input); pass a folder" in line, line
   text = tmp_path / "notes.txt"
   text.write_text("hello")
   _bad(capsys, tmp_path, f"--input={text}", match="is not a video (or a folder of photos) that ffmpeg can read")
@@ -742,3 +745,14 @@ def test_a_horns_video_prepares_into_a_capture_llff_trains_on(tmp_path, capsys):
   from nerfpod.render import archive as archives
   orbit = archives.Archive.open(str(workdir / "renders" / "orbit.zarr"))
   assert orbit.num_frames == 3 and orbit.missing_frames() == []
+
+
+def test_ffmpeg_reason_is_its_last_line_without_the_demuxer_prefix_cut_between_words():
+  from nerfpod.prepare import frames
+  error = RuntimeError("Could not load meta information\n=== stderr ===\nffmpeg version 7\n"
+                       "[mov,mp4,m4a,3gp,3g2,mj2 @ 0x558bb5b20cc0] moov atom not found\n")
+  assert frames.ffmpeg_reason(error) == "moov atom not found"
+  long = RuntimeError("[in#0 @ 0x55ba7ed2c040] " + " ".join(f"word{i}" for i in range(60)))
+  reason = frames.ffmpeg_reason(long, limit=50)
+  assert reason == "word0 word1 word2 word3 word4 word5 word6 word7 ..." and len(reason) <= 54
+  assert frames.ffmpeg_reason(OSError()) == "OSError"

@@ -204,6 +204,17 @@ def check_photos(src: Source, skip_bad: bool, threads: int = 1) -> str | None:
   return f"leaving out {len(damaged)} damaged image(s) in {src.path} (--skip_bad_images): {listed}"
 
 
+def ffmpeg_reason(error: BaseException, limit: int = 200) -> str:
+  """What ffmpeg said went wrong, for a sentence: the last line of `error`'s text (imageio-ffmpeg ends it with
+  ffmpeg's own stderr), less its '[demuxer @ 0x...]' prefix, at most `limit` characters cut between words."""
+  lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+  if not lines:
+    return type(error).__name__
+  last = re.sub(r"^\[[^\]]*@ 0x[0-9a-fA-F]+\]\s*", "", lines[-1])
+  last = " ".join(last.split())
+  return last if len(last) <= limit else last[:limit].rsplit(" ", 1)[0] + " ..."
+
+
 def probe_video(path: str) -> Source:
   import imageio_ffmpeg
   try:
@@ -213,7 +224,7 @@ def probe_video(path: str) -> Source:
     finally:
       gen.close()
   except (OSError, RuntimeError, StopIteration, ValueError) as e:
-    reason = " ".join(str(e).split())[-200:] or type(e).__name__
+    reason = ffmpeg_reason(e)
     kind = ("a video" if os.path.splitext(path)[1].lower() in VIDEO_EXTENSIONS else
             "a video (or a folder of photos)")
     raise UserError(f"{path} is not {kind} that ffmpeg can read ({reason}); pass a folder of .jpg/.png photos "
@@ -312,7 +323,7 @@ def extract_frames(src: Source, image_dir: str, num_frames: int) -> tuple[list[s
         progress.update(decoded, f", {len(kept)} kept")
     flush()
   except (OSError, RuntimeError) as e:
-    reason = " ".join(str(e).split())[-200:]
+    reason = ffmpeg_reason(e)
     raise UserError(f"ffmpeg stopped reading {src.path} after {decoded} of {total} frames ({reason}); re-encode "
                     f"it (ffmpeg -i IN -c:v libx264 OUT.mp4) and pass that.") from None
   finally:
