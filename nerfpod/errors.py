@@ -55,6 +55,10 @@ def parse_flags(command: str, about: str, flag_values: flags.FlagValues, args: S
     if "does not take an argument" in str(e):  # absl: --noflag=value
       name = str(e).split("=")[0].removeprefix("--no")
       fail(f"{_fold(str(e))}; a yes/no flag is given as --{name} or --no{name}.")
+    if isinstance(e, (AttributeError, KeyError)):
+      unknown = _unknown_override(str(e), args)
+      if unknown:
+        fail(unknown)
     fail(f"bad --config file or override ({_fold(str(e))}); the config file's fields say what each override "
          f"takes, and {see}.")  # ml_collections: a config file or override that does not apply
   if rest:
@@ -83,6 +87,24 @@ def flags_help(command: str, about: str, flag_values: flags.FlagValues, everythi
 def _own_flags(flag_values: flags.FlagValues) -> list[str]:
   return [f"--{name}" for module, defined in flag_values.flags_by_module_dict().items()
           if not module.startswith("absl") for name in sorted(f.name for f in defined)]
+
+
+def _unknown_override(message: str, args: Sequence[str]) -> str | None:
+  """The sentence for a --config.A.B.C=... override naming a field the config lacks (ml_collections' KeyError
+  or AttributeError names only the last part, and may suggest a field), with its whole path; None where no
+  override names it."""
+  named = re.search(r"\w+", message)
+  suggestion = re.search(r'Did you mean "(\w+)" instead of "(\w+)"', message)
+  name = suggestion.group(2) if suggestion else named.group(0) if named else None
+  for arg in args:
+    path = arg.removeprefix("--").split("=", 1)[0]
+    parts = path.split(".")
+    if parts[0] == "config" and name in parts[1:]:
+      section = ".".join(parts[1:parts.index(name, 1)])
+      hint = f" (did you mean {'.'.join(filter(None, [section, suggestion.group(1)]))}?)" if suggestion else ""
+      return (f"--{path}: {f'config section {section}' if section else 'the config'} has no field {name!r}{hint}; "
+              f"`python -m nerfpod.schema` lists every field, its values and what it means.")
+  return None
 
 
 def _fold(message: str) -> str:

@@ -54,7 +54,8 @@ def _one_sentence(out: subprocess.CompletedProcess, code: int = 2) -> str:
     (["--topology="], "--topology is empty; name the pod to compile for, e.g. --topology=v5e-64 (known pods: v4-8"),
     (["--topology=,"], "--topology is empty"),
     (["--config=configs/nope.py", "--topology=v5e-8"], "the --config file configs/nope.py does not exist"),
-    (["--topology=v5e-8", "--config.train.nope=3"], "bad --config file or override"),
+    (["--topology=v5e-8", "--config.train.nope=3"], "--config.train.nope: config section train has no field 'nope'; "
+                                                     "`python -m nerfpod.schema` lists every field"),
     (["--topology=v5e-8", "--config.train.num_steps=many"], "--config.train.num_steps=many: invalid literal"),
     (["--config=configs/default.py:nosuch", "--topology=v5e-8"], "unknown config argument 'nosuch'"),
     (["--topology=v5e-8", "--bogus"], "unknown flag --bogus; nerfpod aot takes --config, --json, --slices"),

@@ -246,3 +246,12 @@ def test_export_without_a_kind_lists_the_kinds_or_asks_for_one():
     done = _nerfpod(*words)
     assert done.returncode == 2 and done.stdout == "", done
     assert done.stderr.startswith("nerfpod: error: name what to export first") and done.stderr.count("\n") == 1
+
+
+def test_a_mistyped_nested_config_field_is_named_with_its_whole_path():
+  done = _nerfpod("train", "--config=configs/default.py:smoke", "--config.model.hashgrid.nmu_levels=4",
+                  "--workdir=/nonexistent/never")
+  assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+  assert done.stderr == ("nerfpod: error: --config.model.hashgrid.nmu_levels: config section model.hashgrid has no "
+                         "field 'nmu_levels' (did you mean model.hashgrid.num_levels?); `python -m nerfpod.schema` "
+                         "lists every field, its values and what it means.\n")
