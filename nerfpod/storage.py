@@ -7,6 +7,7 @@
     local_copy(paths)                local copies of files in a temporary folder (for readers of local files only)
     forget_listings()                what was listed of a bucket is listed again on the next look
     check_reachable(path)            one sentence at once where a URL's storage cannot be connected to
+    missing_bucket(url)              a URL's bucket where it does not exist (what a "not found" under it means)
     gcs_bucket(url)                  google-cloud-storage's Bucket of a gs:// URL, its object name, whose credentials
     path(p)                          the path object of what is written (a workdir's files, exports): etils.epath
 
@@ -180,6 +181,19 @@ def _info(path) -> dict | None:
     return _call(path, "read", fs.info, path)
   except FileNotFoundError:
     return None
+
+
+def missing_bucket(url) -> str | None:
+  """The bucket of a URL (gs://BUCKET/...) where it does not exist (or these credentials cannot see it), None
+  where it does or `url` is a local path: what a "not found" under it means."""
+  if not is_url(url):
+    return None
+  bucket = str(url).split("://", 1)[1].split("/", 1)[0]
+  root = f"{str(url).split('://', 1)[0]}://{bucket}"
+  try:
+    return None if _call(root, "list", _filesystem(root).exists, root) else bucket
+  except UserError:
+    return None  # unreachable: the caller's own sentence says more
 
 
 def isfile(path) -> bool:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+import gcs
 import procs
 from conftest import smoke_config
 from nerfpod.render import archive as archives
@@ -308,3 +309,14 @@ def test_the_smoke_job_from_and_into_a_bucket_is_killed_resumes_and_ends_as_a_lo
   assert missing.stderr.strip().splitlines()[-1] == (
       f"nerfpod: error: Blender scene folder '{url}-nope' not found; set --config.data.path to a folder holding "
       f"transforms_train.json.")
+
+
+def test_a_workdir_in_a_bucket_that_does_not_exist_is_named_as_such(emulator):
+  """What the exports and the viewer read first, config.json: under a bucket that does not exist the sentence
+  names the bucket, not a missing config.json (which it says where the bucket is there)."""
+  from nerfpod.workdir import files as workdir_files
+  with pytest.raises(UserError, match=r"^workdir gs://no-such-bucket/run: there is no bucket no-such-bucket \(or "
+                                      r"these credentials cannot see it\); check the --workdir path\.$"):
+    workdir_files.read_config("gs://no-such-bucket/run")
+  with pytest.raises(UserError, match=rf"^workdir gs://{gcs.BUCKET}/no-run holds no config.json; "):
+    workdir_files.read_config(f"gs://{gcs.BUCKET}/no-run")

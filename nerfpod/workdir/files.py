@@ -127,6 +127,10 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
   try:
     text = path.read_text()
   except FileNotFoundError:
+    bucket = storage.missing_bucket(workdir)
+    if bucket is not None:
+      raise UserError(f"workdir {workdir}: there is no bucket {bucket} (or these credentials cannot see it); "
+                      f"check the --workdir path.") from None
     raise UserError(f"workdir {workdir} holds no config.json; pass the --workdir of a training run "
                     f"(it writes config.json when it starts).") from None
   except Exception as e:  # noqa: BLE001 (gs:// without credentials or network, permissions, ...)
