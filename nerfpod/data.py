@@ -110,7 +110,10 @@ def ray_batches(split: Split, seed: int, batch_size: int, rows: slice, pixel_cen
       LocalRayBatch(split, seed, batch_size, rows, pixel_center, num_shards, with_frames))
 
 
-def iterator(dataset: grain.MapDataset, start_step: int, prefetch: int = 4, background: bool = True):
+PREFETCH = 4  # batches a background thread prepares ahead (on accelerators: nerfpod.run.components)
+
+
+def iterator(dataset: grain.MapDataset, start_step: int, prefetch: int = PREFETCH, background: bool = True):
   """An iterator from global batch `start_step` on, prepared `prefetch` batches ahead in a background thread,
   or (`background`=False) each in the caller's thread when it is asked for."""
   options = (grain.ReadOptions(num_threads=1, prefetch_buffer_size=prefetch) if background else

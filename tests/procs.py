@@ -77,21 +77,21 @@ def run_main(*args: str, devices_per_process: int = 1, timeout: float = 300,
 # Runs nerfpod.main.run() once per argv (JSON on stdin) in a child forked from one interpreter that has
 # imported nerfpod.main (absl, ml_collections, the schema; not JAX): each child parses its flags from scratch,
 # as `python -m nerfpod.main` would, without paying for the interpreter and the imports again.
-_FORKED_MAIN = r"""
+_FORKED = r"""
 import json, os, sys, tempfile
-from nerfpod import main
+IMPORTS
 results = []
 for argv in json.loads(sys.stdin.read()):
   with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
     sys.stdout.flush()
+    sys.stderr.flush()
     pid = os.fork()
     if pid == 0:
       os.dup2(out.fileno(), 1)
       os.dup2(err.fileno(), 2)
-      sys.argv = [main.__file__, *argv]
       code = 0
       try:
-        main.run()
+        CALL
       except SystemExit as e:
         if isinstance(e.code, str):
           print(e.code, file=sys.stderr)
@@ -111,17 +111,28 @@ print(json.dumps(results))
 """
 
 
-def run_main_each(argvs: list[list[str]], timeout: float = 300) -> list[subprocess.CompletedProcess]:
-  """What run_main(*argv) gives for each argv, for commands refused before any JAX work (bad flags or config
-  values): one interpreter imports nerfpod.main and forks a child per argv (_FORKED_MAIN). Not for --help
-  and its kin: absl lists the `__main__` module's flags, which here is the forking script."""
+def run_forked_each(imports: str, call: str, argvs: list[list[str]], env: dict,
+                    timeout: float = 300) -> list[tuple[int, str, str]]:
+  """(exit code, stdout, stderr) of `call` (one line of Python run with `argv` bound) for each argv, each in a
+  child forked from one interpreter that has run `imports` (lines of Python) once: the commands' own parsing and
+  refusals, without paying for the interpreter and the imports again."""
   import json
-  done = subprocess.run([sys.executable, "-c", _FORKED_MAIN], input=json.dumps(argvs), cwd=REPO,
-                        env=environment(1), capture_output=True, text=True, timeout=timeout)
+  script = _FORKED.replace("IMPORTS", imports).replace("CALL", call)
+  done = subprocess.run([sys.executable, "-c", script], input=json.dumps(argvs), cwd=REPO, env=env,
+                        capture_output=True, text=True, timeout=timeout)
   if done.returncode != 0:
     raise RuntimeError(f"the forking interpreter failed (exit {done.returncode}): {done.stderr[-3000:]}")
+  return [tuple(result) for result in json.loads(done.stdout.strip().splitlines()[-1])]
+
+
+def run_main_each(argvs: list[list[str]], timeout: float = 300) -> list[subprocess.CompletedProcess]:
+  """What run_main(*argv) gives for each argv, for commands refused before any JAX work (bad flags or config
+  values): one interpreter imports nerfpod.main and forks a child per argv (run_forked_each). Not for --help
+  and its kin: absl lists the `__main__` module's flags, which here is the forking script (run_forked_each)."""
+  results = run_forked_each("from nerfpod import main", "sys.argv = [main.__file__, *argv]; main.run()", argvs,
+                            environment(1), timeout)
   return [subprocess.CompletedProcess(["nerfpod.main", *argv], code, out, err)
-          for argv, (code, out, err) in zip(argvs, json.loads(done.stdout.strip().splitlines()[-1]), strict=True)]
+          for argv, (code, out, err) in zip(argvs, results, strict=True)]
 
 
 class Run:

@@ -1,6 +1,5 @@
 """The `nerfpod` command: its subcommands, their help, one sentence for a mistake; and the wheel, whose only
 top-level package is nerfpod."""
-import json
 import os
 import subprocess
 import sys
@@ -8,6 +7,7 @@ import zipfile
 
 import pytest
 
+import procs
 from conftest import REPO
 from nerfpod import cli
 
@@ -103,41 +103,11 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
   assert {imported[name] for name in third_party} <= required, sorted({imported[n] for n in third_party} - required)
 
 
-# Runs `nerfpod ARGV` (nerfpod.cli.run) for each ARGV (JSON on stdin), each in a child forked from one interpreter
-# that has imported every subcommand's module (not started JAX): each child parses its flags from scratch, as the
-# command does, without paying for the interpreter and the imports again. Prints [[exit code, stdout, stderr]].
-_FORKED_CLI = r"""
-import json, os, sys, tempfile
-from nerfpod import bench, cli, export, main, prepare, view
+# Every subcommand's module, imported once by the interpreter procs.run_forked_each forks a child from per
+# command line (JAX not started): each child parses its flags from scratch, as the command does.
+_CLI_IMPORTS = """from nerfpod import bench, cli, export, main, prepare, view
 from nerfpod.export import cameras, depth, mesh, pointcloud, video
-from nerfpod.pod import aot
-results = []
-for argv in json.loads(sys.stdin.read()):
-  with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
-    sys.stdout.flush()
-    sys.stderr.flush()
-    pid = os.fork()
-    if pid == 0:
-      os.dup2(out.fileno(), 1)
-      os.dup2(err.fileno(), 2)
-      code = 0
-      try:
-        cli.run(argv)
-      except SystemExit as e:
-        code = e.code if isinstance(e.code, int) else 1
-      except BaseException:
-        import traceback
-        traceback.print_exc()
-        code = 1
-      sys.stdout.flush()
-      sys.stderr.flush()
-      os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    out.seek(0)
-    err.seek(0)
-    results.append([os.waitstatus_to_exitcode(status), out.read().decode(), err.read().decode()])
-print(json.dumps(results))
-"""
+from nerfpod.pod import aot"""
 
 # Every subcommand (each kind of export too): the words that make its command line whole, flags of its own that
 # its --help lists, flags of other subcommands that it must not list, and a flag given a value it refuses.
@@ -182,10 +152,8 @@ def command_lines():
     cases[name, "bad"] = [*argv, bad]
     cases[name, "missing"] = words
   env = dict(os.environ, JAX_PLATFORMS="cpu")
-  done = subprocess.run([sys.executable, "-c", _FORKED_CLI], input=json.dumps(list(cases.values())), cwd=REPO,
-                        env=env, capture_output=True, text=True, timeout=300)
-  assert done.returncode == 0, done.stderr[-3000:]
-  return dict(zip(cases, json.loads(done.stdout)))
+  return dict(zip(cases, procs.run_forked_each(_CLI_IMPORTS, "cli.run(argv)", list(cases.values()), env),
+                  strict=True))
 
 
 def _the_one_error(result) -> str:

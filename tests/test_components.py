@@ -177,7 +177,8 @@ def test_batches_the_host_cannot_hold_are_refused_before_any_work(tmp_path, monk
   left behind."""
   from nerfpod.run import modes
   from nerfpod.errors import UserError
-  monkeypatch.setattr(components, "_physical_memory_bytes", lambda: 64 * 2**20)  # a 64 MiB host
+  from nerfpod.run import compilation
+  monkeypatch.setattr(compilation, "physical_memory_bytes", lambda: 64 * 2**20)  # a 64 MiB host
   # 2 copies x 48 bytes x 2**20 rays = 96 MiB > 16 MiB; 16 MiB / 96 bytes = 174,762 rays -> 174,760 (x 8).
   with pytest.raises(UserError, match=r"^train.batch_size=1048576 rays would make this host hold 0.1 GiB of "
                                       r"training batches at once \(2 copies of its share\), more than the 0.0 GiB "

@@ -104,19 +104,32 @@ def memory_budget_bytes(config) -> int:
   """The memory one device's train step may use: on accelerators 85% of what the device reports (the rest
   for the runtime, the renderer, fragmentation); on a CPU, compile.cpu_memory_gib shared by this process's
   simulated devices."""
-  stats = jax.local_devices()[0].memory_stats() or {}
-  if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
-    return int(ACCELERATOR_MEMORY_SHARE * stats["bytes_limit"])
+  accelerator = _accelerator_memory_bytes()
+  if accelerator is not None:
+    return int(ACCELERATOR_MEMORY_SHARE * accelerator)
   return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
 
 
 def device_memory_bytes() -> int:
   """What one device has: an accelerator's memory as it reports it; on a CPU, the host's physical memory
   shared by this process's simulated devices."""
+  accelerator = _accelerator_memory_bytes()
+  if accelerator is not None:
+    return accelerator
+  return int(physical_memory_bytes() / jax.local_device_count())
+
+
+def _accelerator_memory_bytes() -> int | None:
+  """An accelerator's memory as it reports it; None on a CPU (or where a device reports none)."""
   stats = jax.local_devices()[0].memory_stats() or {}
   if jax.default_backend() != "cpu" and stats.get("bytes_limit"):
     return int(stats["bytes_limit"])
-  return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / jax.local_device_count())
+  return None
+
+
+def physical_memory_bytes() -> int:
+  """This host's physical memory."""
+  return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
 
 
 def step_memory_bytes(compiled) -> int | None:

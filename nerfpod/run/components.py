@@ -9,7 +9,6 @@ the pod compile tool compiles, on a TPU topology's devices. The train state, its
 nerfpod.run.train_state's.
 """
 import dataclasses
-import os
 import sys
 from typing import Any
 
@@ -172,11 +171,7 @@ def host_memory_budget_bytes(config) -> int:
   data.host_memory_gib, or HOST_MEMORY_SHARE of the host's physical memory where that is 0."""
   if config.data.host_memory_gib > 0:
     return int(config.data.host_memory_gib * 2**30)
-  return int(HOST_MEMORY_SHARE * _physical_memory_bytes())
-
-
-def _physical_memory_bytes() -> int:
-  return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+  return int(HOST_MEMORY_SHARE * compilation.physical_memory_bytes())
 
 
 # The share of a host's physical memory its training batches may take (the host's share of each global batch,
@@ -184,18 +179,17 @@ def _physical_memory_bytes() -> int:
 # the compiled programs' and, on a CPU, the simulated devices'.
 BATCH_MEMORY_SHARE = 0.25
 BATCH_BYTES_PER_RAY = 48  # origins, directions, rgb (3 float32 each), ray id, alpha, frame (4 bytes each)
-PREFETCHED_BATCHES = 4    # data.iterator's, on accelerators
 
 
 def check_batches_fit_host(config) -> None:
   """Refuses, before any work, a train.batch_size whose batches this host could not hold: its share of each
   global batch, BATCH_BYTES_PER_RAY a ray, as many times as there are copies of it at once (the one in use,
-  its copy on the devices, and on accelerators PREFETCHED_BATCHES prepared ahead), must fit
+  its copy on the devices, and on accelerators data.PREFETCH prepared ahead), must fit
   BATCH_MEMORY_SHARE of the host's physical memory."""
   tc = config.train
-  copies = 2 + (PREFETCHED_BATCHES if jax.default_backend() != "cpu" else 0)
+  copies = 2 + (data.PREFETCH if jax.default_backend() != "cpu" else 0)
   per_ray = BATCH_BYTES_PER_RAY * copies / jax.process_count()
-  limit = BATCH_MEMORY_SHARE * _physical_memory_bytes()
+  limit = BATCH_MEMORY_SHARE * compilation.physical_memory_bytes()
   need = tc.batch_size * per_ray
   if need <= limit:
     return
