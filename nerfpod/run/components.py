@@ -119,13 +119,14 @@ def batch_shapes(batch_size: int, mesh: Mesh, with_alpha: bool, with_frames: boo
   over every device of `mesh` (its data axis, and its slice axis across slices): each host's rows on its own
   devices, as distributed.to_global makes them."""
   sharding = distributed.batch_sharding(mesh)
-  shapes = {"origins": ((batch_size, 3), jnp.float32), "directions": ((batch_size, 3), jnp.float32),
-            "rgb": ((batch_size, 3), jnp.float32), "ray_ids": ((batch_size,), jnp.int32)}
-  if with_alpha:
-    shapes["alpha"] = ((batch_size,), jnp.float32)
-  if with_frames:
-    shapes["frame"] = ((batch_size,), jnp.int32)
-  return {k: jax.ShapeDtypeStruct(shape, dtype, sharding=sharding) for k, (shape, dtype) in shapes.items()}
+  wanted = {"alpha": with_alpha, "frame": with_frames}
+  return {k: jax.ShapeDtypeStruct((batch_size, *shape), dtype, sharding=sharding)
+          for k, (shape, dtype) in _RAY_FIELDS.items() if wanted.get(k, True)}
+
+
+# A batch's fields, per ray: (shape, dtype); alpha where the scene has it, frame where per-frame parameters need it.
+_RAY_FIELDS = {"origins": ((3,), jnp.float32), "directions": ((3,), jnp.float32), "rgb": ((3,), jnp.float32),
+               "ray_ids": ((), jnp.int32), "alpha": ((), jnp.float32), "frame": ((), jnp.int32)}
 
 
 # Ray bounds for a program compiled without its scene where the config leaves them to the scene: the values
@@ -178,7 +179,8 @@ def host_memory_budget_bytes(config) -> int:
 # those prepared ahead and the copy on its devices): the half HOST_MEMORY_SHARE leaves is also the runtime's,
 # the compiled programs' and, on a CPU, the simulated devices'.
 BATCH_MEMORY_SHARE = 0.25
-BATCH_BYTES_PER_RAY = 48  # origins, directions, rgb (3 float32 each), ray id, alpha, frame (4 bytes each)
+# Every field of a batch (_RAY_FIELDS, alpha and frame included): 48 bytes a ray.
+BATCH_BYTES_PER_RAY = sum(int(np.prod(shape)) * np.dtype(dtype).itemsize for shape, dtype in _RAY_FIELDS.values())
 
 
 def check_batches_fit_host(config) -> None:
