@@ -48,7 +48,7 @@ def summary_writer(workdir: str, config=None, **kwargs):
   wandb_run = None
   if config is not None and config.monitor.wandb.mode != "disabled":
     wandb_run = WandbRun.start(workdir, config)
-  return Writer(tensorboard, wandb_run)
+  return Writer(tensorboard, wandb_run, workdir=str(workdir))
 
 
 BUCKET_EVENTS_SCHEME = "nerfpod-gs"  # tensorboardX's logdir for a gs:// workdir: its files are BucketEventFiles
@@ -99,7 +99,7 @@ class BucketEventFile:
     self.pending += data
 
   def flush(self) -> None:
-    if not self.pending:
+    if not self.pending or storage.stopped(self.url):  # (the run stops on it, with one sentence)
       return
     try:
       self._upload(bytes(self.pending))
@@ -114,24 +114,30 @@ class BucketEventFile:
 
   def close(self) -> None:
     self.flush()
-    if self.pending:
+    if self.pending and not storage.stopped(self.url):
       _warn(f"{len(self.pending)} bytes of TensorBoard events could not be uploaded to {self.url}: lost.")
       self.pending.clear()
 
   def _upload(self, data: bytes) -> None:
     from google.api_core import exceptions
-    from google.cloud import storage
+    from google.cloud import storage as gcs
+    # Each request bounded, and its retries too (checkpoint.storage_timeout_s: storage.bound_clients): a
+    # bucket that stops answering fails an upload instead of holding tensorboardX's writer thread, and the
+    # training loop whose events queue up behind it.
+    bounds = {"timeout": storage.gcs_timeout(), "retry": storage.gcs_retry()}
     if self.bucket is None:
-      self.bucket = storage.Client().bucket(self.bucket_name)
+      self.bucket = gcs.Client().bucket(self.bucket_name)
     if self.number is None:
-      numbers = [blob.name[len(self.name) + 1:] for blob in self.bucket.list_blobs(prefix=self.name + ".")]
+      numbers = [blob.name[len(self.name) + 1:] for blob in self.bucket.list_blobs(prefix=self.name + ".",
+                                                                                    **bounds)]
       self.number = 1 + max((int(n) for n in numbers if n.isdigit()), default=-1)
     while True:
       blob = self.bucket.blob(f"{self.name}.{self.number:0{SEGMENT_DIGITS}d}")
       try:
-        blob.upload_from_string(data, content_type="application/octet-stream", if_generation_match=0)
+        blob.upload_from_string(data, content_type="application/octet-stream", if_generation_match=0,
+                                timeout=bounds["timeout"], retry=storage.gcs_retry_if_generation())
       except exceptions.PreconditionFailed:  # the name is taken: by this upload (a retry of one that was
-        if blob.download_as_bytes() != data:  # stored, its answer lost) or by another writer's, then the next
+        if blob.download_as_bytes(**bounds) != data:  # stored, its answer lost) or another writer's: the next
           self.number += 1
           continue
       self.number += 1
@@ -145,8 +151,8 @@ class Writer:
   text in TensorBoard and tables in W&B; videos (files) go to W&B only (TensorBoard shows the orbit's contact
   sheet)."""
 
-  def __init__(self, tensorboard, wandb_run=None):
-    self.tensorboard, self.wandb = tensorboard, wandb_run
+  def __init__(self, tensorboard, wandb_run=None, workdir: str = ""):
+    self.tensorboard, self.wandb, self.workdir = tensorboard, wandb_run, workdir
 
   def add_scalar(self, tag: str, value, step: int) -> None:
     self.tensorboard.add_scalar(tag, value, step)
@@ -175,8 +181,15 @@ class Writer:
       self.wandb.commit()
 
   def close(self, exit_code: int = 0) -> None:
-    """Closes both sinks; `exit_code` != 0 marks the W&B run as stopped early or failed."""
-    self.tensorboard.close()
+    """Closes both sinks; `exit_code` != 0 marks the W&B run as stopped early or failed. TensorBoard's last
+    events, where they go to a bucket, are waited on for at most checkpoint.storage_timeout_s (storage.within),
+    and not at all where the bucket stopped answering: then they are lost."""
+    try:
+      storage.within(self.workdir, storage.gcs_timeout(), self.tensorboard.close)
+    except storage.NoAnswer as e:
+      if e.seconds:  # (0: the bucket had stopped answering before, and the run says so)
+        _warn(f"the last TensorBoard events could not be uploaded to {self.workdir} (no answer in {e.seconds:g} s): "
+              f"lost.")
     if self.wandb is not None:
       self.wandb.finish(exit_code)
       self.wandb = None
