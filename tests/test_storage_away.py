@@ -1,0 +1,114 @@
+"""A gs:// workdir whose storage stops answering mid-run (a partition, an outage, revoked credentials): the run
+stops within checkpoint.storage_timeout_s with one sentence naming the bucket, what failed and the newest
+committed checkpoint (exit 69), a SIGTERM meanwhile changes nothing to that bound, and once storage is back the
+same command resumes from that checkpoint to the bits of an uninterrupted run. Against the emulator behind
+tests/gcs.py's Proxy, which stops answering (connections accepted, requests read, never answered) and comes back
+with the emulator's objects kept."""
+import re
+import signal
+import time
+
+import jax
+import numpy as np
+import pytest
+
+import gcs
+import procs
+from nerfpod import storage
+from nerfpod.workdir import checkpoints
+
+TIMEOUT_S = 4.0  # checkpoint.storage_timeout_s of these runs
+# Past the timeout, what a run may take to end: the step under way, the sentence, nothing waited for.
+ENDING_S = 6.0
+RUN = {"train.log_every": 1, "train.image_every": 0, "checkpoint.every_steps": 5,
+       "orbit.render_after_training": False, "checkpoint.storage_timeout_s": TIMEOUT_S}
+RUN_TIMEOUT = 240
+
+
+def sentence(step) -> str:
+  """The one line a run that lost its storage while saving `step` ends with (a regex; `step` may be one)."""
+  return (rf"nerfpod: error: the bucket gs://{gcs.BUCKET} stopped answering while saving the checkpoint of step "
+          rf"({step}) \(no answer in 4 s\); the newest committed checkpoint is step 5: rerun the same command once "
+          rf"storage is back \(it resumes from there\)\.")
+
+
+def assert_stopped_with_one_sentence(run, silent_since: float, step) -> int:
+  """The run exits 69 within the bound after its storage went silent, its output ending with the one sentence
+  (no traceback, no other error); returns the step the sentence names."""
+  codes = run.wait(TIMEOUT_S + ENDING_S + 30)  # (fails, with the logs, past it)
+  took = time.monotonic() - silent_since
+  out = run.output()
+  assert codes == [storage.STOPPED_EXIT_CODE], run.tails()
+  assert took < TIMEOUT_S + ENDING_S, (took, run.tails())
+  lines = out.strip().splitlines()
+  said = re.fullmatch(sentence(step), lines[-1])
+  assert said, run.tails()
+  last_step = max((i for i, line in enumerate(lines) if line.startswith("step ")), default=0)
+  assert "Traceback" not in out and sum(line.startswith("nerfpod: error") for line in lines) == 1, out
+  assert len(lines) - last_step <= 4, out  # the sentence, and no flood before it
+  return int(said.group(1))
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+  """(parameters, data position, step) of the job run to its end uninterrupted, in a local workdir."""
+  workdir = tmp_path_factory.mktemp("uninterrupted") / "run"
+  with procs.Run(workdir, RUN) as run:
+    run.wait_ok(RUN_TIMEOUT)
+  state, position, step = checkpoints.read_numpy(str(workdir))
+  return state["params"], position, step
+
+
+@pytest.mark.slow
+def test_a_bucket_that_stops_answering_stops_the_run_in_one_sentence_and_the_rerun_resumes_exactly(
+    emulator, tmp_path, uninterrupted):
+  workdir = f"gs://{emulator.bucket}/runs/away"
+  with gcs.Proxy(emulator) as proxy:
+    proxy.silent_at(b"runs/away/checkpoints/10/")  # the checkpoint of step 5 is committed; step 10's never is
+    with procs.Run(workdir, RUN, env=proxy.env, log_dir=tmp_path / "logs") as run:
+      assert proxy.went_silent.wait(RUN_TIMEOUT), run.tails()
+      assert_stopped_with_one_sentence(run, time.monotonic(), 10)
+    assert checkpoints.latest_step(workdir) == 5  # (the test reads the emulator itself)
+
+    proxy.forward()  # storage is back, with what it held
+    with procs.Run(workdir, RUN, env=proxy.env, log_dir=tmp_path / "logs") as run:
+      run.wait_ok(RUN_TIMEOUT)
+    out = run.output()
+    assert "steps 5..20" in out and "Traceback" not in out, run.tails()
+  state, position, step = checkpoints.read_numpy(workdir)
+  params = state["params"]
+  want_params, want_position, want_step = uninterrupted
+  assert (step, position) == (want_step, want_position) == (20, {"next_step": 20})
+  jax.tree.map(np.testing.assert_array_equal, params, want_params)
+  assert "lock.json" not in emulator.files("runs/away")  # the rerun took the stopped run's lock and released it
+
+
+@pytest.mark.slow
+def test_a_sigterm_while_the_bucket_does_not_answer_ends_the_run_within_the_bound(emulator, tmp_path):
+  """A SIGTERM between two checkpoints, with the bucket silent: the preemption's save cannot be committed, so
+  the run ends on the sentence within the bound (not 75, which says the step was saved); with the bucket back,
+  a SIGTERM saves the step and exits 75 as ever."""
+  workdir = f"gs://{emulator.bucket}/runs/term"
+  slow = {"NERFPOD_TEST_STEP_SECONDS": "6:0.5"}  # steps 6.. take half a second: signalled before step 10
+  with gcs.Proxy(emulator) as proxy:
+    with procs.Run(workdir, RUN, env=dict(proxy.env, **slow), log_dir=tmp_path / "logs") as run:
+      run.wait_for(lambda: "checkpoints/5/commit_success.txt" in emulator.files("runs/term"), RUN_TIMEOUT,
+                   "the checkpoint of step 5 committed")
+      time.sleep(1.0)  # (orbax's last requests for step 5, after its commit marker)
+      proxy.silent()
+      silent = time.monotonic()
+      run.signal(0, signal.SIGTERM)
+      step = assert_stopped_with_one_sentence(run, silent, r"\d+")
+    assert 6 <= step <= 10, step  # the step the SIGTERM stopped at (or the regular save of step 10)
+    assert checkpoints.latest_step(workdir) == 5
+
+    proxy.forward()
+    with procs.Run(workdir, RUN, env=dict(proxy.env, **slow), log_dir=tmp_path / "logs") as run:
+      run.wait_for(lambda: re.search(r"^step +7/20", run.output(), re.M), RUN_TIMEOUT, "step 7")
+      run.signal(0, signal.SIGTERM)
+      codes = run.wait(TIMEOUT_S + ENDING_S + 30)
+    out = run.output()
+    assert codes == [75], run.tails()
+    saved = re.search(r"nerfpod: preempted: saved step (\d+) in ", out)
+    assert saved and "Traceback" not in out, run.tails()
+    assert checkpoints.latest_step(workdir) == int(saved.group(1)) >= 7
