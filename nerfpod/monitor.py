@@ -26,6 +26,7 @@ import shutil
 import string
 import sys
 import tempfile
+import threading
 import time
 
 import jax
@@ -85,38 +86,77 @@ class BucketEventFile:
   records: TensorBoard reads the objects of a folder in name order as one stream of events. The numbers go on
   after those already in the bucket (a writer opened again in the same second, so with the same NAME), and an
   object is created only where there is none of its name. Bytes that fail to upload (the network, the
-  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet."""
+  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet.
+
+  Uploads go from a thread of the file's own, in order: a flush waits for its upload (at most
+  checkpoint.storage_timeout_s) only while the bucket answers; once an upload failed, flushes hand their bytes
+  over and return at once, so that a bucket that stops answering never holds tensorboardX's writer thread, nor
+  the training loop whose events queue up behind it."""
 
   def __init__(self, url: str):
     self.url = url
     self.bucket_name, _, self.name = url[len("gs://"):].partition("/")
-    self.pending = bytearray()  # written since the last upload
+    self.pending = bytearray()  # written since the last flush (tensorboardX's thread)
     self.bucket = None
     self.number = None  # the next object's, known at the first upload
     self.failed = False  # the last upload failed (and said so)
+    self._flushed = bytearray()  # flushed, not uploaded yet (the uploader's, under _changed)
+    self._changed = threading.Condition()
+    self._asked = self._answered = 0  # flushes handed over; the last one the uploader has tried
+    self._closing = False
+    self._uploader = None
 
   def write(self, data: bytes) -> None:
     self.pending += data
 
   def flush(self) -> None:
-    if not self.pending or storage.stopped(self.url):  # (the run stops on it, with one sentence)
+    if storage.stopped(self.url):  # (the run stops on it, with one sentence)
       return
-    try:
-      self._upload(bytes(self.pending))
-    except Exception as e:  # noqa: BLE001 (the client's errors vary: no network, no access, ...)
+    with self._changed:
+      self._flushed += self.pending
+      self.pending.clear()
+      if not self._flushed:
+        return
+      self._asked += 1
+      asked = self._asked
+      if self._uploader is None:
+        self._uploader = threading.Thread(target=self._upload_flushed, name="nerfpod-events-upload", daemon=True)
+        self._uploader.start()
+      self._changed.notify_all()
       if not self.failed:
-        _warn(f"TensorBoard events could not be uploaded to {self.url} ({_reason(e)}); the next flush tries "
-              f"again.")
-      self.failed = True
-      return
-    self.pending.clear()
-    self.failed = False
+        self._changed.wait_for(lambda: self._answered >= asked, timeout=storage.gcs_timeout())
 
   def close(self) -> None:
     self.flush()
-    if self.pending and not storage.stopped(self.url):
-      _warn(f"{len(self.pending)} bytes of TensorBoard events could not be uploaded to {self.url}: lost.")
-      self.pending.clear()
+    with self._changed:
+      self._closing = True
+      self._changed.notify_all()
+      if self._flushed and not storage.stopped(self.url):
+        _warn(f"{len(self._flushed)} bytes of TensorBoard events could not be uploaded to {self.url}: lost.")
+      self._flushed.clear()
+
+  def _upload_flushed(self) -> None:
+    """The uploader: what was flushed, in one object per try, each time a flush asks."""
+    while True:
+      with self._changed:
+        self._changed.wait_for(lambda: self._asked > self._answered or self._closing)
+        if self._closing or storage.stopped(self.url):
+          return
+        asked, data = self._asked, bytes(self._flushed)
+      error = None
+      try:
+        self._upload(data)
+      except Exception as e:  # noqa: BLE001 (the client's errors vary: no network, no access, ...)
+        error = e
+      with self._changed:
+        if error is None:
+          del self._flushed[:len(data)]
+        elif not self.failed and not storage.stopped(self.url):
+          _warn(f"TensorBoard events could not be uploaded to {self.url} ({_reason(error)}); the next flush "
+                f"tries again.")
+        self.failed = error is not None
+        self._answered = asked
+        self._changed.notify_all()
 
   def _upload(self, data: bytes) -> None:
     from google.api_core import exceptions

@@ -388,6 +388,13 @@ def stopped(url) -> bool:
   return is_url(url) and bucket_of(url) in _stopped
 
 
+def mark_stopped(url) -> None:
+  """Marks the bucket of `url` stopped (as within() does past its deadline): for one that failed, so that
+  the run's later calls to it give up at once."""
+  if is_url(url):
+    _stopped.add(bucket_of(url))
+
+
 def bound_clients(seconds: float) -> None:
   """Sets every storage client's own bound on a request that gets no answer to `seconds` (the module's
   docstring), for the clients made from now on; settings a user made (fsspec's configuration, tensorstore's
@@ -442,7 +449,7 @@ def within(url, seconds: float, work):
 
   threading.Thread(target=run, name="nerfpod-storage-call", daemon=True).start()
   if not done.wait(seconds):  # (a signal's handler still runs meanwhile: a SIGTERM is noted)
-    _stopped.add(bucket_of(url))
+    mark_stopped(url)
     raise NoAnswer(url, seconds)
   if "error" in outcome:
     raise outcome["error"]

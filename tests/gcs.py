@@ -272,6 +272,7 @@ class Proxy:
     self.env = dict(emulator.env, STORAGE_EMULATOR_HOST=self.url, TENSORSTORE_GCS_HTTP_URL=self.url)
     self.went_silent = threading.Event()
     self._marker = None
+    self.refusing = False
     self._closed = False
     self._sockets = []
     threading.Thread(target=self._accept, daemon=True).start()
@@ -284,18 +285,33 @@ class Proxy:
     nor is any request after it."""
     self._marker = marker
 
+  def refuse(self) -> None:
+    """Refuses every connection from now on, and cuts the open ones: the emulator's process stopped."""
+    self.refusing = True
+    for sock in list(self._sockets):
+      try:
+        sock.shutdown(2)
+      except OSError:
+        pass
+
   def forward(self) -> None:
     self._marker = None
+    self.refusing = False
     self.went_silent.clear()
 
   def _accept(self) -> None:
     import socket
+    import struct
     import threading
     while not self._closed:
       try:
         client, _ = self.listener.accept()
       except OSError:
         return
+      if self.refusing:
+        client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset, at once
+        client.close()
+        continue
       self._sockets.append(client)
       upstream = None
       if not self.went_silent.is_set():

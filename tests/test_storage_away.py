@@ -49,6 +49,43 @@ def assert_stopped_with_one_sentence(run, silent_since: float, step) -> int:
   return int(said.group(1))
 
 
+def test_within_waits_for_a_bucket_at_most_its_deadline_and_then_gives_up_on_it_at_once(monkeypatch):
+  monkeypatch.setattr(storage, "_stopped", set())
+  assert storage.within("/a/local/dir", 0.01, lambda: time.sleep(0.05) or "local") == "local"  # not bounded
+  assert storage.within("gs://b/run", 5, lambda: "answered") == "answered"
+  with pytest.raises(KeyError):
+    storage.within("gs://b/run", 5, lambda: {}["x"])  # its own error, as it is
+  assert not storage.stopped("gs://b/other")
+  started = time.monotonic()
+  with pytest.raises(storage.NoAnswer, match=r"^gs://b gave no answer in 0.2 s$"):
+    storage.within("gs://b/run", 0.2, lambda: time.sleep(30))
+  assert time.monotonic() - started < 2
+  assert storage.stopped("gs://b/anything") and not storage.stopped("gs://c/run") and not storage.stopped("/b")
+  with pytest.raises(storage.NoAnswer):  # at once, without calling
+    storage.within("gs://b/run", 5, lambda: pytest.fail("called"))
+
+
+def test_orbax_and_gcsfs_error_logs_of_a_storage_failure_are_dropped_and_others_pass():
+  import logging
+  quiet = checkpoints._StorageFailureIsReported()
+
+  def record(error, level=logging.ERROR):
+    try:
+      try:
+        raise error
+      except Exception as inner:
+        raise RuntimeError("Failed to run 4 Handler Commit operations") from inner
+    except RuntimeError as outer:
+      return logging.LogRecord("absl", level, __file__, 1, "failed", (), (type(outer), outer, None))
+
+  assert not quiet.filter(record(ConnectionRefusedError(111, "Connect call failed")))
+  assert not quiet.filter(record(TimeoutError()))
+  assert not quiet.filter(record(ValueError("UNAVAILABLE: CURL error: Couldn't connect to server")))
+  assert quiet.filter(record(ValueError("a shape mismatch")))  # not storage's
+  assert quiet.filter(record(ConnectionRefusedError(111, "refused"), level=logging.WARNING))  # (a warning)
+  assert quiet.filter(logging.LogRecord("absl", logging.ERROR, __file__, 1, "no exception", (), None))
+
+
 @pytest.fixture(scope="module")
 def uninterrupted(tmp_path_factory):
   """(parameters, data position, step) of the job run to its end uninterrupted, in a local workdir."""

@@ -386,6 +386,7 @@ class Checkpoints:
       raise
     except Exception as e:  # noqa: BLE001 (whatever orbax, tensorstore or gcsfs raise when storage fails)
       what = f"failed while {doing} ({damage_reason(e)})"
+      storage.mark_stopped(self._workdir)  # (the run stops on it: its other calls there give up at once)
     newest = (f"the newest committed checkpoint is step {self._committed}: rerun the same command once storage "
               f"is back (it resumes from there)" if self._committed is not None else
               "no checkpoint had been committed yet: rerun the same command once storage is back")
@@ -452,6 +453,47 @@ def damage_reason(error: BaseException) -> str:
   return " ".join(str(error).split())[:300] or type(error).__name__
 
 
+class _StorageFailureIsReported(logging.Filter):
+  """Drops the error logs, each with its traceback, of orbax's save threads and of gcsfs's retries whose error
+  is a storage client's failure to reach or hear from its service (a connection refused, reset or timed out,
+  an HTTP error, a tensorstore request given up): the error itself reaches the caller, and a run whose bucket
+  fails says so in one sentence (Checkpoints._bounded; storage._call for what a scene reads)."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not (record.levelno >= logging.ERROR and record.exc_info and storage_failure(record.exc_info[1]))
+
+
+# tensorstore's status codes of a request that did not get through (an error raised in its C++ code begins
+# with its code).
+_UNREACHED_CODES = ("UNAVAILABLE", "DEADLINE_EXCEEDED", "ABORTED", "UNAUTHENTICATED", "PERMISSION_DENIED")
+
+
+def _storage_error_types() -> tuple:
+  """The exception types of the storage clients' failures to reach or hear from their services."""
+  kinds = [ConnectionError, TimeoutError]
+  for module, names in (("aiohttp", ("ClientError",)), ("requests.exceptions", ("RequestException",)),
+                        ("google.api_core.exceptions", ("GoogleAPIError",)),
+                        ("google.auth.exceptions", ("TransportError", "RefreshError")),
+                        ("gcsfs.retry", ("HttpError",)), ("fsspec.exceptions", ("FSTimeoutError",))):
+    found = sys.modules.get(module)  # (a client not imported raised nothing)
+    kinds += [getattr(found, name) for name in names if found is not None and hasattr(found, name)]
+  return tuple(kinds)
+
+
+def storage_failure(error: BaseException | None) -> bool:
+  """Whether `error`, or an error it was raised from, is a storage client's failure to reach or hear from its
+  service (_StorageFailureIsReported)."""
+  kinds = _storage_error_types()
+  seen = set()
+  while error is not None and id(error) not in seen:
+    seen.add(id(error))
+    if isinstance(error, kinds) or (isinstance(error, ValueError)
+                                     and str(error).split(":", 1)[0] in _UNREACHED_CODES):
+      return True
+    error = error.__cause__ or error.__context__
+  return False
+
+
 class _AbandonedReadTasks(logging.Filter):
   """Drops asyncio's "... exception was never retrieved" for orbax's reads (an abandoned read that failed
   too, reported when its task, or the future gathering several, is collected: a traceback per array), and
@@ -502,15 +544,20 @@ def _raised_in_orbax(error) -> bool:
 def quiet_library_reports() -> None:
   """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output:
   a read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a
-  save that failed on a full disk (the run says it in one sentence: _DiskFullIsReported) and the reads orbax
-  abandons when a restore fails (quiet_abandoned_reads). Each filter drops only those; every other report
-  passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
+  save that failed on a full disk (the run says it in one sentence: _DiskFullIsReported), those of orbax's
+  save threads and gcsfs's retries on storage that failed (_StorageFailureIsReported: the run says it in one
+  sentence) and the reads orbax abandons when a restore fails (quiet_abandoned_reads). Each filter drops only
+  those; every other report passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
   again changes nothing. The texts matched are pinned to the library versions that emit them by
   tests/test_checkpoints.py."""
   absl_log = logging.getLogger("absl")
-  for quiet in (_ReadOnlyIsAsked, _DiskFullIsReported):
+  for quiet in (_ReadOnlyIsAsked, _DiskFullIsReported, _StorageFailureIsReported):
     if not any(isinstance(f, quiet) for f in absl_log.filters):
       absl_log.addFilter(quiet())
+  for name in ("gcsfs", "fsspec"):  # (their loggers' records reach the root's handler, absl's, without absl's)
+    client_log = logging.getLogger(name)
+    if not any(isinstance(f, _StorageFailureIsReported) for f in client_log.filters):
+      client_log.addFilter(_StorageFailureIsReported())
   sys.unraisablehook = quiet_abandoned_reads(sys.unraisablehook)
 
 
