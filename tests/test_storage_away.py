@@ -101,11 +101,17 @@ def test_a_bucket_that_stops_answering_stops_the_run_in_one_sentence_and_the_rer
     emulator, tmp_path, uninterrupted):
   workdir = f"gs://{emulator.bucket}/runs/away"
   with gcs.Proxy(emulator) as proxy:
-    proxy.silent_at(b"runs/away/checkpoints/10/")  # the checkpoint of step 5 is committed; step 10's never is
+    # Silent from the commit of step 10 on: its arrays and metadata are in the bucket, its commit marker never
+    # is; the run finds out when it waits for that save, at step 15.
+    proxy.silent_at(b"runs/away/checkpoints/10/commit_success.txt")
     with procs.Run(workdir, RUN, env=proxy.env, log_dir=tmp_path / "logs") as run:
       assert proxy.went_silent.wait(RUN_TIMEOUT), run.tails()
       assert_stopped_with_one_sentence(run, time.monotonic(), 10)
-    assert checkpoints.latest_step(workdir) == 5  # (the test reads the emulator itself)
+    # (the test reads the emulator itself) Step 10 written but for its commit, which orbax never takes as a
+    # checkpoint: the newest is still step 5.
+    cut_off = [name for name in emulator.files("runs/away/checkpoints") if name.startswith("10/")]
+    assert cut_off and "10/commit_success.txt" not in cut_off, cut_off
+    assert checkpoints.latest_step(workdir) == 5
 
     proxy.forward()  # storage is back, with what it held
     with procs.Run(workdir, RUN, env=proxy.env, log_dir=tmp_path / "logs") as run:
@@ -118,6 +124,22 @@ def test_a_bucket_that_stops_answering_stops_the_run_in_one_sentence_and_the_rer
   assert (step, position) == (want_step, want_position) == (20, {"next_step": 20})
   jax.tree.map(np.testing.assert_array_equal, params, want_params)
   assert "lock.json" not in emulator.files("runs/away")  # the rerun took the stopped run's lock and released it
+
+
+@pytest.mark.slow
+def test_an_endpoint_that_refuses_connections_mid_run_is_the_same_sentence(emulator, tmp_path):
+  """The emulator's process stopped (its objects kept by the proxy's refusing in its place): connections
+  refused and reset, which the clients retry for longer than the bound."""
+  workdir = f"gs://{emulator.bucket}/runs/refused"
+  with gcs.Proxy(emulator) as proxy:
+    with procs.Run(workdir, RUN, env=dict(proxy.env, NERFPOD_TEST_STEP_SECONDS="6:0.3"),
+                   log_dir=tmp_path / "logs") as run:
+      run.wait_for(lambda: "checkpoints/5/commit_success.txt" in emulator.files("runs/refused"), RUN_TIMEOUT,
+                   "the checkpoint of step 5 committed")
+      time.sleep(1.0)  # (orbax's last requests for step 5, after its commit marker)
+      proxy.refuse()
+      assert_stopped_with_one_sentence(run, time.monotonic(), 10)
+  assert checkpoints.latest_step(workdir) == 5
 
 
 @pytest.mark.slow
