@@ -228,8 +228,8 @@ class Writer:
       storage.within(self.workdir, storage.gcs_timeout(), self.tensorboard.close)
     except storage.NoAnswer as e:
       if e.seconds:  # (0: the bucket had stopped answering before, and the run says so)
-        _warn(f"the last TensorBoard events could not be uploaded to {self.workdir} (no answer in {e.seconds:g} s): "
-              f"lost.")
+        _warn(f"the last TensorBoard events could not be uploaded to {self.workdir} (no answer in "
+              f"{e.seconds:g} s): lost.")
     if self.wandb is not None:
       self.wandb.finish(exit_code)
       self.wandb = None

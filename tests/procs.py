@@ -10,8 +10,9 @@ nerfpod.main and, when NERFPOD_TEST_RECORD is set to a folder, also records whic
 loaded on this process (process_<index>.npz there), and when NERFPOD_TEST_STALL_AT_STEP is set to a step, stalls
 its data pipeline before that step's batch (a run that stops training there, to be killed at a known point,
 after the checkpoints before it), and when NERFPOD_TEST_STEP_SECONDS is set to FROM:SECONDS, makes each batch
-from step FROM on take SECONDS longer (a run slow enough to be signalled between two checkpoints); with NERFPOD_TEST_STAND_IN set it is a stand-in that
-only prints what it was given and does what that variable says (launcher tests, no JAX).
+from step FROM on take SECONDS longer (a run slow enough to be signalled between two checkpoints); with
+NERFPOD_TEST_STAND_IN set it is a stand-in that only prints what it was given and does what that variable says
+(launcher tests, no JAX).
 """
 import os
 import pathlib

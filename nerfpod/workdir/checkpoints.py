@@ -183,8 +183,8 @@ def _bound_tensorstore_requests(storage_timeout_s: float) -> None:
   absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
   try:
     whole = jax.process_count() == 1 and jax.default_backend() == "cpu"
-    ocp.type_handlers.register_type_handler(
-        jax.Array, _BoundedRequests(storage_timeout_s, use_replica_parallel=False if whole else None), override=True)
+    handler = _BoundedRequests(storage_timeout_s, use_replica_parallel=False if whole else None)
+    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
   finally:
     absl_logger.setLevel(level)
 
@@ -374,7 +374,8 @@ class Checkpoints:
   def _bounded(self, doing: str, work):
     """work() (a part of `doing`, in words: "saving the checkpoint of step 20"). For a workdir in a bucket,
     waited on for at most storage_timeout_s (storage.within); a bucket that gives no answer in that time, or
-    fails, is one storage.Stopped sentence naming it, what failed and the newest committed checkpoint."""
+    fails (storage_failure: an error of another kind is raised as it is), is one storage.Stopped sentence
+    naming it, what failed and the newest committed checkpoint."""
     if self._timeout is None:
       return work()
     bucket = storage.bucket_of(self._workdir)
@@ -385,6 +386,8 @@ class Checkpoints:
     except UserError:
       raise
     except Exception as e:  # noqa: BLE001 (whatever orbax, tensorstore or gcsfs raise when storage fails)
+      if not storage_failure(e):
+        raise
       what = f"failed while {doing} ({damage_reason(e)})"
       storage.mark_stopped(self._workdir)  # (the run stops on it: its other calls there give up at once)
     newest = (f"the newest committed checkpoint is step {self._committed}: rerun the same command once storage "
@@ -542,12 +545,12 @@ def _raised_in_orbax(error) -> bool:
 
 
 def quiet_library_reports() -> None:
-  """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output:
-  a read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a
-  save that failed on a full disk (the run says it in one sentence: _DiskFullIsReported), those of orbax's
-  save threads and gcsfs's retries on storage that failed (_StorageFailureIsReported: the run says it in one
-  sentence) and the reads orbax abandons when a restore fails (quiet_abandoned_reads). Each filter drops only
-  those; every other report passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
+  """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output: a
+  read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a save that
+  failed on a full disk (the run says it in one sentence: _DiskFullIsReported), those of orbax's save threads and
+  gcsfs's retries on storage that failed (_StorageFailureIsReported: the run says it in one sentence) and the
+  reads orbax abandons when a restore fails (quiet_abandoned_reads). Each filter drops only those; every other
+  report passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
   again changes nothing. The texts matched are pinned to the library versions that emit them by
   tests/test_checkpoints.py."""
   absl_log = logging.getLogger("absl")
