@@ -71,7 +71,8 @@ class _BucketEventFiles:
 
   @staticmethod
   def open(path: str) -> "BucketEventFile":
-    return BucketEventFile("gs" + path[len(BUCKET_EVENTS_SCHEME):])
+    # tensorboardX's writer thread, behind which the training loop's events queue up, never waits on the bucket
+    return BucketEventFile("gs" + path[len(BUCKET_EVENTS_SCHEME):], flush_wait_s=0.0)
 
   @staticmethod
   def directory_check(path: str) -> None:
@@ -88,13 +89,15 @@ class BucketEventFile:
   object is created only where there is none of its name. Bytes that fail to upload (the network, the
   bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet.
 
-  Uploads go from a thread of the file's own, in order: a flush waits for its upload (at most
-  checkpoint.storage_timeout_s) only while the bucket answers; once an upload failed, flushes hand their bytes
-  over and return at once, so that a bucket that stops answering never holds tensorboardX's writer thread, nor
-  the training loop whose events queue up behind it."""
+  Uploads go from a thread of the file's own, in order: a flush hands its bytes over and waits for their upload
+  for at most `flush_wait_s` (default: checkpoint.storage_timeout_s, storage.gcs_timeout), and only while the
+  bucket answers; tensorboardX's files wait 0 s, so that a bucket that stops answering never holds its writer
+  thread, nor the training loop whose events queue up behind it. close() waits for what was flushed, for at
+  most checkpoint.storage_timeout_s."""
 
-  def __init__(self, url: str):
+  def __init__(self, url: str, flush_wait_s: float | None = None):
     self.url = url
+    self.flush_wait_s = flush_wait_s
     self.bucket_name, _, self.name = url[len("gs://"):].partition("/")
     self.pending = bytearray()  # written since the last flush (tensorboardX's thread)
     self.bucket = None
@@ -123,12 +126,15 @@ class BucketEventFile:
         self._uploader = threading.Thread(target=self._upload_flushed, name="nerfpod-events-upload", daemon=True)
         self._uploader.start()
       self._changed.notify_all()
-      if not self.failed:
-        self._changed.wait_for(lambda: self._answered >= asked, timeout=storage.gcs_timeout())
+      wait = storage.gcs_timeout() if self.flush_wait_s is None else self.flush_wait_s
+      if not self.failed and wait > 0:
+        self._changed.wait_for(lambda: self._answered >= asked, timeout=wait)
 
   def close(self) -> None:
     self.flush()
     with self._changed:
+      if not storage.stopped(self.url):
+        self._changed.wait_for(lambda: self._answered >= self._asked, timeout=storage.gcs_timeout())
       self._closing = True
       self._changed.notify_all()
       if self._flushed and not storage.stopped(self.url):
