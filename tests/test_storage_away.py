@@ -19,7 +19,7 @@ from nerfpod.workdir import checkpoints
 
 TIMEOUT_S = 4.0  # checkpoint.storage_timeout_s of these runs
 # Past the timeout, what a run may take to end: the step under way, the sentence, nothing waited for.
-ENDING_S = 6.0
+ENDING_S = 8.0
 RUN = {"train.log_every": 1, "train.image_every": 0, "checkpoint.every_steps": 5,
        "orbit.render_after_training": False, "checkpoint.storage_timeout_s": TIMEOUT_S}
 RUN_TIMEOUT = 240
@@ -171,3 +171,31 @@ def test_a_sigterm_while_the_bucket_does_not_answer_ends_the_run_within_the_boun
     saved = re.search(r"nerfpod: preempted: saved step (\d+) in ", out)
     assert saved and "Traceback" not in out, run.tails()
     assert checkpoints.latest_step(workdir) == int(saved.group(1)) >= 7
+
+
+def test_a_bucket_that_fails_while_a_run_restores_leaves_its_checkpoint_as_it_is(emulator, monkeypatch):
+  """A training run's restore on a bucket that fails (a connection refused under orbax's error) stops on the
+  storage sentence; the step is not taken as damaged and set aside, which only a step that does not read back
+  whole is. (The clients' own retries of a refused connection take a minute: the failure is raised here.)"""
+  from test_checkpoints import _abstract, _mesh, _state
+  monkeypatch.setattr(storage, "_stopped", set())
+  workdir = f"gs://{emulator.bucket}/runs/restore"
+  mesh = _mesh(1)
+  with checkpoints.Checkpoints(workdir, every_steps=1, max_to_keep=1, storage_timeout_s=TIMEOUT_S) as ckpt:
+    ckpt.save(1, _state(mesh, 1), {"next_step": 1})
+
+  def refused(*args):
+    try:
+      raise ConnectionRefusedError(111, "Connect call failed ('127.0.0.1', 9)")
+    except ConnectionRefusedError as e:
+      raise RuntimeError("Failed to read the checkpoint") from e
+
+  ckpt = checkpoints.Checkpoints(workdir, every_steps=1, max_to_keep=1, storage_timeout_s=TIMEOUT_S)
+  monkeypatch.setattr(ckpt, "_restore_step", refused)
+  with pytest.raises(storage.Stopped, match=rf"^the bucket gs://{gcs.BUCKET} failed while reading the checkpoint "
+                                            r"of step 1 \(\[Errno 111\] Connect call failed \('127.0.0.1', 9\)\); it "
+                                            r"is left as it is: rerun the same command once storage is back\.$"):
+    ckpt.restore(_abstract(_state(mesh, 0)))
+  assert storage.stopped(workdir)
+  assert "checkpoints/1/commit_success.txt" in emulator.files("runs/restore")
+  assert not emulator.files("runs/restore/checkpoints_damaged")

@@ -277,8 +277,9 @@ class Checkpoints:
     The placement comes from `abstract_state`'s shardings, i.e. this run's mesh, whatever mesh wrote the
     checkpoint: a run can come back on another number of hosts or devices. Without `step` (a training run
     resuming), a newest step that does not read back whole (missing or emptied files, non-finite values) is
-    set aside into checkpoints_damaged/ with one line saying so, and the step before it is tried. Readers
-    that must not write go through restore_newest instead.
+    set aside into checkpoints_damaged/ with one line saying so, and the step before it is tried; a bucket
+    that fails meanwhile (storage_failure) is one storage.Stopped sentence instead, the step left as it is.
+    Readers that must not write go through restore_newest instead.
     """
     if step is not None:
       return self._restore_step(abstract_state, step)
@@ -291,6 +292,11 @@ class Checkpoints:
         raise
       except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
         reason = damage_reason(e)
+        if self._timeout is not None and storage_failure(e):  # the bucket failed, not the step: kept as it is
+          storage.mark_stopped(self._workdir)
+          raise storage.Stopped(f"the bucket {storage.bucket_of(self._workdir)} failed while reading the "
+                                f"checkpoint of step {candidate} ({reason}); it is left as it is: rerun the same "
+                                f"command once storage is back.") from None
         damaged.append(f"step {candidate}: {reason}")
         where = self._set_aside(candidate)
         if jax.process_index() == 0:
