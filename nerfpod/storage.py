@@ -78,6 +78,7 @@ _reached_lock = threading.Lock()
 GCS_TIMEOUT = 60.0  # google-cloud-storage's bound on one request, and on its retries (bound_clients sets it)
 STOPPED_EXIT_CODE = 69  # EX_UNAVAILABLE of sysexits.h: a service (the bucket) is unavailable
 _stopped: set[str] = set()  # the buckets (gs://B) that gave no answer within a watchdog's deadline
+_set_here: set[str] = set()  # the settings bound_clients made (not the user's): environment variables, fsspec's
 
 
 def path(p):
@@ -402,11 +403,17 @@ def bound_clients(seconds: float) -> None:
   global GCS_TIMEOUT
   GCS_TIMEOUT = float(seconds)
   import fsspec.config
-  for scheme in ("gs", "gcs"):  # (gcsfs's protocols: fsspec applies the first it finds)
-    fsspec.config.conf.setdefault(scheme, {}).setdefault("requests_timeout", float(seconds))
+  for scheme in ("gs", "gcs"):  # (gcsfs's protocols)
+    settings = fsspec.config.conf.setdefault(scheme, {})
+    if "requests_timeout" not in settings or f"fsspec:{scheme}" in _set_here:  # (a value of the user's is kept)
+      settings["requests_timeout"] = float(seconds)
+      _set_here.add(f"fsspec:{scheme}")
   # tensorstore's curl transport: a request with no byte for this long fails (and is retried by its driver)
-  os.environ.setdefault("TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", str(max(1, round(seconds))))
-  os.environ.setdefault("TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES", "1")
+  for name, value in (("TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", str(max(1, round(seconds)))),
+                      ("TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES", "1")):
+    if name not in os.environ or name in _set_here:  # (a value of the user's is kept)
+      os.environ[name] = value
+      _set_here.add(name)
 
 
 def gcs_timeout() -> float:

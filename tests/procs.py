@@ -63,7 +63,9 @@ def environment(devices_per_process: int, **extra: str) -> dict:
   env["XLA_FLAGS"] = TEST_XLA_FLAGS  # none of the caller's (a host device count of its own, ...)
   for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID",
                "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES", "NERFPOD_TEST_STALL_AT_STEP",
-               "NERFPOD_TEST_STEP_SECONDS"):
+               "NERFPOD_TEST_STEP_SECONDS",
+               # set by storage.bound_clients where the session itself ran a job: each process sets its own
+               "TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", "TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES"):
     env.pop(name, None)
   env.update(extra)
   return env

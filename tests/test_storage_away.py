@@ -4,6 +4,7 @@ committed checkpoint (exit 69), a SIGTERM meanwhile changes nothing to that boun
 same command resumes from that checkpoint to the bits of an uninterrupted run. Against the emulator behind
 tests/gcs.py's Proxy, which stops answering (connections accepted, requests read, never answered) and comes back
 with the emulator's objects kept."""
+import os
 import re
 import signal
 import time
@@ -199,3 +200,18 @@ def test_a_bucket_that_fails_while_a_run_restores_leaves_its_checkpoint_as_it_is
   assert storage.stopped(workdir)
   assert "checkpoints/1/commit_success.txt" in emulator.files("runs/restore")
   assert not emulator.files("runs/restore/checkpoints_damaged")
+
+
+def test_each_client_s_bound_is_set_in_its_own_settings_and_a_users_own_is_kept(monkeypatch):
+  import fsspec.config
+  monkeypatch.setattr(storage, "_set_here", set())
+  monkeypatch.setattr(fsspec.config, "conf", {"gcs": {"requests_timeout": 99.0}})  # the user's, for gcs://
+  monkeypatch.delenv("TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", raising=False)
+  monkeypatch.setenv("TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES", "10")  # the user's
+  monkeypatch.setattr(storage, "GCS_TIMEOUT", storage.GCS_TIMEOUT)
+  storage.bound_clients(7.0)
+  storage.bound_clients(5.0)  # a second run in the process: its own bound, where the first one's was set
+  assert fsspec.config.conf == {"gs": {"requests_timeout": 5.0}, "gcs": {"requests_timeout": 99.0}}
+  assert os.environ["TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS"] == "5"
+  assert os.environ["TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES"] == "10"
+  assert storage.gcs_timeout() == 5.0 and storage.gcs_retry()._timeout == 5.0
