@@ -80,14 +80,15 @@ class _BucketEventFiles:
 
 
 class BucketEventFile:
-  """An event file at gs://BUCKET/NAME as a series of objects NAME.00000000, NAME.00000001, ...: each flush
-  uploads what was written since the previous flush as the next object, so each byte goes up once.
+  """An event file at gs://BUCKET/NAME as a series of objects NAME.00000000, NAME.00000001, ...: each upload
+  holds what was flushed since the previous one, as the next object, so each byte goes up once.
 
   tensorboardX calls write (a record in four pieces) and flush under one lock, so that an object holds whole
   records: TensorBoard reads the objects of a folder in name order as one stream of events. The numbers go on
   after those already in the bucket (a writer opened again in the same second, so with the same NAME), and an
   object is created only where there is none of its name. Bytes that fail to upload (the network, the
-  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet.
+  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet, and what
+  it had flushed in the last moment, before its upload.
 
   Uploads go from a thread of the file's own, in order: a flush hands its bytes over and waits for their upload
   for at most `flush_wait_s` (default: checkpoint.storage_timeout_s, storage.gcs_timeout), and only while the
