@@ -19,6 +19,14 @@ Damage: a finished step that does not read back whole (a file emptied or deleted
 non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
 deleted), and the restore falls back to the newest step before it that reads back whole.
 
+A bucket that stops answering (or fails) mid-run: for a workdir in a bucket, what a training run waits on here
+(the opening of the checkpoints, the previous save when the next one is due, the last one at the end or at a
+preemption) is waited on for at most checkpoint.storage_timeout_s (nerfpod.storage.within); past it, or on a
+storage client's failure, the run stops with one storage.Stopped sentence naming the bucket, what failed and
+the newest committed checkpoint, the save under way left behind uncommitted. The arrays' tensorstore requests
+are retried TENSORSTORE_TRIES times at most (_BoundedRequests). A restore that the bucket fails is that
+sentence too, never a step set aside as damaged.
+
 When to stop for a preemption is nerfpod.run.preemption's; the workdir's other files are nerfpod.workdir's.
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
