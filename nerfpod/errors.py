@@ -1,5 +1,6 @@
 """A user's mistake: the one exception type for it, the one way every command ends on it, and the one way every
 subcommand reads its command line (absl flags), where a bad flag is such a mistake."""
+import os
 import re
 import sys
 from typing import NoReturn, Sequence
@@ -11,13 +12,21 @@ HELP_WORDS = ("-h", "--help", "--helpshort", "--helpfull")
 
 class UserError(Exception):
   """Bad input (data, config, workdir). The message names the problem and the fix."""
+  exit_code = 2  # what fail() exits with (2: bad input)
+  ends_at_once = False  # fail() ends the process without waiting for its other threads (os._exit)
 
 
-def fail(problem: "UserError | str", program: str = "nerfpod", code: int = 2) -> NoReturn:
+def fail(problem: "UserError | str", program: str = "nerfpod", code: int | None = None) -> NoReturn:
   """Ends a command on a user's mistake: each of its messages (a ConfigError has several) as one line of
-  stderr, `PROGRAM: error: MESSAGE`, whitespace folded, no traceback; then exit `code` (2: bad input)."""
+  stderr, `PROGRAM: error: MESSAGE`, whitespace folded, no traceback; then exit `code` (default: the error's
+  exit_code, 2: bad input). An error whose `ends_at_once` is set (storage that stopped answering, whose
+  clients' threads may never return) ends the process at once, with its output flushed."""
   for message in getattr(problem, "messages", None) or [str(problem)]:
     print(f"{program}: error: {' '.join(str(message).split())}", file=sys.stderr, flush=True)
+  code = getattr(problem, "exit_code", 2) if code is None else code
+  if getattr(problem, "ends_at_once", False):
+    sys.stdout.flush()
+    os._exit(code)
   sys.exit(code)
 
 

@@ -5,7 +5,9 @@ there is one, and runs the mode (nerfpod.run.modes): `train` (the default: train
 evaluates and renders the orbit), `eval` or `render` (from the workdir's newest checkpoint). A user's
 mistake is printed as one sentence per problem with exit code 2. Exit codes: 0 finished; 2 bad input (or
 training diverged); checkpoint.preempted_exit_code (75) stopped early at a saved step (SIGTERM, preemption, a
-first Ctrl-C): run the same command again; 130 interrupted outside training's steps.
+first Ctrl-C): run the same command again; 69 (EX_UNAVAILABLE) a gs:// workdir's bucket stopped answering (or
+failed) mid-run, for checkpoint.storage_timeout_s: run the same command again once storage is back; 130
+interrupted outside training's steps.
 
 `nerfpod train|eval|render ...` (nerfpod.cli) is this entry point with --mode set; the other subcommands
 (`nerfpod view`, `prepare`, `export`, `aot`, `bench`) are modules of their own. Every one reads its flags

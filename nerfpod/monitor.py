@@ -26,6 +26,7 @@ import shutil
 import string
 import sys
 import tempfile
+import threading
 import time
 
 import jax
@@ -48,7 +49,7 @@ def summary_writer(workdir: str, config=None, **kwargs):
   wandb_run = None
   if config is not None and config.monitor.wandb.mode != "disabled":
     wandb_run = WandbRun.start(workdir, config)
-  return Writer(tensorboard, wandb_run)
+  return Writer(tensorboard, wandb_run, workdir=str(workdir))
 
 
 BUCKET_EVENTS_SCHEME = "nerfpod-gs"  # tensorboardX's logdir for a gs:// workdir: its files are BucketEventFiles
@@ -70,7 +71,8 @@ class _BucketEventFiles:
 
   @staticmethod
   def open(path: str) -> "BucketEventFile":
-    return BucketEventFile("gs" + path[len(BUCKET_EVENTS_SCHEME):])
+    # tensorboardX's writer thread, behind which the training loop's events queue up, never waits on the bucket
+    return BucketEventFile("gs" + path[len(BUCKET_EVENTS_SCHEME):], flush_wait_s=0.0)
 
   @staticmethod
   def directory_check(path: str) -> None:
@@ -78,60 +80,111 @@ class _BucketEventFiles:
 
 
 class BucketEventFile:
-  """An event file at gs://BUCKET/NAME as a series of objects NAME.00000000, NAME.00000001, ...: each flush
-  uploads what was written since the previous flush as the next object, so each byte goes up once.
+  """An event file at gs://BUCKET/NAME as a series of objects NAME.00000000, NAME.00000001, ...: each upload
+  holds what was flushed since the previous one, as the next object, so each byte goes up once.
 
   tensorboardX calls write (a record in four pieces) and flush under one lock, so that an object holds whole
   records: TensorBoard reads the objects of a folder in name order as one stream of events. The numbers go on
   after those already in the bucket (a writer opened again in the same second, so with the same NAME), and an
   object is created only where there is none of its name. Bytes that fail to upload (the network, the
-  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet."""
+  bucket) stay and go with the next flush; what a killed run loses is what it had not flushed yet, and what
+  it had flushed in the last moment, before its upload.
 
-  def __init__(self, url: str):
+  Uploads go from a thread of the file's own, in order: a flush hands its bytes over and waits for their upload
+  for at most `flush_wait_s` (default: checkpoint.storage_timeout_s, storage.gcs_timeout), and only while the
+  bucket answers; tensorboardX's files wait 0 s, so that a bucket that stops answering never holds its writer
+  thread, nor the training loop whose events queue up behind it. close() waits for what was flushed, for at
+  most checkpoint.storage_timeout_s."""
+
+  def __init__(self, url: str, flush_wait_s: float | None = None):
     self.url = url
+    self.flush_wait_s = flush_wait_s
     self.bucket_name, _, self.name = url[len("gs://"):].partition("/")
-    self.pending = bytearray()  # written since the last upload
+    self.pending = bytearray()  # written since the last flush (tensorboardX's thread)
     self.bucket = None
     self.number = None  # the next object's, known at the first upload
     self.failed = False  # the last upload failed (and said so)
+    self._flushed = bytearray()  # flushed, not uploaded yet (the uploader's, under _changed)
+    self._changed = threading.Condition()
+    self._asked = self._answered = 0  # flushes handed over; the last one the uploader has tried
+    self._closing = False
+    self._uploader = None
 
   def write(self, data: bytes) -> None:
     self.pending += data
 
   def flush(self) -> None:
-    if not self.pending:
+    if storage.stopped(self.url):  # (the run stops on it, with one sentence)
       return
-    try:
-      self._upload(bytes(self.pending))
-    except Exception as e:  # noqa: BLE001 (the client's errors vary: no network, no access, ...)
-      if not self.failed:
-        _warn(f"TensorBoard events could not be uploaded to {self.url} ({_reason(e)}); the next flush tries "
-              f"again.")
-      self.failed = True
-      return
-    self.pending.clear()
-    self.failed = False
+    with self._changed:
+      self._flushed += self.pending
+      self.pending.clear()
+      if not self._flushed:
+        return
+      self._asked += 1
+      asked = self._asked
+      if self._uploader is None:
+        self._uploader = threading.Thread(target=self._upload_flushed, name="nerfpod-events-upload", daemon=True)
+        self._uploader.start()
+      self._changed.notify_all()
+      wait = storage.gcs_timeout() if self.flush_wait_s is None else self.flush_wait_s
+      if not self.failed and wait > 0:
+        self._changed.wait_for(lambda: self._answered >= asked, timeout=wait)
 
   def close(self) -> None:
     self.flush()
-    if self.pending:
-      _warn(f"{len(self.pending)} bytes of TensorBoard events could not be uploaded to {self.url}: lost.")
-      self.pending.clear()
+    with self._changed:
+      if not storage.stopped(self.url):
+        self._changed.wait_for(lambda: self._answered >= self._asked, timeout=storage.gcs_timeout())
+      self._closing = True
+      self._changed.notify_all()
+      if self._flushed and not storage.stopped(self.url):
+        _warn(f"{len(self._flushed)} bytes of TensorBoard events could not be uploaded to {self.url}: lost.")
+      self._flushed.clear()
+
+  def _upload_flushed(self) -> None:
+    """The uploader: what was flushed, in one object per try, each time a flush asks."""
+    while True:
+      with self._changed:
+        self._changed.wait_for(lambda: self._asked > self._answered or self._closing)
+        if self._closing or storage.stopped(self.url):
+          return
+        asked, data = self._asked, bytes(self._flushed)
+      error = None
+      try:
+        self._upload(data)
+      except Exception as e:  # noqa: BLE001 (the client's errors vary: no network, no access, ...)
+        error = e
+      with self._changed:
+        if error is None:
+          del self._flushed[:len(data)]
+        elif not self.failed and not storage.stopped(self.url):
+          _warn(f"TensorBoard events could not be uploaded to {self.url} ({_reason(error)}); the next flush "
+                f"tries again.")
+        self.failed = error is not None
+        self._answered = asked
+        self._changed.notify_all()
 
   def _upload(self, data: bytes) -> None:
     from google.api_core import exceptions
-    from google.cloud import storage
+    from google.cloud import storage as gcs
+    # Each request bounded, and its retries too (checkpoint.storage_timeout_s: storage.bound_clients): a
+    # bucket that stops answering fails an upload instead of holding tensorboardX's writer thread, and the
+    # training loop whose events queue up behind it.
+    bounds = {"timeout": storage.gcs_timeout(), "retry": storage.gcs_retry()}
     if self.bucket is None:
-      self.bucket = storage.Client().bucket(self.bucket_name)
+      self.bucket = gcs.Client().bucket(self.bucket_name)
     if self.number is None:
-      numbers = [blob.name[len(self.name) + 1:] for blob in self.bucket.list_blobs(prefix=self.name + ".")]
+      numbers = [blob.name[len(self.name) + 1:] for blob in self.bucket.list_blobs(prefix=self.name + ".",
+                                                                                    **bounds)]
       self.number = 1 + max((int(n) for n in numbers if n.isdigit()), default=-1)
     while True:
       blob = self.bucket.blob(f"{self.name}.{self.number:0{SEGMENT_DIGITS}d}")
       try:
-        blob.upload_from_string(data, content_type="application/octet-stream", if_generation_match=0)
+        blob.upload_from_string(data, content_type="application/octet-stream", if_generation_match=0,
+                                timeout=bounds["timeout"], retry=storage.gcs_retry_if_generation())
       except exceptions.PreconditionFailed:  # the name is taken: by this upload (a retry of one that was
-        if blob.download_as_bytes() != data:  # stored, its answer lost) or by another writer's, then the next
+        if blob.download_as_bytes(**bounds) != data:  # stored, its answer lost) or another writer's: the next
           self.number += 1
           continue
       self.number += 1
@@ -145,8 +198,8 @@ class Writer:
   text in TensorBoard and tables in W&B; videos (files) go to W&B only (TensorBoard shows the orbit's contact
   sheet)."""
 
-  def __init__(self, tensorboard, wandb_run=None):
-    self.tensorboard, self.wandb = tensorboard, wandb_run
+  def __init__(self, tensorboard, wandb_run=None, workdir: str = ""):
+    self.tensorboard, self.wandb, self.workdir = tensorboard, wandb_run, workdir
 
   def add_scalar(self, tag: str, value, step: int) -> None:
     self.tensorboard.add_scalar(tag, value, step)
@@ -175,8 +228,15 @@ class Writer:
       self.wandb.commit()
 
   def close(self, exit_code: int = 0) -> None:
-    """Closes both sinks; `exit_code` != 0 marks the W&B run as stopped early or failed."""
-    self.tensorboard.close()
+    """Closes both sinks; `exit_code` != 0 marks the W&B run as stopped early or failed. TensorBoard's last
+    events, where they go to a bucket, are waited on for at most checkpoint.storage_timeout_s (storage.within),
+    and not at all where the bucket stopped answering: then they are lost."""
+    try:
+      storage.within(self.workdir, storage.gcs_timeout(), self.tensorboard.close)
+    except storage.NoAnswer as e:
+      if e.seconds:  # (0: the bucket had stopped answering before, and the run says so)
+        _warn(f"the last TensorBoard events could not be uploaded to {self.workdir} (no answer in "
+              f"{e.seconds:g} s): lost.")
     if self.wandb is not None:
       self.wandb.finish(exit_code)
       self.wandb = None

@@ -300,6 +300,9 @@ FIELDS: dict[str, Field] = _declare({
     "checkpoint.preempted_exit_code": (75, integer(3, 125, example=75),
         'exit status after a preemption/SIGTERM/Ctrl-C saved a step (75: EX_TEMPFAIL of sysexits.h, "try again": '
         'schedulers requeue on it)'),
+    "checkpoint.storage_timeout_s": (20.0, number(above=0.0, example=20.0),
+        "seconds a gs:// workdir's storage may leave a request, or a checkpoint save training waits on, "
+        "unanswered before the run stops with one sentence (exit 69); below a pod's SIGTERM grace period"),
 
     "eval.split": ("test", choice("test", "val", "train"), "held-out split the final metrics are computed on"),
     "eval.max_views": (0, integer(0), "evaluate at most this many views of the split; 0: all"),

@@ -9,6 +9,10 @@
     check_reachable(path)            one sentence at once where a URL's storage cannot be connected to
     missing_bucket(url)              a URL's bucket where it does not exist (what a "not found" under it means)
     gcs_bucket(url)                  google-cloud-storage's Bucket of a gs:// URL, its object name, whose credentials
+    Stopped                          the sentence of a bucket that stopped answering mid-run (exit 69)
+    bound_clients(seconds)           every storage client's own bounds on a request that gets no answer
+    within(url, seconds, work)       work() waited on for at most `seconds`, else NoAnswer (a watchdog)
+    stopped(url)                     whether a URL's bucket stopped answering in this process
     path(p)                          the path object of what is written (a workdir's files, exports): etils.epath
 
 A local path takes exactly the route it always took (os, open). A URL goes to fsspec, which reads gs://
@@ -33,6 +37,18 @@ credentials every Google client finds (google.auth.default(): gcloud's applicati
 user, a service account's key file or an external account's configuration in GOOGLE_APPLICATION_CREDENTIALS,
 or the metadata server of a GCE or TPU VM); STORAGE_EMULATOR_HOST, where it is set, is an emulator that takes
 no credentials, as google-cloud-storage itself has it.
+
+Storage that stops answering mid-run (a partition, an outage, revoked credentials): each client's retries would
+otherwise wait minutes before failing, or hang. bound_clients(checkpoint.storage_timeout_s), called where a run
+starts, sets each client's own bound on a request that gets no answer: gcsfs's `requests_timeout` (through
+fsspec's configuration, for every gs:// file system made afterwards: etils.epath's and orbax's too), tensorstore's
+curl low-speed limit (no byte for that long ends a request; its environment variables, read when its HTTP
+transport starts; nerfpod.workdir.checkpoints bounds its gcs driver's retries), and GCS_TIMEOUT for
+google-cloud-storage's calls (gcs_timeout(), gcs_retry(), gcs_retry_if_generation()). Those bound each request
+and, but for google-cloud-storage's, not all of a client's retries of it: what a run waits on is bounded by
+within(), a watchdog that leaves a call that does not return behind in a daemon thread and raises NoAnswer.
+The first NoAnswer marks the bucket stopped (stopped()): the run's later calls to it (the last TensorBoard
+events, the lock's release) give up at once, and the run ends with one Stopped sentence (exit 69).
 """
 import contextlib
 import io
@@ -59,6 +75,10 @@ CREDENTIALS_HINT = ("check the path, and for gs:// the network, your credentials
 
 _reached: set[str] = set()
 _reached_lock = threading.Lock()
+GCS_TIMEOUT = 60.0  # google-cloud-storage's bound on one request, and on its retries (bound_clients sets it)
+STOPPED_EXIT_CODE = 69  # EX_UNAVAILABLE of sysexits.h: a service (the bucket) is unavailable
+_stopped: set[str] = set()  # the buckets (gs://B) that gave no answer within a watchdog's deadline
+_set_here: set[str] = set()  # the settings bound_clients made (not the user's): environment variables, fsspec's
 
 
 def path(p):
@@ -335,3 +355,109 @@ def _credentials_name(credentials) -> str:
   if kind == "google.oauth2.credentials":
     return "gcloud's application-default credentials of a user"
   return f"the application-default credentials ({type(credentials).__name__})"
+
+
+# --- Storage that stops answering (the module's docstring). ---
+
+
+class Stopped(UserError):
+  """A bucket that stopped answering (or failing) mid-run: one sentence naming it and what failed. Ends the
+  process at once with STOPPED_EXIT_CODE (errors.fail): threads of the storage clients may still be waiting
+  on it, and nothing waits for them."""
+  exit_code = STOPPED_EXIT_CODE
+  ends_at_once = True
+
+
+class NoAnswer(Exception):
+  """within()'s deadline passed without an answer; `seconds` is the deadline."""
+
+  def __init__(self, url: str, seconds: float):
+    super().__init__(f"{bucket_of(url)} gave no answer in {seconds:g} s")
+    self.url, self.seconds = url, seconds
+
+
+def bucket_of(url) -> str:
+  """gs://BUCKET of a URL (a local path: itself)."""
+  if not is_url(url):
+    return str(url)
+  scheme, rest = str(url).split("://", 1)
+  return f"{scheme}://{rest.split('/', 1)[0]}"
+
+
+def stopped(url) -> bool:
+  """Whether the bucket of `url` gave no answer within a watchdog's deadline (within()) in this process."""
+  return is_url(url) and bucket_of(url) in _stopped
+
+
+def mark_stopped(url) -> None:
+  """Marks the bucket of `url` stopped (as within() does past its deadline): for one that failed, so that
+  the run's later calls to it give up at once."""
+  if is_url(url):
+    _stopped.add(bucket_of(url))
+
+
+def bound_clients(seconds: float) -> None:
+  """Sets every storage client's own bound on a request that gets no answer to `seconds` (the module's
+  docstring), for the clients made from now on; settings a user made (fsspec's configuration, tensorstore's
+  environment variables) are kept. Call it where a run starts, before its first bucket request."""
+  global GCS_TIMEOUT
+  GCS_TIMEOUT = float(seconds)
+  import fsspec.config
+  for scheme in ("gs", "gcs"):  # (gcsfs's protocols)
+    settings = fsspec.config.conf.setdefault(scheme, {})
+    if "requests_timeout" not in settings or f"fsspec:{scheme}" in _set_here:  # (a value of the user's is kept)
+      settings["requests_timeout"] = float(seconds)
+      _set_here.add(f"fsspec:{scheme}")
+  # tensorstore's curl transport: a request with no byte for this long fails (and is retried by its driver)
+  for name, value in (("TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", str(max(1, round(seconds)))),
+                      ("TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES", "1")):
+    if name not in os.environ or name in _set_here:  # (a value of the user's is kept)
+      os.environ[name] = value
+      _set_here.add(name)
+
+
+def gcs_timeout() -> float:
+  """google-cloud-storage's `timeout=` for one request (connect, then each read)."""
+  return GCS_TIMEOUT
+
+
+def gcs_retry():
+  """google-cloud-storage's `retry=`: its DEFAULT_RETRY, given up after GCS_TIMEOUT seconds in all."""
+  from google.cloud.storage.retry import DEFAULT_RETRY
+  return DEFAULT_RETRY.with_timeout(GCS_TIMEOUT)
+
+
+def gcs_retry_if_generation():
+  """google-cloud-storage's `retry=` for a write: gcs_retry(), where the request carries a generation
+  precondition (which makes a retry safe), as the library's own DEFAULT_RETRY_IF_GENERATION_SPECIFIED."""
+  from google.cloud.storage.retry import ConditionalRetryPolicy, is_generation_specified
+  return ConditionalRetryPolicy(gcs_retry(), is_generation_specified, ["query_params"])
+
+
+def within(url, seconds: float, work):
+  """work() for the storage of `url`, waited on for at most `seconds`; its result, or its exception. Past the
+  deadline: NoAnswer, the call left behind in a daemon thread (it may never return), and the bucket marked
+  stopped, so that later calls for it raise NoAnswer at once. A local path: work() as it is, unbounded (a
+  local disk answers, or fails)."""
+  if not is_url(url):
+    return work()
+  if stopped(url):
+    raise NoAnswer(url, 0.0)
+  outcome = {}
+  done = threading.Event()
+
+  def run():
+    try:
+      outcome["value"] = work()
+    except BaseException as e:  # noqa: BLE001 (handed to the waiting thread as it is)
+      outcome["error"] = e
+    finally:
+      done.set()
+
+  threading.Thread(target=run, name="nerfpod-storage-call", daemon=True).start()
+  if not done.wait(seconds):  # (a signal's handler still runs meanwhile: a SIGTERM is noted)
+    mark_stopped(url)
+    raise NoAnswer(url, seconds)
+  if "error" in outcome:
+    raise outcome["error"]
+  return outcome["value"]

@@ -248,5 +248,128 @@ class Emulator:
     self.filesystem().rm_file(f"{self.bucket}/{name}")
 
 
+class Proxy:
+  """A TCP forwarder on a free port of 127.0.0.1 in front of an emulator, that can stop answering: the storage
+  of a run that goes away mid-run (a partition, an outage) and comes back with its objects, which the emulator
+  keeps in memory meanwhile.
+
+      with gcs.Proxy(emulator) as proxy:   # proxy.env: the emulator's env, pointing at the proxy
+        proxy.silent_at(b"runs/a/checkpoints/10/")  # silent from the first request naming it (unquoted)
+        proxy.went_silent.wait()
+        proxy.forward()                    # new connections reach the emulator again
+
+  Silent: every connection, open or new, is read but never answered. A connection that went silent stays
+  silent (its client gives up on it and opens another); its side towards the emulator is shut, as the
+  emulator serves one connection at a time and would wait for the rest of a request cut off."""
+
+  def __init__(self, emulator: Emulator):
+    import socket
+    import threading
+    self.target = ("127.0.0.1", emulator.port)
+    self.listener = socket.create_server(("127.0.0.1", 0))
+    self.port = self.listener.getsockname()[1]
+    self.url = f"http://127.0.0.1:{self.port}"
+    self.env = dict(emulator.env, STORAGE_EMULATOR_HOST=self.url, TENSORSTORE_GCS_HTTP_URL=self.url)
+    self.went_silent = threading.Event()
+    self._marker = None
+    self.refusing = False
+    self._closed = False
+    self._sockets = []
+    threading.Thread(target=self._accept, daemon=True).start()
+
+  def silent(self) -> None:
+    self.went_silent.set()
+
+  def silent_at(self, marker: bytes) -> None:
+    """Goes silent at the first request whose bytes, unquoted (%2F -> /), hold `marker`: it is not answered,
+    nor is any request after it."""
+    self._marker = marker
+
+  def refuse(self) -> None:
+    """Refuses every connection from now on, and cuts the open ones: the emulator's process stopped."""
+    self.refusing = True
+    for sock in list(self._sockets):
+      try:
+        sock.shutdown(2)
+      except OSError:
+        pass
+
+  def forward(self) -> None:
+    self._marker = None
+    self.refusing = False
+    self.went_silent.clear()
+
+  def _accept(self) -> None:
+    import socket
+    import struct
+    import threading
+    while not self._closed:
+      try:
+        client, _ = self.listener.accept()
+      except OSError:
+        return
+      if self.refusing:
+        client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # a reset, at once
+        client.close()
+        continue
+      self._sockets.append(client)
+      upstream = None
+      if not self.went_silent.is_set():
+        try:
+          upstream = socket.create_connection(self.target)
+          self._sockets.append(upstream)
+        except OSError:
+          client.close()
+          continue
+      muted = threading.Event()  # this connection went silent: for good
+      threading.Thread(target=self._pump, args=(client, upstream, upstream, muted, True), daemon=True).start()
+      if upstream is not None:
+        threading.Thread(target=self._pump, args=(upstream, client, upstream, muted, False), daemon=True).start()
+
+  def _pump(self, source, sink, upstream, muted, asks: bool) -> None:
+    """Copies source to sink (`asks`: the client's side) until either closes; once the proxy is silent, drops
+    what comes instead, and shuts the connection's side towards the emulator."""
+    import socket
+    import urllib.parse
+    try:
+      while data := source.recv(65536):
+        if asks and self._marker is not None and self._marker in urllib.parse.unquote_to_bytes(data):
+          self.went_silent.set()
+        if self.went_silent.is_set() and not muted.is_set():
+          muted.set()
+          if upstream is not None:
+            try:
+              upstream.shutdown(socket.SHUT_RDWR)
+            except OSError:
+              pass
+        if muted.is_set():
+          if not asks:
+            return
+          continue
+        sink.sendall(data)
+    except OSError:
+      pass
+    if not muted.is_set() and sink is not None:
+      try:
+        sink.shutdown(socket.SHUT_WR)
+      except OSError:
+        pass
+
+  def __enter__(self):
+    return self
+
+  def __exit__(self, *exc):
+    self.close()
+
+  def close(self) -> None:
+    self._closed = True
+    self.listener.close()
+    for sock in self._sockets:
+      try:
+        sock.close()
+      except OSError:
+        pass
+
+
 if __name__ == "__main__":
   serve(int(sys.argv[1]), sys.argv[2])

@@ -9,8 +9,10 @@ Run as a script, this file is one such process: `python tests/procs.py <nerfpod.
 nerfpod.main and, when NERFPOD_TEST_RECORD is set to a folder, also records which rays the data pipeline
 loaded on this process (process_<index>.npz there), and when NERFPOD_TEST_STALL_AT_STEP is set to a step, stalls
 its data pipeline before that step's batch (a run that stops training there, to be killed at a known point,
-after the checkpoints before it); with NERFPOD_TEST_STAND_IN set it is a stand-in that
-only prints what it was given and does what that variable says (launcher tests, no JAX).
+after the checkpoints before it), and when NERFPOD_TEST_STEP_SECONDS is set to FROM:SECONDS, makes each batch
+from step FROM on take SECONDS longer (a run slow enough to be signalled between two checkpoints); with
+NERFPOD_TEST_STAND_IN set it is a stand-in that only prints what it was given and does what that variable says
+(launcher tests, no JAX).
 """
 import os
 import pathlib
@@ -60,7 +62,10 @@ def environment(devices_per_process: int, **extra: str) -> dict:
              JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   env["XLA_FLAGS"] = TEST_XLA_FLAGS  # none of the caller's (a host device count of its own, ...)
   for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID",
-               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES", "NERFPOD_TEST_STALL_AT_STEP"):
+               "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES", "NERFPOD_TEST_STALL_AT_STEP",
+               "NERFPOD_TEST_STEP_SECONDS",
+               # set by storage.bound_clients where the session itself ran a job: each process sets its own
+               "TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", "TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES"):
     env.pop(name, None)
   env.update(extra)
   return env
@@ -292,6 +297,19 @@ def _stall_at_step(stall: int) -> None:
   data.LocalRayBatch.map = map_or_stall
 
 
+def _slow_from_step(first: int, seconds: float) -> None:
+  """Makes the data pipeline take `seconds` longer for each batch from step `first` on."""
+  from nerfpod import data
+  original = data.LocalRayBatch.map
+
+  def map_slowly(self, step):
+    if int(step) >= first:
+      time.sleep(seconds)
+    return original(self, step)
+
+  data.LocalRayBatch.map = map_slowly
+
+
 def _cache_every_process() -> None:
   """Lets every process of a test run write JAX's persistent compilation cache, not only process 0.
 
@@ -336,6 +354,9 @@ if __name__ == "__main__":
     _record_loaded_rays(os.environ["NERFPOD_TEST_RECORD"])
   if os.environ.get("NERFPOD_TEST_STALL_AT_STEP"):
     _stall_at_step(int(os.environ["NERFPOD_TEST_STALL_AT_STEP"]))
+  if os.environ.get("NERFPOD_TEST_STEP_SECONDS"):
+    first, seconds = os.environ["NERFPOD_TEST_STEP_SECONDS"].split(":")
+    _slow_from_step(int(first), float(seconds))
   if os.environ.get("NERFPOD_TEST_COMPILES"):
     import compiles
     index = next((a.split("=", 1)[1] for a in sys.argv if a.startswith("--process_id=")), "0")

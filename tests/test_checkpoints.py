@@ -309,7 +309,8 @@ def test_the_reports_nerfpod_quiets_are_worded_as_the_pinned_orbax_words_them(tm
     assert any(message.startswith(text) for message in emitted), (text, emitted)
   checkpoints.quiet_library_reports()
   checkpoints.quiet_library_reports()  # a second call installs nothing twice
-  assert [type(f).__name__ for f in absl_log.filters] == ["_ReadOnlyIsAsked", "_DiskFullIsReported"]
+  assert [type(f).__name__ for f in absl_log.filters] == ["_ReadOnlyIsAsked", "_DiskFullIsReported",
+                                                          "_StorageFailureIsReported"]
   assert read_only_warnings() == ["a warning of another kind"]
 
 

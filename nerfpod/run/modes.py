@@ -19,7 +19,7 @@ import os
 
 import jax
 
-from nerfpod import monitor, schema
+from nerfpod import monitor, schema, storage
 from nerfpod.run import components, evaluate, orbit, train, trained
 from nerfpod.workdir import checkpoints, files as workdir_files, lock as workdir_lock
 from nerfpod.errors import UserError
@@ -40,6 +40,7 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
   done (the entry point exits with checkpoint.preempted_exit_code).
   """
   schema.validate(config, jax.device_count())
+  storage.bound_clients(config.checkpoint.storage_timeout_s)  # before the first request to a bucket
   new_workdir = "://" not in str(workdir) and not os.path.exists(workdir)
   workdir_files.check_workdir(workdir, writable=True)
   lock = _hold(workdir)
@@ -158,6 +159,7 @@ def _render_orbit(comps, params, workdir: str, step: int, writer=None) -> dict:
 def _from_newest_checkpoint(config, workdir: str, work):
   """work(components, params, workdir, step, writer=...) on workdir's newest checkpoint that reads back whole
   (nerfpod.run.trained, read-only); the writer goes on with the run's TensorBoard events and its W&B run."""
+  storage.bound_clients(config.checkpoint.storage_timeout_s)  # before the first request to a bucket
   restored = trained.restore(workdir, config)
   with _disk_full_is_one_sentence(workdir, training=False):
     writer = monitor.summary_writer(workdir, config)

@@ -170,7 +170,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   """
   config = comps.config
   tc = config.train
-  ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep)
+  ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
+                                 storage_timeout_s=config.checkpoint.storage_timeout_s)
   watch = preemption.Watch(ckpt.latest_step() or 0)
   profile = profiling.StepProfile(workdir, tc.profile_steps)
   try:

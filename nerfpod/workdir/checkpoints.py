@@ -19,6 +19,14 @@ Damage: a finished step that does not read back whole (a file emptied or deleted
 non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
 deleted), and the restore falls back to the newest step before it that reads back whole.
 
+A bucket that stops answering (or fails) mid-run: for a workdir in a bucket, what a training run waits on here
+(the opening of the checkpoints, the previous save when the next one is due, the last one at the end or at a
+preemption) is waited on for at most checkpoint.storage_timeout_s (nerfpod.storage.within); past it, or on a
+storage client's failure, the run stops with one storage.Stopped sentence naming the bucket, what failed and
+the newest committed checkpoint, the save under way left behind uncommitted. The arrays' tensorstore requests
+are retried TENSORSTORE_TRIES times at most (_BoundedRequests). A restore that the bucket fails is that
+sentence too, never a step set aside as damaged.
+
 When to stop for a preemption is nerfpod.run.preemption's; the workdir's other files are nerfpod.workdir's.
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
@@ -141,6 +149,54 @@ def _save_arrays_whole_on_one_cpu_process() -> None:
       absl_logger.setLevel(level)
 
 
+# tensorstore's gcs driver retries a request up to 32 times, waiting up to 32 s between tries: nerfpod's
+# arrays' requests are tried TENSORSTORE_TRIES times, at most checkpoint.storage_timeout_s apart (each try ends
+# after that long without a byte: storage.bound_clients), as gcsfs tries its own.
+TENSORSTORE_TRIES = 6
+
+
+class _BoundedRequests(ocp.type_handlers.ArrayHandler):
+  """orbax's ArrayHandler whose arrays' tensorstore requests are retried TENSORSTORE_TRIES times at most
+  (tensorstore's `gcs_request_retries` context resource, in a context whose parent is orbax's own, so that
+  its other resources stay shared)."""
+
+  def __init__(self, storage_timeout_s: float, **kwargs):
+    super().__init__(**kwargs)
+    self._retries = {"gcs_request_retries": {"max_retries": TENSORSTORE_TRIES - 1, "initial_delay": "1s",
+                                             "max_delay": f"{min(32.0, storage_timeout_s):g}s"}}
+
+  def _bounded(self, infos):
+    import tensorstore as ts
+    children = {}
+    for info in infos:
+      parent = info.ts_context
+      if parent is not None:
+        if id(parent) not in children:
+          children[id(parent)] = ts.Context(ts.Context.Spec(self._retries), parent=parent)
+        info.ts_context = children[id(parent)]
+    return infos
+
+  async def serialize(self, values, infos, args=None):
+    return await super().serialize(values, self._bounded(infos), args)
+
+  async def deserialize(self, infos, args=None):
+    return await super().deserialize(self._bounded(infos), args)
+
+
+def _bound_tensorstore_requests(storage_timeout_s: float) -> None:
+  """Registers _BoundedRequests for jax.Array (as _save_arrays_whole_on_one_cpu_process's handler: whole
+  arrays on one CPU process, replica-parallel elsewhere). For a training run whose workdir is in a bucket."""
+  absl_logger = logging.getLogger("absl")
+  level = absl_logger.level
+  absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
+  try:
+    whole = jax.process_count() == 1 and jax.default_backend() == "cpu"
+    handler = _BoundedRequests(storage_timeout_s, use_replica_parallel=False if whole else None)
+    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
+  finally:
+    absl_logger.setLevel(level)
+
+
 @dataclasses.dataclass
 class _Pinned:
   """Orbax's preservation policy for the steps in `steps` (a set the owner changes): kept past max_to_keep."""
@@ -155,11 +211,17 @@ class Checkpoints:
   """One orbax CheckpointManager for a workdir: items 'state' (a pytree) and 'data' (JSON position). Use as a
   context manager, or call close()."""
 
-  def __init__(self, workdir: str, every_steps: int, max_to_keep: int, read_only: bool = False):
+  def __init__(self, workdir: str, every_steps: int, max_to_keep: int, read_only: bool = False,
+               storage_timeout_s: float | None = None):
     """`read_only` (evaluation, rendering, the viewer): never writes, deletes or cleans anything in the
-    workdir, which a training run may be writing at the same time."""
+    workdir, which a training run may be writing at the same time. `storage_timeout_s` (a training run's
+    checkpoint.storage_timeout_s): for a workdir in a bucket, how long the run waits on a save (or on opening
+    the manager) before it stops with one sentence (storage.Stopped); None: as long as it takes."""
     cm = ocp.checkpoint_managers
     self._closed = False
+    self._workdir = str(workdir)
+    self._timeout = storage_timeout_s if storage.is_url(workdir) else None
+    self._saving = None  # the step of the save under way, not known to be committed yet
     self._pinned = set()
     # The newest max_to_keep steps, and any step pinned (the last one before a run of skipped steps).
     keep = None if read_only else cm.AnyPreservationPolicy([cm.LatestN(max_to_keep), _Pinned(self._pinned)])
@@ -175,9 +237,16 @@ class Checkpoints:
     self._read_only = read_only
     self._every_steps = every_steps
     _save_arrays_whole_on_one_cpu_process()
-    self.manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
-    if not read_only:
-      self._delete_rotated()
+    if self._timeout is not None:
+      _bound_tensorstore_requests(self._timeout)
+    def open_manager():
+      manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
+      if not read_only:
+        self._delete_rotated()
+      return manager
+    self._committed = None  # (what a stopped storage's sentence names; known once the manager lists the steps)
+    self.manager = self._bounded("opening the checkpoints", open_manager)
+    self._committed = self.manager.latest_step()  # the newest committed step
 
   def _delete_rotated(self) -> None:
     """Deletes the steps rotated out into .rotated/ (process 0): what orbax renamed there is whole or gone."""
@@ -216,8 +285,9 @@ class Checkpoints:
     The placement comes from `abstract_state`'s shardings, i.e. this run's mesh, whatever mesh wrote the
     checkpoint: a run can come back on another number of hosts or devices. Without `step` (a training run
     resuming), a newest step that does not read back whole (missing or emptied files, non-finite values) is
-    set aside into checkpoints_damaged/ with one line saying so, and the step before it is tried. Readers
-    that must not write go through restore_newest instead.
+    set aside into checkpoints_damaged/ with one line saying so, and the step before it is tried; a bucket
+    that fails meanwhile (storage_failure) is one storage.Stopped sentence instead, the step left as it is.
+    Readers that must not write go through restore_newest instead.
     """
     if step is not None:
       return self._restore_step(abstract_state, step)
@@ -230,6 +300,11 @@ class Checkpoints:
         raise
       except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
         reason = damage_reason(e)
+        if self._timeout is not None and storage_failure(e):  # the bucket failed, not the step: kept as it is
+          storage.mark_stopped(self._workdir)
+          raise storage.Stopped(f"the bucket {storage.bucket_of(self._workdir)} failed while reading the "
+                                f"checkpoint of step {candidate} ({reason}); it is left as it is: rerun the same "
+                                f"command once storage is back.") from None
         damaged.append(f"step {candidate}: {reason}")
         where = self._set_aside(candidate)
         if jax.process_index() == 0:
@@ -286,7 +361,6 @@ class Checkpoints:
       return False
     if not (force or self.manager.should_save(step)):
       return False
-    self._delete_rotated()  # what the previous save rotated out
     # The step never lets a non-finite value into the state (it skips such updates); this is the last line
     # of defence, as a saved NaN would rotate the good checkpoints out.
     if not bool(all_finite(state)):
@@ -294,18 +368,62 @@ class Checkpoints:
         print(f"nerfpod: warning: the train state at step {step} holds non-finite values; not saving it",
               file=sys.stderr, flush=True)
       return False
-    return self.manager.save(step, args=ocp.args.Composite(
-        state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_position)), force=force)
+    self._finish_save()  # (orbax's save would wait for it too, unbounded)
+
+    def start():
+      self._delete_rotated()  # what the previous save rotated out
+      return self.manager.save(step, args=ocp.args.Composite(
+          state=ocp.args.StandardSave(state), data=ocp.args.JsonSave(data_position)), force=force)
+    started = self._bounded(f"saving the checkpoint of step {step}", start)
+    if started:
+      self._saving = step
+    return started
+
+  def _finish_save(self) -> None:
+    """Waits for the save under way, if any, to be committed (bounded: _bounded)."""
+    if self._saving is not None:
+      self._bounded(f"saving the checkpoint of step {self._saving}", self.manager.wait_until_finished)
+      self._committed, self._saving = self._saving, None
+
+  def _bounded(self, doing: str, work):
+    """work() (a part of `doing`, in words: "saving the checkpoint of step 20"). For a workdir in a bucket,
+    waited on for at most storage_timeout_s (storage.within); a bucket that gives no answer in that time, or
+    fails (storage_failure: an error of another kind is raised as it is), is one storage.Stopped sentence
+    naming it, what failed and the newest committed checkpoint."""
+    if self._timeout is None:
+      return work()
+    bucket = storage.bucket_of(self._workdir)
+    try:
+      return storage.within(self._workdir, self._timeout, work)
+    except storage.NoAnswer:
+      what = f"stopped answering while {doing} (no answer in {self._timeout:g} s)"
+    except UserError:
+      raise
+    except Exception as e:  # noqa: BLE001 (whatever orbax, tensorstore or gcsfs raise when storage fails)
+      if not storage_failure(e):
+        raise
+      what = f"failed while {doing} ({damage_reason(e)})"
+      storage.mark_stopped(self._workdir)  # (the run stops on it: its other calls there give up at once)
+    newest = (f"the newest committed checkpoint is step {self._committed}: rerun the same command once storage "
+              f"is back (it resumes from there)" if self._committed is not None else
+              "no checkpoint had been committed yet: rerun the same command once storage is back")
+    raise storage.Stopped(f"the bucket {bucket} {what}; {newest}.")
 
   def close(self) -> None:
-    """Waits for the last save to be complete on disk. Once."""
+    """Waits for the last save to be complete on disk (bounded for a bucket: _bounded). Once. Where the
+    bucket stopped answering, waits for nothing (what was under way is left behind, never committed)."""
     if self._closed:
       return
     self._closed = True
-    self.manager.wait_until_finished()
-    self.manager.close()
-    if not self._read_only:
-      self._delete_rotated()
+    if storage.stopped(self._workdir):
+      return
+    self._finish_save()
+
+    def finish():
+      self.manager.close()
+      if not self._read_only:
+        self._delete_rotated()
+    self._bounded("closing the checkpoints", finish)
 
 
 def restore_newest(workdir: str, abstract_state, above: int = -1,
@@ -350,6 +468,47 @@ def damage_reason(error: BaseException) -> str:
   while error.__cause__ is not None:
     error = error.__cause__
   return " ".join(str(error).split())[:300] or type(error).__name__
+
+
+class _StorageFailureIsReported(logging.Filter):
+  """Drops the error logs, each with its traceback, of orbax's save threads and of gcsfs's retries whose error
+  is a storage client's failure to reach or hear from its service (a connection refused, reset or timed out,
+  an HTTP error, a tensorstore request given up): the error itself reaches the caller, and a run whose bucket
+  fails says so in one sentence (Checkpoints._bounded; storage._call for what a scene reads)."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not (record.levelno >= logging.ERROR and record.exc_info and storage_failure(record.exc_info[1]))
+
+
+# tensorstore's status codes of a request that did not get through (an error raised in its C++ code begins
+# with its code).
+_UNREACHED_CODES = ("UNAVAILABLE", "DEADLINE_EXCEEDED", "ABORTED", "UNAUTHENTICATED", "PERMISSION_DENIED")
+
+
+def _storage_error_types() -> tuple:
+  """The exception types of the storage clients' failures to reach or hear from their services."""
+  kinds = [ConnectionError, TimeoutError]
+  for module, names in (("aiohttp", ("ClientError",)), ("requests.exceptions", ("RequestException",)),
+                        ("google.api_core.exceptions", ("GoogleAPIError",)),
+                        ("google.auth.exceptions", ("TransportError", "RefreshError")),
+                        ("gcsfs.retry", ("HttpError",)), ("fsspec.exceptions", ("FSTimeoutError",))):
+    found = sys.modules.get(module)  # (a client not imported raised nothing)
+    kinds += [getattr(found, name) for name in names if found is not None and hasattr(found, name)]
+  return tuple(kinds)
+
+
+def storage_failure(error: BaseException | None) -> bool:
+  """Whether `error`, or an error it was raised from, is a storage client's failure to reach or hear from its
+  service (_StorageFailureIsReported)."""
+  kinds = _storage_error_types()
+  seen = set()
+  while error is not None and id(error) not in seen:
+    seen.add(id(error))
+    if isinstance(error, kinds) or (isinstance(error, ValueError)
+                                     and str(error).split(":", 1)[0] in _UNREACHED_CODES):
+      return True
+    error = error.__cause__ or error.__context__
+  return False
 
 
 class _AbandonedReadTasks(logging.Filter):
@@ -400,17 +559,22 @@ def _raised_in_orbax(error) -> bool:
 
 
 def quiet_library_reports() -> None:
-  """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output:
-  a read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a
-  save that failed on a full disk (the run says it in one sentence: _DiskFullIsReported) and the reads orbax
-  abandons when a restore fails (quiet_abandoned_reads). Each filter drops only those; every other report
-  passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
+  """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output: a
+  read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a save that
+  failed on a full disk (the run says it in one sentence: _DiskFullIsReported), those of orbax's save threads and
+  gcsfs's retries on storage that failed (_StorageFailureIsReported: the run says it in one sentence) and the
+  reads orbax abandons when a restore fails (quiet_abandoned_reads). Each filter drops only those; every other
+  report passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
   again changes nothing. The texts matched are pinned to the library versions that emit them by
   tests/test_checkpoints.py."""
   absl_log = logging.getLogger("absl")
-  for quiet in (_ReadOnlyIsAsked, _DiskFullIsReported):
+  for quiet in (_ReadOnlyIsAsked, _DiskFullIsReported, _StorageFailureIsReported):
     if not any(isinstance(f, quiet) for f in absl_log.filters):
       absl_log.addFilter(quiet())
+  for name in ("gcsfs", "fsspec"):  # (their loggers' records reach the root's handler, absl's, without absl's)
+    client_log = logging.getLogger(name)
+    if not any(isinstance(f, _StorageFailureIsReported) for f in client_log.filters):
+      client_log.addFilter(_StorageFailureIsReported())
   sys.unraisablehook = quiet_abandoned_reads(sys.unraisablehook)
 
 

@@ -435,6 +435,8 @@ class WorkdirLock:
       return
     self._held = False
     self._stop.set()
+    if storage.stopped(self.workdir):  # (the run stops on it with one sentence; its lease runs out)
+      return
     if self._thread is not None:
       self._thread.join()
     try:
