@@ -140,12 +140,13 @@ def _declare(table: dict) -> dict[str, Field]:
 # `python -m nerfpod.schema` prints them all.
 FIELDS: dict[str, Field] = _declare({
     "data.kind": ("procedural", choice(*scenes.KINDS),
-        "scene format: 'procedural' (built in), 'tiny' (npz), 'blender' (folder), captures 'llff', 'colmap', "
+        "scene format: 'procedural' and 'street' (built in), 'tiny' (npz), 'blender' (folder), captures 'llff', 'colmap', "
         "'nerfstudio', or 'auto' (told by data.path's files)"),
-    "data.path": ("", text(), "the npz file or scene folder; unused by the procedural scene"),
+    "data.path": ("", text(), "the npz file or scene folder; unused by the built-in scenes"),
     "data.downscale": (1, integer(1),
         "integer factor the images are shrunk by (captures: images_N/ where it exists)"),
-    "data.image_size": (100, integer(2, example=100), "procedural scene: width and height of its images, pixels"),
+    "data.image_size": (100, integer(2, example=100),
+        "the built-in scenes (procedural, street): width and height of their images, pixels"),
     "data.pixel_center": (0.5, number(0.0, 1.0, example=0.5),
         "where in its pixel a ray passes: 0.5 centre, 0.0 corner (original code)"),
     "data.llffhold": (8, integer(2, example=8),
@@ -364,7 +365,7 @@ def describe() -> str:
 def _rules(c: dict) -> list[str]:
   """Mistakes between fields (each field alone being valid)."""
   out = []
-  if c["data.kind"] != "procedural" and not c["data.path"]:
+  if c["data.kind"] in scenes.LOADERS and scenes.LOADERS[c["data.kind"]].needs_path and not c["data.path"]:
     out.append(f"data.kind={c['data.kind']} reads its scene from data.path, which is empty: pass "
                f"--config.data.path=FILE_OR_FOLDER.")
   if c["data.kind"] == "tiny" and c["data.downscale"] != 1:

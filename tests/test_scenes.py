@@ -9,7 +9,7 @@ from conftest import LEGO, TINY_NPZ, require
 from nerfpod import scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras
-from nerfpod.scenes import blender, procedural, tiny
+from nerfpod.scenes import blender, procedural, street, tiny
 
 
 def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
@@ -36,6 +36,37 @@ def test_procedural_ray_tracing_is_exact_for_a_ray_onto_the_sphere_top():
   np.testing.assert_allclose(colour, np.array([0.85, 0.2, 0.15]) * shade, rtol=1e-6)
   miss = procedural.trace(np.array([[5.0, 5.0, 5.0]]), np.array([[0.0, 0.0, 1.0]]))[0]
   np.testing.assert_array_equal(miss, 1.0)
+
+
+def test_street_scene_is_deterministic_with_its_cameras_along_the_street_inside_the_box():
+  a, b = street.make(image_size=16, num_train=12), street.make(image_size=16, num_train=12)
+  for name, n in (("train", 12), ("val", 8), ("test", 8)):
+    np.testing.assert_array_equal(a.splits[name].images, b.splits[name].images)
+    assert a.splits[name].images.shape == (n, 16, 16, 3)
+  assert (a.near, a.far, a.kind) == (street.NEAR, street.FAR, "street")
+  eyes = np.concatenate([a.splits[name].poses[:, :3, 3] for name in a.splits])
+  assert (np.abs(eyes[:, 0]) <= street.LENGTH / 2).all() and (np.abs(eyes[:, 1]) <= 1.0).all()
+  assert ((eyes[:, 2] >= 0.8) & (eyes[:, 2] <= 1.6)).all()  # eye height, under the roofs
+  # The cameras span the street: many times their spacing, which is what regions are cut along.
+  xs = np.sort(street.make(image_size=4).splits["train"].poses[:, 0, 3])
+  assert xs[-1] - xs[0] > 12.0 and np.median(np.diff(xs)) < 0.2
+  alphas = np.asarray(a.splits["train"].alphas) / 255.0  # (kept as uint8)
+  assert 0.3 < alphas.mean() < 0.9  # buildings and ground, and sky
+  assert not np.allclose(a.splits["train"].poses[:8], a.splits["test"].poses)  # held out is new
+
+
+def test_street_ray_tracing_is_exact_for_the_road_and_the_sky():
+  # Straight down onto the road at (0.1, 0.1): the dark check of 0.25 (floor sum even -> light; here 0 + 0),
+  # lit from above; straight up from the road: sky.
+  down = street.trace(np.array([[0.1, 0.1, 2.0]]), np.array([[0.0, 0.0, -1.0]]), return_alpha=True)
+  shade = procedural._AMBIENT + (1 - procedural._AMBIENT) * procedural._LIGHT[2]
+  np.testing.assert_allclose(down[0][0], np.array([0.42, 0.42, 0.45]) * shade, rtol=1e-6)
+  assert down[1][0] == 1.0
+  other = street.trace(np.array([[0.35, 0.1, 2.0]]), np.array([[0.0, 0.0, -1.0]]))[0]
+  np.testing.assert_allclose(other, np.array([0.25, 0.25, 0.28]) * shade, rtol=1e-6)
+  up = street.trace(np.array([[0.1, 0.1, 0.5]]), np.array([[0.0, 0.0, 1.0]]), return_alpha=True)
+  np.testing.assert_array_equal(up[0][0], 1.0)
+  assert up[1][0] == 0.0
 
 
 def test_tiny_nerf_loader_on_the_real_file():
@@ -157,8 +188,8 @@ def test_every_loader_has_the_one_signature_and_a_new_format_is_one_table_entry(
     assert len(parameters) == 3 and parameters[1:] == ["data_config", "shards"], (kind, parameters)
   assert scenes.KINDS == tuple(scenes.LOADERS) + ("auto",)
   assert scenes.CAPTURE_KINDS == ("llff", "colmap", "nerfstudio")
-  assert scenes.HAS_ALPHA == {"procedural": True, "tiny": False, "blender": True, "llff": False, "colmap": False,
-                              "nerfstudio": False}
+  assert scenes.HAS_ALPHA == {"procedural": True, "street": True, "tiny": False, "blender": True, "llff": False,
+                              "colmap": False, "nerfstudio": False}
   # A format nerfpod has never seen: its module and one LOADERS entry, and scenes.load reads it.
   made = procedural.make(image_size=8, num_train=3, num_val=1, num_test=1)
   fake = types.ModuleType("nerfpod.scenes.pretend")

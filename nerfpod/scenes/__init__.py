@@ -2,6 +2,7 @@
 
     base        the one Scene type (splits of images, per-frame cameras, bounds, space), shards per host
     procedural  the built-in scene (no download)
+    street      the built-in large scene: a street with its cameras along it (model.regions)
     tiny        the Tiny NeRF npz
     blender     the NeRF synthetic scenes (transforms_{train,val,test}.json)
     capture     what real captures share: normalised poses, bounds, the held-out frames
@@ -39,6 +40,7 @@ class Loader:
 # data.kind -> its loader: adding a format is an entry here and its module (docs/architecture.md).
 LOADERS = {
     "procedural": Loader("procedural", has_alpha=True, in_memory=True, needs_path=False),
+    "street": Loader("street", has_alpha=True, in_memory=True, needs_path=False),
     "tiny": Loader("tiny", in_memory=True),
     "blender": Loader("blender", has_alpha=True),
     "llff": Loader("llff", capture=True),

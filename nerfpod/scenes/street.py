@@ -1,0 +1,144 @@
+"""The built-in large scene: a street of textured buildings, trees and lamps, ray-traced exactly, with the
+cameras along it, for fields bigger than one chip (model.regions, docs/scale.md#scenes-bigger-than-one-chip).
+
+The street runs along x over [-LENGTH / 2, LENGTH / 2] (14 units, about 120 spacings of its training
+cameras): a checkered road and pavements (z = 0), a row of buildings on each side (|y| from 2 to 3, 0.9 to 2.6
+high, facades with windows), trees (a sphere on a trunk) and lamp posts between them. Every surface has
+detail at several scales (the road's checks of 0.25, the windows' 0.33 x 0.4, each building its own colour),
+so that a field sized for one CPU device is short of capacity over the whole street, and one per region of
+it is not. Lambertian shading under one directional light plus ambient light, on a white sky, as the
+procedural scene (nerfpod/scenes/procedural.py, whose ray-solid intersections this reuses).
+
+Cameras stand at eye height (0.8 to 1.6) anywhere along the street, each looking at a point of a facade or
+down the street a few units away; the training, validation and test cameras are drawn from the same
+distribution with different seeds, so every held-out view is a new view of a part of the street the training
+views saw. Everything comes from fixed seeds: the same arguments always give the same pixels.
+"""
+import numpy as np
+
+from nerfpod.nerf.cameras import Intrinsics, image_rays, look_at
+from nerfpod.scenes.base import Scene, Split
+from nerfpod.scenes.procedural import _AMBIENT, _LIGHT, _box, _cylinder, _sphere
+
+LENGTH = 14.0         # the street's length along x
+HALF_WIDTH = 3.5      # the ground's half width along y
+FIELD_OF_VIEW = 1.0   # horizontal, radians (57 degrees: a phone's main camera)
+NEAR, FAR = 0.05, 16.0
+_LAYOUT_SEED = 7
+
+
+def _checker(points, size, dark, light):
+  """Alternating colours in squares of `size` on the ground plane."""
+  cells = np.floor(points[..., 0] / size) + np.floor(points[..., 1] / size)
+  odd = (cells.astype(np.int64) % 2)[..., None]
+  return np.where(odd == 1, np.asarray(dark), np.asarray(light))
+
+
+def _facade(colour):
+  """A building's albedo: its colour, with dark windows in rows and columns over its walls."""
+  colour = np.asarray(colour, np.float64)
+
+  def albedo(points):
+    along = points[..., 0] + points[..., 1]  # walls facing the street or its cross streets
+    window = (np.mod(along * 3.0, 1.0) > 0.35) & (np.mod(points[..., 2] * 2.5, 1.0) > 0.4) & (points[..., 2] > 0.3)
+    return np.where(window[..., None], np.array([0.12, 0.16, 0.25]), colour)
+  return albedo
+
+
+def _uniform(colour):
+  colour = np.asarray(colour, np.float64)
+  return lambda points: np.broadcast_to(colour, points.shape)
+
+
+def _objects():
+  """(intersect function, albedo function of the hit points) of every solid of the street."""
+  rng = np.random.default_rng(_LAYOUT_SEED)
+  half = LENGTH / 2
+  objects = [
+      # the road (|y| < 1.2) and the pavements, one slab whose top is the ground
+      (lambda o, d: _box(o, d, np.array([-half - 0.5, -HALF_WIDTH, -0.1]), np.array([half + 0.5, HALF_WIDTH, 0.0])),
+       lambda p: np.where((np.abs(p[..., 1]) < 1.2)[..., None],
+                          _checker(p, 0.25, (0.25, 0.25, 0.28), (0.42, 0.42, 0.45)),
+                          _checker(p, 0.5, (0.72, 0.66, 0.55), (0.82, 0.78, 0.68)))),
+  ]
+  for side in (-1.0, 1.0):
+    x = -half
+    while x < half:
+      width = rng.uniform(0.9, 1.8)
+      height = rng.uniform(0.9, 2.6)
+      lo = np.array([x, 2.0 if side > 0 else -3.0, 0.0])
+      hi = np.array([min(x + width, half), 3.0 if side > 0 else -2.0, height])
+      colour = rng.uniform(0.35, 0.95, 3)
+      objects.append((lambda o, d, lo=lo, hi=hi: _box(o, d, lo, hi), _facade(colour)))
+      x += width + rng.uniform(0.05, 0.4)  # a gap or a narrow lane between buildings
+    for x in np.arange(-half + 0.8, half, 1.6) + rng.uniform(-0.2, 0.2):
+      y = 1.5 * side
+      if rng.uniform() < 0.6:  # a tree: a trunk and a crown
+        crown = np.array([x, y, rng.uniform(0.9, 1.2)])
+        radius = rng.uniform(0.3, 0.45)
+        objects.append((lambda o, d, c=crown, r=radius: _sphere(o, d, c, r),
+                        _uniform(rng.uniform([0.1, 0.4, 0.1], [0.3, 0.7, 0.25]))))
+        objects.append((lambda o, d, x=x, y=y, top=crown[2]: _cylinder(o, d, (x, y), 0.06, 0.0, top),
+                        _uniform((0.4, 0.28, 0.18))))
+      else:  # a lamp post with its lamp
+        objects.append((lambda o, d, x=x, y=y: _cylinder(o, d, (x, y), 0.04, 0.0, 1.5), _uniform((0.2, 0.2, 0.22))))
+        objects.append((lambda o, d, x=x, y=y: _sphere(o, d, np.array([x, y, 1.55]), 0.1),
+                        _uniform((0.95, 0.85, 0.4))))
+  return objects
+
+
+def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
+  """Exact colours of rays (..., 3): the nearest surface's shaded albedo, or the background (the sky); with
+  return_alpha also whether each ray hits a surface (1.0) or not (0.0)."""
+  o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+  best_t = np.full(o.shape[:-1], np.inf)
+  colour = np.broadcast_to(np.asarray(background, np.float64), o.shape).copy()
+  for intersect, albedo in _objects():
+    with np.errstate(invalid="ignore"):
+      t, normal = intersect(o, d)
+    closer = t < best_t
+    if not closer.any():
+      continue
+    normal = np.where(closer[..., None], normal, 0.0)
+    shade = _AMBIENT + (1 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, 1.0)
+    points = o + np.where(closer, t, 0.0)[..., None] * d
+    colour = np.where(closer[..., None], albedo(points) * shade[..., None], colour)
+    best_t = np.where(closer, t, best_t)
+  if return_alpha:
+    return colour.astype(np.float32), np.isfinite(best_t).astype(np.float32)
+  return colour.astype(np.float32)
+
+
+def street_poses(n: int, seed: int) -> np.ndarray:
+  """n camera-to-world poses at eye height along the street, each looking at a facade or down the street."""
+  rng = np.random.default_rng(seed)
+  half = LENGTH / 2
+  poses = []
+  for _ in range(n):
+    eye = np.array([rng.uniform(-half + 0.5, half - 0.5), rng.uniform(-1.0, 1.0), rng.uniform(0.8, 1.6)])
+    if rng.uniform() < 0.7:  # a facade, a little ahead or behind
+      target = np.array([eye[0] + rng.uniform(-1.5, 1.5), rng.choice([-2.0, 2.0]), rng.uniform(0.6, 1.6)])
+    else:  # down the street
+      target = np.array([eye[0] + rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 5.0), rng.uniform(-0.8, 0.8),
+                         rng.uniform(0.4, 1.2)])
+    poses.append(look_at(eye, target))
+  return np.stack(poses).astype(np.float32)
+
+
+def load(path: str, data_config, shards=None) -> Scene:
+  """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file."""
+  return make(data_config.image_size, pixel_center=data_config.pixel_center)
+
+
+def make(image_size: int = 64, num_train: int = 120, num_val: int = 8, num_test: int = 8,
+         pixel_center: float = 0.5) -> Scene:
+  """The street scene (module docstring)."""
+  focal = 0.5 * image_size / np.tan(0.5 * FIELD_OF_VIEW)
+  intr = Intrinsics.from_focal(image_size, image_size, focal)
+  splits = {}
+  for seed, (name, n) in enumerate((("train", num_train), ("val", num_val), ("test", num_test))):
+    poses = street_poses(n, seed=100 + seed)
+    traced = [trace(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
+    images, alphas = np.stack([r[0] for r in traced]), np.stack([r[1] for r in traced])
+    splits[name] = Split.from_images(images, poses, intr, [f"{name}_{i}" for i in range(n)], alphas=alphas)
+  return Scene("street", splits, near=NEAR, far=FAR, background=(1.0, 1.0, 1.0), kind="street")
