@@ -1,0 +1,122 @@
+"""A model of K regions (model.regions, NeRF-XL) in the model, on the mesh and in the train step: each device
+renders its regions, partial sums are gathered over the region axis; the same loss, gradients and parameters as
+the whole model on one device."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import Mesh
+
+from conftest import smoke_config
+from nerfpod import data, distributed, scenes
+from nerfpod.errors import UserError
+from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import regions
+from nerfpod.run import step, train_state
+
+
+def _config(**overrides):
+  tiny = {"model.regions": 4, "model.hashgrid.num_levels": 2, "model.hashgrid.log2_table_size": 6,
+          "model.hashgrid.max_resolution": 32, "model.hashgrid.hidden_width": 8,
+          "model.proposal.num_levels": 2, "model.proposal.log2_table_size": 6, "model.proposal.max_resolution": 32,
+          "model.proposal.hidden_width": 8, "render.proposal_samples": (8,), "render.num_samples": 6,
+          "train.batch_size": 64, "train.distortion_weight": 0.01, "model.hashgrid.bound": 1.5}
+  return smoke_config(**(tiny | overrides))
+
+
+def _rays(count=64, seed=0):
+  rng = np.random.default_rng(seed)
+  origins = rng.normal(size=(count, 3)) * 0.3 + np.array([0.0, 0.0, 4.0])
+  directions = np.array([0.0, 0.0, -1.0]) + 0.3 * rng.normal(size=(count, 3))
+  return jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32)
+
+
+def test_regions_one_is_the_one_field_model():
+  model = nerf_model.from_config(_config(**{"model.regions": 1}))
+  assert model.regions == 1 and model.region_planes == ()  # NeRF's defaults: the model it always was
+
+
+def test_each_device_share_of_the_regions_composites_to_the_whole_model():
+  """The model's own rendering of all K regions equals rendering the regions in two halves, each with its half
+  of the stacked parameters only (a device's share), composited after."""
+  model = nerf_model.from_config(_config())
+  origins, directions = _rays()
+  params = model.init(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
+  stacked = params["params"]["regions"]
+  assert all(leaf.shape[0] == 4 for leaf in jax.tree.leaves(stacked))
+  whole = model.apply(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
+  halves = []
+  for ids in (jnp.arange(2), jnp.arange(2, 4)):
+    share = {"params": {"regions": jax.tree.map(lambda p: p[ids], stacked)}}
+    halves.append(model.apply(share, origins, directions, 2.0, 6.0, ids, method="render_partials")[0])
+  partials = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), *halves)
+  out = regions.composite_regions(partials, jnp.ones(3))
+  for key in ("rgb", "depth", "acc"):
+    np.testing.assert_allclose(out[key], whole[key], rtol=1e-6, atol=1e-7)
+  assert float(jnp.std(whole["rgb"])) > 0  # rays saw the fields
+
+
+def _batches(config, steps):
+  scene = scenes.load(config.data)
+  dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
+                             slice(0, config.train.batch_size), 0.5, steps)
+  out = []
+  for i in range(steps):
+    batch = dict(dataset[i])
+    batch.pop("step")
+    out.append(batch)
+  return scene, out
+
+
+def _run(mesh, config, steps, optimizer):
+  model = nerf_model.from_config(config)
+  scene, batches = _batches(config, steps)
+  state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+                                 step.Options(random_background=True, distortion_weight=0.01))
+  metrics_all = []
+  for batch in batches:
+    state, metrics = step_fn(state, jax.device_put(batch, distributed.batch_sharding(mesh)), jax.random.key(7))
+    metrics_all.append(jax.device_get(metrics))
+  return state, metrics_all
+
+
+def test_the_mesh_gains_a_region_axis_and_refuses_what_does_not_split():
+  mesh = distributed.make_mesh(regions=4)
+  assert mesh.axis_names == ("data", "region") and mesh.devices.shape == (2, 4)
+  assert distributed.batch_axes(mesh) == "data" and distributed.batch_devices(mesh) == 2
+  assert distributed.make_mesh(num_slices=2, regions=2).devices.shape == (2, 2, 2)
+  assert distributed.make_mesh(regions=1).axis_names == ("data",)
+  with pytest.raises(UserError, match="model.regions=3 does not split over the 8 devices"):
+    distributed.make_mesh(regions=3)
+  with pytest.raises(UserError, match="model.regions=8 does not split over the 4 devices of a slice"):
+    distributed.make_mesh(num_slices=2, regions=8)
+  assert distributed.local_slice(64, mesh) == slice(0, 64)
+
+
+@pytest.mark.parametrize("shape", [(2, 4), (4, 2)])
+def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
+  """Loss, metrics and parameters after two steps (plain SGD: parameters move exactly as the gradients) on
+  8 devices, (data, region) = `shape`, equal the whole model's on one device, which holds every region and
+  needs no gather: its gradients are plain autodiff of the stitched model's loss. A gradient K times too large
+  (the gather's transpose summing every region device's cotangent) would show at once."""
+  config = _config(**{"model.regions": 4})
+  sgd = optax.sgd(1.0)
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  mesh = Mesh(np.array(jax.devices()).reshape(shape), (distributed.DATA_AXIS, distributed.REGION_AXIS))
+  state_1, metrics_1 = _run(one, config, 2, sgd)
+  state_8, metrics_8 = _run(mesh, config, 2, sgd)
+  for m1, m8 in zip(metrics_1, metrics_8):
+    for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
+      np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
+  assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
+  params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
+  moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1,
+                       jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params))
+  assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
+  # Each device holds its regions' fields only: 1/K (shape (2, 4)) or 2/K of them.
+  leaf = state_8.params["params"]["regions"]["coarse"]["rgb"]["kernel"]
+  assert leaf.sharding.spec == jax.sharding.PartitionSpec(distributed.REGION_AXIS)
+  assert leaf.addressable_shards[0].data.shape[0] == 4 // shape[1]
