@@ -195,6 +195,17 @@ def num_regions(mesh: Mesh) -> int:
   return mesh.shape.get(REGION_AXIS, 1)
 
 
+def gather_regions(tree):
+  """Inside shard_map: each device's (L, ...) leaves -> the (L x region axis, ...) leaves of every device of
+  the region axis, in the axis' order, formally the same on all of them (invariant). Its transpose hands each
+  device the slice of the cotangent that is its own, with no communication; jax.lax.all_gather's result would
+  vary over the axis instead, and its transpose (a reduce-scatter) would sum every device's cotangent: the
+  gradients of a loss that every device of the axis computes alike would come out (axis size) times too
+  large."""
+  from jax._src.lax.parallel import all_gather_invariant  # no public name in JAX 0.10 (jax.lax has none)
+  return jax.tree.map(lambda x: all_gather_invariant(x, REGION_AXIS, axis=0, tiled=True), tree)
+
+
 def batch_spec(mesh: Mesh) -> P:
   """The PartitionSpec of a batch's leading axis split over every device of `mesh`."""
   return P(batch_axes(mesh))

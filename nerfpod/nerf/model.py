@@ -10,6 +10,16 @@ from nerfpod.nerf import compositing, coord, fields, pose_correction, sampling, 
 from nerfpod.nerf import regions as nerf_regions  # (NeRF.regions is its count)
 
 
+# The name of the region fields' parameters (NeRF's vmapped RegionRenderer): their leaves carry the regions
+# on their first axis, and so do the optimiser's moments of them.
+REGIONS = "regions"
+
+
+def in_region(path) -> bool:
+  """Whether a leaf's tree path is under the region fields' parameters (or their optimiser state)."""
+  return any(getattr(k, "key", None) == REGIONS for k in path)
+
+
 class NeRF(nn.Module):
   """Renders a batch of rays, in one of three ways.
 
@@ -197,7 +207,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
                        in_axes=(0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
         proposal_samples=tuple(self.proposal_samples), grid_matmul_max_rows=self.grid_matmul_max_rows,
-        near_gradient_distance=self.near_gradient_distance, name="regions")
+        near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     return renderer(*planes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
 
   def _points(self, origins, directions, t_RxS):

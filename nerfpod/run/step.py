@@ -20,6 +20,7 @@ from nerfpod.run.components import Components
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 from nerfpod.render.metrics import mse_to_psnr
+from nerfpod.nerf import model as nerf_model
 from nerfpod.nerf import regions, stepfun
 
 
@@ -185,14 +186,13 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   them in ray order (regions.composite_regions): the loss is the whole ray's, the same on every device of the
   region axis.
 
-  The gather is invariant (all_gather_invariant): its result is formally the same on every device of the
-  axis, and its transpose hands each device the cotangent of its own regions' sums only (a slice of the one
-  invariant cotangent). jax.lax.all_gather's result would vary over the axis, its transpose (psum_scatter)
-  would sum the K identical cotangents of the K devices' identical losses, and every gradient would come
-  out K times too large. The interlevel loss is per segment (regions.interlevel_loss, each region's own
+  The gather is invariant (distributed.gather_regions): its result is formally the same on every device of
+  the axis, and its transpose hands each device the cotangent of its own regions' sums only (a slice of the
+  one invariant cotangent). jax.lax.all_gather's result would vary over the axis, its transpose
+  (psum_scatter) would sum the K identical cotangents of the K devices' identical losses, and every gradient
+  would come out K times too large. The interlevel loss is per segment (regions.interlevel_loss, each region's own
   histograms scaled by the NeRF's transmittance before its segment), its per-ray terms gathered the same
   way; the distortion loss is the whole ray's, from the gathered sums."""
-  from jax._src.lax.parallel import all_gather_invariant  # no public name in JAX 0.10 (jax.lax has none)
   count = model.regions
   axis_size = distributed.num_regions(mesh)
   if count % axis_size:
@@ -201,9 +201,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   background = jnp.asarray(background, jnp.float32)
 
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
-    if axis_size == 1:
-      return x
-    return all_gather_invariant(x, distributed.REGION_AXIS, axis=0, tiled=True)
+    return x if axis_size == 1 else distributed.gather_regions(x)
 
   def loss_fn(params, batch, key):
     first = jax.lax.axis_index(distributed.REGION_AXIS) * local if axis_size > 1 else 0
@@ -249,7 +247,7 @@ def _region_reductions(mesh, ordered_mean: bool):
 
   def vary(params):
     return jax.tree_util.tree_map_with_path(
-        lambda path, x: jax.lax.pcast(x, names if train_state.in_region(path) or not with_regions
+        lambda path, x: jax.lax.pcast(x, names if nerf_model.in_region(path) or not with_regions
                                       else names + region, to="varying"), params)
 
   def mean(tree):
@@ -264,7 +262,7 @@ def _region_reductions(mesh, ordered_mean: bool):
     # Two means: ordered_mean packs a tree's leaves into one vector, which must not mix the region fields'
     # gradients (varying over the region axis) with values the same on all of it.
     paths, treedef = jax.tree_util.tree_flatten_with_path(grads)
-    own = [train_state.in_region(path) for path, _ in paths]
+    own = [nerf_model.in_region(path) for path, _ in paths]
     sharded = mean([g for (_, g), o in zip(paths, own) if o])
     shared, *rest = mean(([jax.lax.psum(g, distributed.REGION_AXIS) for (_, g), o in zip(paths, own) if not o],
                           *rest))
@@ -275,7 +273,7 @@ def _region_reductions(mesh, ordered_mean: bool):
     if not with_regions:
       return optax.tree.norm(grads)
     squares = jax.tree_util.tree_map_with_path(
-        lambda path, g: (jnp.sum(jnp.square(g)), train_state.in_region(path)), grads,
+        lambda path, g: (jnp.sum(jnp.square(g)), nerf_model.in_region(path)), grads,
         is_leaf=lambda x: isinstance(x, jax.Array))
     pairs = jax.tree.leaves(squares, is_leaf=lambda x: isinstance(x, tuple))
     sharded = sum((s for s, own in pairs if own), jnp.zeros(()))

@@ -21,6 +21,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from nerfpod import distributed
+from nerfpod.nerf import model as nerf_model
 from nerfpod.nerf import pose_correction
 
 # Tags folded into the seed so that each use of randomness has its own stream.
@@ -86,16 +87,6 @@ def _initializer(model, optimizer):
   return init
 
 
-# The name of the region fields' parameters (nerf.model.NeRF's vmapped RegionRenderer): their leaves, and
-# the optimiser's moments of them, carry the regions on their first axis.
-REGIONS = "regions"
-
-
-def in_region(path) -> bool:
-  """Whether a leaf's tree path is under the region fields' parameters (or their optimiser state)."""
-  return any(getattr(k, "key", None) == REGIONS for k in path)
-
-
 def state_specs(model, optimizer, mesh: Mesh):
   """The train state's PartitionSpecs on `mesh`: with model.regions > 1 and a region axis, the region fields'
   parameters and their optimiser state split over it, P(REGION_AXIS) (each device holds its regions' only),
@@ -105,7 +96,7 @@ def state_specs(model, optimizer, mesh: Mesh):
     return P()
   shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
   return jax.tree_util.tree_map_with_path(
-      lambda path, _: P(distributed.REGION_AXIS) if in_region(path) else P(), shapes)
+      lambda path, _: P(distributed.REGION_AXIS) if nerf_model.in_region(path) else P(), shapes)
 
 
 def state_shardings(model, optimizer, mesh: Mesh):
