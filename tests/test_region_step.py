@@ -58,10 +58,10 @@ def test_each_device_share_of_the_regions_composites_to_the_whole_model():
   assert float(jnp.std(whole["rgb"])) > 0  # rays saw the fields
 
 
-def _batches(config, steps):
+def _batches(config, steps, with_frames=False):
   scene = scenes.load(config.data)
   dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
-                             slice(0, config.train.batch_size), 0.5, steps)
+                             slice(0, config.train.batch_size), 0.5, steps, with_frames=with_frames)
   out = []
   for i in range(steps):
     batch = dict(dataset[i])
@@ -71,8 +71,9 @@ def _batches(config, steps):
 
 
 def _run(mesh, config, steps, optimizer):
-  model = nerf_model.from_config(config)
-  scene, batches = _batches(config, steps)
+  per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
+  model = nerf_model.from_config(config, num_frames=100 if per_frame else 0)
+  scene, batches = _batches(config, steps, per_frame)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
                                  step.Options(random_background=True, distortion_weight=0.01))
@@ -113,8 +114,8 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
       np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
   assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
   params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
-  moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1,
-                       jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params))
+  initial = jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params)
+  moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
   assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
   # Each device holds its regions' fields only: 1/K (shape (2, 4)) or 2/K of them.
@@ -184,3 +185,39 @@ def test_checkpoints_restore_the_region_fields_split_over_any_region_mesh(tmp_pa
     leaf = restored.opt_state[0].mu["params"]["regions"]["coarse"]["rgb"]["kernel"]
     assert leaf.sharding.mesh.shape == mesh.shape and leaf.sharding.spec == jax.sharding.PartitionSpec("region")
     jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), restored, state)
+
+
+def test_per_frame_tables_and_stratified_regions_step_as_the_whole_model():
+  """The MLP field with stratified samples per segment (no proposals), per-frame appearance codes and pose
+  corrections, replicated over the region axis: their gradients, summed over the region devices (each holds
+  the part through its own region), then averaged over the data axis, equal the whole model's on one device."""
+  config = _config(**{"model.regions": 4, "model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
+                      "model.mlp.skips": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
+                      "train.pose_refine": True, "render.proposal_samples": (), "render.num_samples": 8})
+  sgd = optax.sgd(1.0)
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  state_1, metrics_1 = _run(one, config, 2, sgd)
+  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, sgd)
+  for m1, m8 in zip(metrics_1, metrics_8):
+    for key in ("loss", "grad_norm"):
+      np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
+  params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
+  assert np.abs(params_1["params"]["appearance"]).max() > 0  # the per-frame tables did move
+  assert np.abs(params_1["params"]["pose_correction"]).max() > 0
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
+  assert state_8.params["params"]["appearance"].sharding.spec == jax.sharding.PartitionSpec()
+
+
+def test_regions_cut_around_the_cameras():
+  config = _config(**{"model.regions": 3, "model.region_cut": "cameras"})
+  angles = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+  cameras = np.stack([4 * np.cos(angles), 4 * np.sin(angles), np.ones_like(angles)], -1)
+  model = nerf_model.from_config(config, camera_positions=cameras)
+  part = model.partition
+  assert part.size == 3
+  # Each camera lies in the region of its nearest k-means centre, and the centres share out the ring.
+  which = np.asarray(regions.region_of(jnp.asarray(cameras, jnp.float32), part))
+  centres = regions.kmeans(cameras[:, :2], 3)
+  np.testing.assert_array_equal(which, np.argmin(((cameras[:, None, :2] - centres[None])**2).sum(-1), axis=1))
+  assert min(np.bincount(which, minlength=3)) >= 8
+  assert nerf_model.from_config(config).partition.size == 3  # without cameras: a placeholder ring
