@@ -196,14 +196,31 @@ def num_regions(mesh: Mesh) -> int:
 
 
 def gather_regions(tree):
-  """Inside shard_map: each device's (L, ...) leaves -> the (L x region axis, ...) leaves of every device of
+  """Inside shard_map: each device's (L, R, ...) leaves -> the (L x region axis, R, ...) leaves of every device of
   the region axis, in the axis' order, formally the same on all of them (invariant). Its transpose hands each
   device the slice of the cotangent that is its own, with no communication; jax.lax.all_gather's result would
   vary over the axis instead, and its transpose (a reduce-scatter) would sum every device's cotangent: the
   gradients of a loss that every device of the axis computes alike would come out (axis size) times too
   large."""
   from jax._src.lax.parallel import all_gather_invariant  # no public name in JAX 0.10 (jax.lax has none)
-  return jax.tree.map(lambda x: all_gather_invariant(x, REGION_AXIS, axis=0, tiled=True), tree)
+  import jax.numpy as jnp
+  # One gather per dtype for the whole tree (each leaf's trailing axes flattened and packed side by side):
+  # a collective's fixed cost is per call, and the per-ray sums are several small leaves.
+  leaves, treedef = jax.tree.flatten(tree)
+  out = [None] * len(leaves)
+  by_dtype: dict = {}
+  for i, leaf in enumerate(leaves):
+    by_dtype.setdefault(leaf.dtype, []).append(i)
+  for members in by_dtype.values():
+    lead = leaves[members[0]].shape[:2]
+    packed = jnp.concatenate([leaves[i].reshape(lead + (-1,)) for i in members], axis=-1)
+    gathered = all_gather_invariant(packed, REGION_AXIS, axis=0, tiled=True)
+    offset = 0
+    for i in members:
+      width = int(np.prod(leaves[i].shape[2:], dtype=int))
+      out[i] = gathered[..., offset:offset + width].reshape(gathered.shape[:1] + leaves[i].shape[1:])
+      offset += width
+  return jax.tree.unflatten(treedef, out)
 
 
 def batch_spec(mesh: Mesh) -> P:
