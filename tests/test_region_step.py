@@ -97,16 +97,21 @@ def test_the_mesh_gains_a_region_axis_and_refuses_what_does_not_split():
   assert distributed.local_slice(64, mesh) == slice(0, 64)
 
 
-@pytest.mark.parametrize("shape", [(2, 4), (4, 2)])
+@pytest.mark.parametrize("shape", [(2, 4), (4, 2), (2, 1, 4)])
 def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   """Loss, metrics and parameters after two steps (plain SGD: parameters move exactly as the gradients) on
   8 devices, (data, region) = `shape`, equal the whole model's on one device, which holds every region and
   needs no gather: its gradients are plain autodiff of the stitched model's loss. A gradient K times too large
-  (the gather's transpose summing every region device's cotangent) would show at once."""
+  (the gather's transpose summing every region device's cotangent) would show at once. (2, 1, 4): two
+  simulated slices, (slice, data, region)."""
   config = _config(**{"model.regions": 4})
   sgd = optax.sgd(1.0)
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  mesh = Mesh(np.array(jax.devices()).reshape(shape), (distributed.DATA_AXIS, distributed.REGION_AXIS))
+  if len(shape) == 3:
+    mesh = distributed.make_mesh(num_slices=shape[0], regions=shape[2])
+    assert mesh.axis_names == (distributed.SLICE_AXIS, distributed.DATA_AXIS, distributed.REGION_AXIS)
+  else:
+    mesh = _region_mesh(shape)
   state_1, metrics_1 = _run(one, config, 2, sgd)
   state_8, metrics_8 = _run(mesh, config, 2, sgd)
   for m1, m8 in zip(metrics_1, metrics_8):
@@ -118,10 +123,10 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
   assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
-  # Each device holds its regions' fields only: 1/K (shape (2, 4)) or 2/K of them.
+  # Each device holds its regions' fields only: 1/K (4 regions on the axis) or 2/K of them.
   leaf = state_8.params["params"]["regions"]["coarse"]["rgb"]["kernel"]
-  assert leaf.sharding.spec == jax.sharding.PartitionSpec(distributed.REGION_AXIS)
-  assert leaf.addressable_shards[0].data.shape[0] == 4 // shape[1]
+  assert tuple(leaf.sharding.spec)[:1] == (distributed.REGION_AXIS,) and not any(tuple(leaf.sharding.spec)[1:])
+  assert leaf.addressable_shards[0].data.shape[0] == 4 // shape[-1]
 
 
 def _region_mesh(shape):
@@ -221,3 +226,15 @@ def test_regions_cut_around_the_cameras():
   np.testing.assert_array_equal(which, np.argmin(((cameras[:, None, :2] - centres[None])**2).sum(-1), axis=1))
   assert min(np.bincount(which, minlength=3)) >= 8
   assert nerf_model.from_config(config).partition.size == 3  # without cameras: a placeholder ring
+
+
+def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(tmp_path):
+  import procs
+  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", "--config.model.regions=3",
+                          devices_per_process=8)
+  assert result.returncode == 2, result.stderr
+  lines = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: error:")]
+  assert lines == ["nerfpod: error: model.regions=3 does not split over the 8 devices of a slice (each region's "
+                   "fields live on the devices of its place on the mesh's region axis); make it a divisor of 8 "
+                   "(one of 2, 4, 8) or 1."]
+  assert "Traceback" not in result.stderr
