@@ -190,9 +190,9 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   the axis, and its transpose hands each device the cotangent of its own regions' sums only (a slice of the
   one invariant cotangent). jax.lax.all_gather's result would vary over the axis, its transpose
   (psum_scatter) would sum the K identical cotangents of the K devices' identical losses, and every gradient
-  would come out K times too large. The interlevel loss is per segment (regions.interlevel_loss, each region's own
-  histograms scaled by the NeRF's transmittance before its segment), its per-ray terms gathered the same
-  way; the distortion loss is the whole ray's, from the gathered sums."""
+  would come out K times too large. The interlevel loss is per segment (regions.interlevel_loss, each
+  region's own histograms scaled by the NeRF's transmittance before its segment), its per-ray terms gathered
+  the same way; the distortion loss is the whole ray's, from the gathered sums."""
   count = model.regions
   axis_size = distributed.num_regions(mesh)
   if count % axis_size:
@@ -207,9 +207,10 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     first = jax.lax.axis_index(distributed.REGION_AXIS) * local if axis_size > 1 else 0
     ids = first + jnp.arange(local)
     # Region r's numbers of round i: stream i (as the one-field model's), then r folded in.
-    uniforms = [jax.vmap(lambda r, i=i, count=count: per_ray_uniforms(
-                    jax.random.fold_in(jax.random.fold_in(key, i if i < 2 else i + 1), r), batch["ray_ids"], count))(ids)
-                for i, count in enumerate(model.sample_counts())]
+    def region_uniforms(stream, n):
+      stream_key = jax.random.fold_in(key, stream)
+      return jax.vmap(lambda r: per_ray_uniforms(jax.random.fold_in(stream_key, r), batch["ray_ids"], n))(ids)
+    uniforms = [region_uniforms(i if i < 2 else i + 1, n) for i, n in enumerate(model.sample_counts())]
     target, ray_background = batch["rgb"], background
     if options.random_background and "alpha" in batch:
       ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
