@@ -433,10 +433,6 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.regions={c['model.regions']} cuts the world into regions, but render.space="
                f"{c['render.space']} maps the rays out of it; use --config.render.space=euclidean "
                f"(or --config.model.regions=1).")
-  if c["model.regions"] > 1 and c["train.grad_clip"] > 0:
-    out.append(f"train.grad_clip={c['train.grad_clip']:g} clips the gradients' global norm, which the optimiser "
-               f"of model.regions={c['model.regions']} (each device holding its regions' gradients only) cannot "
-               f"see; use --config.train.grad_clip=0 (or --config.model.regions=1).")
   if c["model.regions"] > 1 and c["render.num_importance"]:
     out.append(f"model.regions={c['model.regions']} renders each region's segment with proposal or stratified "
                f"samples, not hierarchical ones; use --config.render.num_importance=0 (or "

@@ -70,13 +70,13 @@ def _batches(config, steps, with_frames=False):
   return scene, out
 
 
-def _run(mesh, config, steps, optimizer):
+def _run(mesh, config, steps, optimizer, grad_clip=0.0):
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
   model = nerf_model.from_config(config, num_frames=100 if per_frame else 0)
   scene, batches = _batches(config, steps, per_frame)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
-                                 step.Options(random_background=True, distortion_weight=0.01))
+                                 step.Options(random_background=True, distortion_weight=0.01, grad_clip=grad_clip))
   metrics_all = []
   for batch in batches:
     state, metrics = step_fn(state, jax.device_put(batch, distributed.batch_sharding(mesh)), jax.random.key(7))
@@ -238,3 +238,19 @@ def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(
                    "fields live on the devices of its place on the mesh's region axis); make it a divisor of 8 "
                    "(one of 2, 4, 8) or 1."]
   assert "Traceback" not in result.stderr
+
+
+def test_the_step_clips_the_norm_of_every_regions_gradients():
+  """train.grad_clip with regions: the step clips by the global norm (every region's gradients, which no
+  device's optimiser sees alone), as optax.clip_by_global_norm clips the whole model's on one device."""
+  config = _config(**{"model.regions": 4, "train.grad_clip": 0.005})
+  assert train_state.make_optimizer(config.train, clip=False) is not None
+  sgd = optax.sgd(1.0)
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  whole_model = optax.chain(optax.clip_by_global_norm(0.005), sgd)  # no region axis: optax's own clip
+  state_1, metrics_1 = _run(one, config, 1, whole_model)
+  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 1, sgd, grad_clip=0.005)
+  assert metrics_1[0]["grad_norm"] > 0.005  # the clip was at work
+  np.testing.assert_allclose(metrics_8[0]["grad_norm"], metrics_1[0]["grad_norm"], rtol=2e-5)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
+               jax.device_get(state_8.params), jax.device_get(state_1.params))

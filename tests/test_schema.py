@@ -94,7 +94,6 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "model.regions=4 cuts the world into regions, but render.space=contract"),
     ({"model.regions": 4, "render.num_importance": 8, "render.proposal_samples": ()},
      "model.regions=4 renders each region's segment with proposal or stratified samples"),
-    ({"model.regions": 4, "train.grad_clip": 1.0}, "train.grad_clip=1 clips the gradients' global norm"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))

@@ -159,7 +159,7 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
   model = nerf_model.from_config(config, ndc, backend, num_frames, cameras)
-  optimizer = train_state.make_optimizer(config.train)
+  optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1)  # regions: the step's
   return Components(config, mesh, model, optimizer, float(near), float(far), background,
                     train_state.state_shapes(model, optimizer, mesh),
                     batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),

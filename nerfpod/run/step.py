@@ -43,6 +43,7 @@ class Options:
   ordered_mean: bool = True
   update_under_cond: bool | None = None  # None: compilation.update_under_cond() for JAX's backend
   compiler_options: dict | None = None
+  grad_clip: float = 0.0  # model.regions > 1: the step clips the global gradient norm (make_optimizer(clip=False))
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -52,7 +53,7 @@ class Options:
     tc = config.train
     return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
-               comps.compiler_options)
+               comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0)
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -156,6 +157,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # so the state stays finite; checkpoints.Checkpoints.save checks it again before any save.
     grad_norm = norm(grads)
     finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+    if model.regions > 1 and options.grad_clip > 0:  # optax.clip_by_global_norm's, on every region's norm
+      grads = jax.tree.map(lambda g: jnp.where(grad_norm < options.grad_clip, g,
+                                               g / grad_norm.astype(g.dtype) * options.grad_clip), grads)
 
     def update(operands):
       grads, params, opt_state = operands
