@@ -255,7 +255,8 @@ class RegionRenderer(nn.Module):
   [s_in, s_out] in the ray's normalised distance s (of the whole ray's [near, far]), and the samples are
   drawn there as the one-field model draws them over [0, 1]: proposal rounds, the first from the whole
   segment, or (no proposals) stratified points over `num_samples` even intervals, each holding over its
-  interval. Every sample fills an interval, so the segments' samples tile the ray with nothing left over."""
+  interval. Every sample holds over an interval inside its segment: the regions' intervals never overlap, and
+  composited in ray order they are one rendering of the stitched field (nerf/regions.py)."""
   model_config: Any
   num_samples: int
   dtype: Any
