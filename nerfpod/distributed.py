@@ -11,6 +11,7 @@ from nerfpod.errors import UserError
 
 DATA_AXIS = "data"
 SLICE_AXIS = "slice"  # multi-slice runs only: the mesh's major axis, one entry per slice (make_mesh)
+REGION_AXIS = "region"  # model.regions > 1 only: the mesh's minor axis, one entry per region of space
 
 
 def initialize(coordinator_address: str | None = None, num_processes: int | None = None,
@@ -123,7 +124,7 @@ def _on_cloud_tpu_vm() -> bool:
   return bool(getattr(cloud_tpu_init, "running_in_cloud_tpu_vm", False))
 
 
-def make_mesh(devices=None, num_slices: int | None = None) -> Mesh:
+def make_mesh(devices=None, num_slices: int | None = None, regions: int = 1) -> Mesh:
   """The run's mesh over every device of every host (or over `devices`, e.g. a TPU topology's for an
   ahead-of-time compile); batches are split over all of its devices.
 
@@ -140,6 +141,11 @@ def make_mesh(devices=None, num_slices: int | None = None) -> Mesh:
   a slice's chips along the torus instead, which interleaves hosts, e.g. 0,0,1,1,1,1,0,2,... on a v5e 4x4, and
   the rows a host loads would not be the rows its chips hold. The step's gradient mean, over every chip, does
   not depend on the order.)
+
+  `regions` > 1 (model.regions, NeRF-XL): one more axis, REGION_AXIS, the minor one, of that size: each
+  region's fields live on the devices at its place on it, and neighbouring devices (one host's, where
+  `regions` divides its device count) hold the regions of the same rays, whose partial sums they exchange at
+  every step. A batch is split over the other axes and the same on every device of the region axis.
   """
   devices = list(jax.devices() if devices is None else devices)
   reported = sorted({getattr(d, "slice_index", 0) for d in devices})
@@ -152,7 +158,16 @@ def make_mesh(devices=None, num_slices: int | None = None) -> Mesh:
   if len(devices) % slices:
     raise UserError(f"{len(devices)} devices do not split into mesh.slices={slices} slices of equal size; make "
                     f"mesh.slices a divisor of the device count (or 0 for the slices the devices report).")
+  per_slice = len(devices) // slices
+  if regions < 1 or per_slice % regions:
+    raise UserError(f"model.regions={regions} does not split over the {per_slice} devices of a slice; make it a "
+                    f"divisor of {per_slice} (or 1).")
   ordered = sorted(devices, key=lambda d: (getattr(d, "slice_index", 0), d.process_index, d.id))
+  if regions > 1:
+    shape, names = (per_slice // regions, regions), (DATA_AXIS, REGION_AXIS)
+    if slices > 1:
+      shape, names = (slices,) + shape, (SLICE_AXIS,) + names
+    return Mesh(np.array(ordered).reshape(shape), names, axis_types=(AxisType.Explicit,) * len(names))
   if slices == 1:  # exactly today's single-slice mesh
     return Mesh(np.array(ordered), (DATA_AXIS,), axis_types=(AxisType.Explicit,))  # as jax.make_mesh's
   return Mesh(np.array(ordered).reshape(slices, len(devices) // slices), (SLICE_AXIS, DATA_AXIS),
@@ -160,9 +175,52 @@ def make_mesh(devices=None, num_slices: int | None = None) -> Mesh:
 
 
 def batch_axes(mesh: Mesh):
-  """The mesh axes a batch is split over (all of them): DATA_AXIS on one slice, (SLICE_AXIS, DATA_AXIS) on
-  several; what shard_map's specs, the gradient mean and axis_index take."""
-  return mesh.axis_names[0] if len(mesh.axis_names) == 1 else tuple(mesh.axis_names)
+  """The mesh axes a batch is split over (all of them but REGION_AXIS): DATA_AXIS on one slice,
+  (SLICE_AXIS, DATA_AXIS) on several; what shard_map's specs, the gradient mean and axis_index take."""
+  names = tuple(n for n in mesh.axis_names if n != REGION_AXIS)
+  return names[0] if len(names) == 1 else names
+
+
+def batch_axis_sizes(mesh: Mesh) -> tuple:
+  """The sizes of the batch's axes (batch_axes), major first."""
+  return tuple(mesh.shape[n] for n in mesh.axis_names if n != REGION_AXIS)
+
+
+def batch_devices(mesh: Mesh) -> int:
+  """How many parts a batch is split into (the devices of a region, or all of them without regions)."""
+  return int(np.prod(batch_axis_sizes(mesh)))
+
+
+def num_regions(mesh: Mesh) -> int:
+  return mesh.shape.get(REGION_AXIS, 1)
+
+
+def gather_regions(tree):
+  """Inside shard_map: each device's (L, R, ...) leaves -> the (L x region axis, R, ...) leaves of every device of
+  the region axis, in the axis' order, formally the same on all of them (invariant). Its transpose hands each
+  device the slice of the cotangent that is its own, with no communication; jax.lax.all_gather's result would
+  vary over the axis instead, and its transpose (a reduce-scatter) would sum every device's cotangent: the
+  gradients of a loss that every device of the axis computes alike would come out (axis size) times too
+  large."""
+  from jax._src.lax.parallel import all_gather_invariant  # no public name in JAX 0.10 (jax.lax has none)
+  import jax.numpy as jnp
+  # One gather per dtype for the whole tree (each leaf's trailing axes flattened and packed side by side):
+  # a collective's fixed cost is per call, and the per-ray sums are several small leaves.
+  leaves, treedef = jax.tree.flatten(tree)
+  out = [None] * len(leaves)
+  by_dtype: dict = {}
+  for i, leaf in enumerate(leaves):
+    by_dtype.setdefault(leaf.dtype, []).append(i)
+  for members in by_dtype.values():
+    lead = leaves[members[0]].shape[:2]
+    packed = jnp.concatenate([leaves[i].reshape(lead + (-1,)) for i in members], axis=-1)
+    gathered = all_gather_invariant(packed, REGION_AXIS, axis=0, tiled=True)
+    offset = 0
+    for i in members:
+      width = int(np.prod(leaves[i].shape[2:], dtype=int))
+      out[i] = gathered[..., offset:offset + width].reshape(gathered.shape[:1] + leaves[i].shape[1:])
+      offset += width
+  return jax.tree.unflatten(treedef, out)
 
 
 def batch_spec(mesh: Mesh) -> P:
@@ -185,7 +243,18 @@ def replicated(mesh: Mesh) -> NamedSharding:
 
 def local_slice(global_size: int, mesh: Mesh | None = None) -> slice:
   """This process's contiguous share of a global batch of `global_size` rows laid over `mesh` (default: all
-  devices of all hosts; process order = mesh order). On a mesh of this process's own devices: every row."""
+  devices of all hosts; process order = mesh order). On a mesh of this process's own devices: every row.
+  On a mesh with a region axis, the rows of the batch parts its devices hold (processes that share a part,
+  a region axis spanning them, load the same rows)."""
+  if mesh is not None and REGION_AXIS in mesh.axis_names:
+    parts = batch_devices(mesh)
+    if global_size % parts:
+      raise UserError(f"a global batch of {global_size} rays does not split evenly over {parts} devices (of a "
+                      f"region); make train.batch_size a multiple of {parts}.")
+    held = np.moveaxis(mesh.devices, list(mesh.axis_names).index(REGION_AXIS), -1).reshape(parts, -1)
+    mine = [i for i in range(parts) if any(d.process_index == jax.process_index() for d in held[i])]
+    per_part = global_size // parts
+    return slice(mine[0] * per_part, (mine[-1] + 1) * per_part)
   devices = jax.devices() if mesh is None else list(mesh.devices.flat)
   processes = sorted({d.process_index for d in devices})
   if global_size % len(devices) != 0:

@@ -174,6 +174,12 @@ FIELDS: dict[str, Field] = _declare({
     "model.appearance_dim": (0, integer(0, example=16),
         "width of a learned appearance code per training frame (GLO, NeRF-W), fed to the colour head; held-out "
         "views get the codes' mean; 0: off"),
+    "model.regions": (1, integer(1, 4096, example=4),
+        "fields, one per convex region of space, parameters sharded over the mesh's region axis (NeRF-XL, "
+        "docs/scale.md#scenes-bigger-than-one-chip); a divisor of the device count; 1: one field everywhere"),
+    "model.region_cut": ("grid", choice("grid", "cameras"),
+        "how model.regions > 1 cuts space: 'grid' (cells of the ground plane over the hash grid's box) or "
+        "'cameras' (Voronoi cells of the k-means centres of the training cameras' ground positions)"),
     # model.mlp: NeRF's MLP: the Tiny NeRF tutorial's by default
     "model.mlp.num_frequencies": (6, integer(0, 30, example=10),
         "positional-encoding frequencies L of points; 0 switches it off"),
@@ -427,6 +433,14 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.appearance_dim={c['model.appearance_dim']} feeds appearance codes to the colour head, "
                f"which the MLP field without view directions shares with the density; use "
                f"--config.model.use_viewdirs=true (or --config.model.appearance_dim=0).")
+  if c["model.regions"] > 1 and c["render.space"] != "euclidean":
+    out.append(f"model.regions={c['model.regions']} cuts the world into regions, but render.space="
+               f"{c['render.space']} maps the rays out of it; use --config.render.space=euclidean "
+               f"(or --config.model.regions=1).")
+  if c["model.regions"] > 1 and c["render.num_importance"]:
+    out.append(f"model.regions={c['model.regions']} renders each region's segment with proposal or stratified "
+               f"samples, not hierarchical ones; use --config.render.num_importance=0 (or "
+               f"--config.model.regions=1).")
   if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
     out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
                f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")
@@ -439,6 +453,14 @@ def _rules(c: dict) -> list[str]:
 def device_rules(c: dict, device_count: int) -> list[str]:
   """Mistakes that depend on the number of devices the run has."""
   batch, micro, slices = c["train.batch_size"], c["train.microbatches"], c.get("mesh.slices", 0)
+  regions = c.get("model.regions", 1)
+  if regions > 1 and (device_count % regions or (slices and (device_count // slices) % regions)):
+    per_slice = device_count // max(slices, 1)
+    fits = [d for d in range(2, per_slice + 1) if per_slice % d == 0]
+    shown = ", ".join(map(str, fits[:8])) + (", ..." if len(fits) > 8 else "")
+    return [f"model.regions={regions} does not split over the {per_slice} devices of a slice (each region's "
+            f"fields live on the devices of its place on the mesh's region axis); make it a divisor of "
+            f"{per_slice} (one of {shown or 'none above 1'}) or 1."]
   if slices and device_count % slices:
     divisors = [d for d in range(1, device_count + 1) if device_count % d == 0]
     shown = ", ".join(map(str, divisors[:8])) + (", ..." if len(divisors) > 8 else "")

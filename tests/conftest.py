@@ -130,7 +130,9 @@ LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 124,
                  # (added 2026-11-27 on the EPYC, shared: the whole default job, 225 s, and the smoke job under
                  # XLA's defaults; test_multiprocess's 265 is 195 and its runs under XLA's defaults, 70 s)
                  "test_golden": 250,
-                 "test_storage_away": 130}  # (added 2026-11-27: the file alone, -n 0, on the shared 2 cores)
+                 "test_storage_away": 130,  # (added 2026-11-27: the file alone, -n 0, on the shared 2 cores)
+                 # (added 2026-11-27 on the shared 2-core machine: model.regions' 4 whole runs, and its steps)
+                 "test_region_multiprocess": 270, "test_region_step": 140}
 
 
 # The files that read the session's smoke run (smoke_run above) go to one worker, which trains it once.

@@ -90,6 +90,10 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
     ({"render.space": "ndc", "train.near_gradient_distance": 1.0}, "train.near_gradient_distance=1 cannot be used"),
     ({"render.space": "contract"}, "model.hashgrid.bound=1.5 does not cover the contracted space"),
     ({"orbit.path": "file"}, "orbit.path=file renders the cameras of a camera_path.json, but orbit.path_file"),
+    ({"model.regions": 4, "render.space": "contract", "model.hashgrid.bound": 2.0},
+     "model.regions=4 cuts the world into regions, but render.space=contract"),
+    ({"model.regions": 4, "render.num_importance": 8, "render.proposal_samples": ()},
+     "model.regions=4 renders each region's segment with proposal or stratified samples"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))
@@ -103,6 +107,15 @@ def test_the_batch_must_split_over_the_devices_and_micro_batches():
   found = schema.problems(smoke_config(**{"train.batch_size": 64, "train.microbatches": 3}), device_count=8)
   assert len(found) == 1 and "does not split into train.microbatches=3 equal slices" in found[0]
   assert schema.problems(smoke_config(**{"train.batch_size": 100})) == []  # devices not known yet
+
+
+def test_the_regions_must_split_over_the_devices_of_a_slice():
+  assert schema.problems(smoke_config(**{"model.regions": 4}), device_count=8) == []
+  assert schema.problems(smoke_config(**{"model.regions": 3}), device_count=8) == [
+      "model.regions=3 does not split over the 8 devices of a slice (each region's fields live on the devices "
+      "of its place on the mesh's region axis); make it a divisor of 8 (one of 2, 4, 8) or 1."]
+  found = schema.problems(smoke_config(**{"model.regions": 8, "mesh.slices": 2}), device_count=8)
+  assert len(found) == 1 and "model.regions=8 does not split over the 4 devices of a slice" in found[0]
 
 
 def test_unknown_and_missing_fields_are_named():

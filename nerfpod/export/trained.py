@@ -107,6 +107,10 @@ class FieldQuery:
   normals (minus the density's gradient, normalised)."""
 
   def __init__(self, trained: Trained, chunk: int):
+    if trained.config.model.regions > 1:
+      raise UserError(f"this export queries one trained field at points, and the workdir's model has "
+                      f"model.regions={trained.config.model.regions} fields (one per region of space), which "
+                      f"exports do not query yet; export its depth or video instead (they render the regions).")
     self.trained, self.mesh = trained, trained.comps.mesh
     self.chunk = max(self.mesh.size, chunk - chunk % self.mesh.size)
     model = trained.comps.model

@@ -7,6 +7,7 @@
     encodings        positional (Fourier) encoding, the multiresolution hash grid, spherical harmonics
     fields           radiance fields: flax modules from points (and directions) to colour and density
     compositing      volume rendering: alpha compositing of colours and densities along rays
+    regions          space cut into convex regions: each ray's segment per region, partial sums composited
     model            the NeRF model: sample, query the field(s), composite; coarse-to-fine or proposal sampling
     poses            similarity transforms that bring a capture's cameras into the field's frame
     pose_correction  per-frame SE(3) pose corrections (pose refinement)

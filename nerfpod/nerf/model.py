@@ -4,8 +4,20 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from nerfpod.nerf import compositing, coord, fields, pose_correction, sampling, stepfun
+from nerfpod.nerf import regions as nerf_regions  # (NeRF.regions is its count)
+
+
+# The name of the region fields' parameters (NeRF's vmapped RegionRenderer): their leaves carry the regions
+# on their first axis, and so do the optimiser's moments of them.
+REGIONS = "regions"
+
+
+def in_region(path) -> bool:
+  """Whether a leaf's tree path is under the region fields' parameters (or their optimiser state)."""
+  return any(getattr(k, "key", None) == REGIONS for k in path)
 
 
 class NeRF(nn.Module):
@@ -36,6 +48,13 @@ class NeRF(nn.Module):
   start) moves each training ray before anything else. Both take the rays' training-frame indices `frames`;
   without them (held-out views, orbits, the viewer) every ray gets the mean of the training codes and no
   correction: held-out frames are rendered from their given poses (docs/training.md says why).
+  Regions (`regions` = K > 1, NeRF-XL, nerf/regions.py): space is cut into K convex regions (`region_planes`,
+a nerf_regions.Partition as nested tuples), each with its own NeRF field and proposal fields, their parameters
+stacked on a leading axis of K under 'regions' (`RegionRenderer`, vmapped). Each region renders its own
+segment of each ray with the configured samples (proposal rounds, or stratified samples over even
+intervals), from transmittance 1, into per-ray partial sums (`render_partials`, for any subset of the
+regions: a device's own); nerf_regions.composite_regions composites them in ray order. Called directly, the model
+renders every region and composites: one device holding the whole model. K = 1 is the model above, unchanged.
   Randomness comes in as arrays of uniform numbers, one (R, n) array per round of `sample_counts()` (none:
   deterministic evaluation), so the module is a pure function of its inputs. Every attribute comes from
   the config (`from_config`).
@@ -52,6 +71,8 @@ class NeRF(nn.Module):
   num_frames: int = 0        # training frames: rows of the appearance codes and pose corrections
   pose_refine: bool = False  # learn a pose correction per training frame
   near_gradient_distance: float = 0.0  # > 0: the field's gradients scaled by min(1, (distance / this)^2)
+  regions: int = 1            # K: fields, one per convex region of space (1: one field everywhere)
+  region_planes: tuple = ()   # regions > 1: the nerf_regions.Partition's three arrays as nested tuples
 
   def sample_counts(self) -> tuple:
     """How many uniform numbers per ray each sampling round takes, in the order __call__ takes them."""
@@ -104,13 +125,23 @@ class NeRF(nn.Module):
     return origins_Rx3, directions_Rx3, codes
 
   @nn.compact
-  def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None):
+  def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None,
+               region_ids=None):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
     near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
     (R, n) array of numbers in [0, 1) per entry of `sample_counts()`, or none at all (evaluation); frames:
     (R,) int32 training-frame index of each ray (training), or None.
     """
+    if self.regions > 1:
+      # render_partials' (with `region_ids`), or every region here, composited: uniforms (K, R, n) per round.
+      partials, local = self._region_partials(origins_Rx3, directions_Rx3, near, far,
+                                              jnp.arange(self.regions) if region_ids is None else region_ids,
+                                              uniforms or None, frames)
+      if region_ids is not None:
+        return partials, local
+      out = nerf_regions.composite_regions(partials, background)
+      return [{k: out[k] for k in compositing.OUTPUTS}]
     uniforms = uniforms or (None,) * len(self.sample_counts())
     origins_Rx3, directions_Rx3, codes = self._per_frame(origins_Rx3, directions_Rx3, frames)
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
@@ -145,6 +176,39 @@ class NeRF(nn.Module):
                                    matmul_max_rows=self.grid_matmul_max_rows)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes)
     return [coarse, fine]
+
+  @property
+  def partition(self) -> nerf_regions.Partition:
+    normals, offsets, closed = self.region_planes
+    return nerf_regions.Partition(np.array(normals, np.float32), np.array(offsets, np.float32), np.array(closed, bool))
+
+  def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None):
+    """(partials, local) of the L regions `region_ids_L` (L,) int32 (with parameters for those L only, the
+    first axis of params['regions'], e.g. one device's share): `partials`, what crosses devices, a dict of
+    (L, R, ...) arrays (nerf_regions.GATHERED: each ray's segment start and partial sums); `local`, what stays
+    (the losses' per-sample histograms): s_edges (L, R, S+1) and weights (L, R, S) of the NeRF field, and
+    `proposals`, per round its (s_edges, weights). `uniforms`: per entry of sample_counts() an (L, R, n)
+    array (each region its own numbers), or () (evaluation). Needs `regions` > 1. (Through __call__, flax's one
+    compact method.)"""
+    return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L)
+
+  def _region_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms, frames):
+    origins_Rx3, directions_Rx3, codes = self._per_frame(origins_Rx3, directions_Rx3, frames)
+    viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
+    if self.model_config.field == "hashgrid":  # bounded (space is euclidean with regions: schema rule)
+      near, far = sampling.clip_to_box(origins_Rx3, directions_Rx3, near, far, self.model_config.hashgrid.bound)
+    rays = origins_Rx3.shape[:-1]
+    near = jnp.broadcast_to(jnp.asarray(near, jnp.float32), rays + (1,))
+    far = jnp.broadcast_to(jnp.asarray(far, jnp.float32), rays + (1,))
+    planes = tuple(jnp.asarray(a)[region_ids_L] for a in self.partition)
+    if uniforms is None:
+      uniforms = (None,) * len(self.sample_counts())
+    renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
+                       in_axes=(0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
+        model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
+        proposal_samples=tuple(self.proposal_samples), grid_matmul_max_rows=self.grid_matmul_max_rows,
+        near_gradient_distance=self.near_gradient_distance, name=REGIONS)
+    return renderer(*planes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
 
   def _points(self, origins, directions, t_RxS):
     """The sample points at distances t, in the field's space (contracted where space='contract')."""
@@ -183,6 +247,64 @@ class NeRF(nn.Module):
     out = compositing.composite_intervals(rgb, sigma, t_edges, directions, background=background)
     out.update(t=t_mids, s_edges=s_edges, proposals=proposals)
     return self._in_world_units(out, t_mids)
+
+
+class RegionRenderer(nn.Module):
+  """One region's fields (its proposal fields and its NeRF field) rendering its segment of each ray
+  (NeRF.render_partials vmaps it over the regions): the segment [t_in, t_out] inside the region's planes is
+  [s_in, s_out] in the ray's normalised distance s (of the whole ray's [near, far]), and the samples are
+  drawn there as the one-field model draws them over [0, 1]: proposal rounds, the first from the whole
+  segment, or (no proposals) stratified points over `num_samples` even intervals, each holding over its
+  interval. Every sample holds over an interval inside its segment: the regions' intervals never overlap, and
+  composited in ray order they are one rendering of the stitched field (nerf/regions.py)."""
+  model_config: Any
+  num_samples: int
+  dtype: Any
+  spacing: str
+  proposal_samples: tuple
+  grid_matmul_max_rows: int
+  near_gradient_distance: float
+
+  @nn.compact
+  def __call__(self, normals_Px3, offsets_P, closed_P, uniforms, origins, directions, viewdirs, codes, near, far):
+    partition = nerf_regions.Partition(normals_Px3[None], offsets_P[None], closed_P[None])
+    t_in, t_out = (t[0][:, None] for t in nerf_regions.segments(origins, directions, near, far, partition))
+    to_s = lambda t: jnp.clip(coord.t_to_s(t, near, far, self.spacing), 0.0, 1.0)  # noqa: E731
+    warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731
+    s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))
+    rays = origins.shape[:-1]
+    points_of = lambda t: origins[..., None, :] + t[..., None] * directions[..., None, :]  # noqa: E731
+    out_local = {"proposals": []}
+    if self.proposal_samples:
+      s_edges, weights = jnp.concatenate([s_in, s_out], axis=-1), jnp.ones(rays + (1,))
+      for i, count in enumerate(self.proposal_samples):
+        s_edges = stepfun.sample_intervals(s_edges, weights, count, uniforms[i], domain=(s_in, s_out))
+        t_edges = warp(s_edges)
+        t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
+        field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
+                                           matmul_max_rows=self.grid_matmul_max_rows)
+        sigma = field(points_of(t_mids).reshape(-1, 3)).reshape(t_mids.shape)
+        weights = compositing.interval_weights(sigma, t_edges, directions)
+        out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
+      s_edges = stepfun.sample_intervals(s_edges, weights, self.num_samples, uniforms[-1], domain=(s_in, s_out))
+      t_edges = warp(s_edges)
+      t_points = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
+    else:
+      s_edges = s_in + (s_out - s_in) * jnp.linspace(0.0, 1.0, self.num_samples + 1)
+      u = 0.5 if uniforms[0] is None else uniforms[0]
+      t_edges = warp(s_edges)
+      t_points = warp(s_edges[..., :-1] + u * jnp.diff(s_edges, axis=-1))
+    points = points_of(t_points)
+    dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
+    field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows)
+    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
+    rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
+                                self.near_gradient_distance)
+    sums = nerf_regions.partial_sums(rgb, sigma, t_points, jnp.diff(t_edges, axis=-1), directions, s_edges)
+    partials = {k: sums[k] for k in nerf_regions.GATHERED if k in sums}
+    partials["t_in"] = t_in[..., 0]
+    out_local.update(s_edges=s_edges, weights=sums["weights"])
+    return partials, out_local
 
 
 def near_gradients(rgb_RxSx3, sigma_RxS, t_RxS, directions_Rx3, near_distance: float):
@@ -229,12 +351,35 @@ def grid_matmul_max_rows(config, backend: str) -> int:
   return config.compile.matmul_max_rows if lookup == "matmul" else 0
 
 
-def from_config(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0) -> NeRF:
+def partition(config, camera_positions_Nx3=None) -> nerf_regions.Partition:
+  """The regions of `config.model.regions` cut as model.region_cut says: 'grid', cells of the ground plane
+  over the hash grid's box [-bound, bound]^2 (model.hashgrid.bound); 'cameras', the Voronoi cells of the
+  k-means centres of the training cameras' positions in the ground plane (`camera_positions_Nx3`; None, a
+  placeholder ring of cameras of the same cost: the pod compile tool's)."""
+  count = config.model.regions
+  if config.model.region_cut == "grid":
+    return nerf_regions.grid(count, config.model.hashgrid.bound)
+  if camera_positions_Nx3 is None:
+    angles = 2 * np.pi * np.arange(count) / count
+    return nerf_regions.voronoi(np.stack([np.cos(angles), np.sin(angles)], -1))
+  ground = np.asarray(camera_positions_Nx3, np.float64)[:, :2]
+  return nerf_regions.voronoi(nerf_regions.kmeans(ground, count))
+
+
+def _as_tuples(part: nerf_regions.Partition) -> tuple:
+  """A partition as nested tuples (a flax module's attributes are hashed)."""
+  nested = lambda x: tuple(map(nested, x)) if isinstance(x, list) else x  # noqa: E731
+  return tuple(nested(np.asarray(a).tolist()) for a in part)
+
+
+def from_config(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0,
+                camera_positions=None) -> NeRF:
   """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
   JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
   whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera).
   `num_frames`: the training frames, each with its own appearance code (model.appearance_dim > 0) and pose
-  correction (train.pose_refine); at least 1 where either is on."""
+  correction (train.pose_refine); at least 1 where either is on. `camera_positions` (N, 3): the training
+  cameras' centres, where model.region_cut='cameras' cuts the regions around them."""
   if (config.model.appearance_dim or config.train.pose_refine) and num_frames < 1:
     raise ValueError("model.appearance_dim and train.pose_refine need the training frame count (num_frames)")
   dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
@@ -246,4 +391,12 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
               grid_matmul_max_rows=grid_matmul_max_rows(config, backend), num_frames=int(num_frames),
               pose_refine=bool(config.train.pose_refine),
-              near_gradient_distance=float(config.train.near_gradient_distance))
+              near_gradient_distance=float(config.train.near_gradient_distance),
+              **_region_attributes(config, camera_positions))
+
+
+def _region_attributes(config, camera_positions) -> dict:
+  """NeRF's region attributes: none where model.regions is 1 (the one-field model, as it always was)."""
+  if config.model.regions == 1:
+    return {}
+  return {"regions": int(config.model.regions), "region_planes": _as_tuples(partition(config, camera_positions))}

@@ -270,7 +270,7 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   num_chips = pod.num_chips * slices
   schema.validate(config, num_chips)  # e.g. a batch that does not split over the pod's chips
   devices = topology_devices(pod, slices)
-  mesh = distributed.make_mesh(devices, num_slices=config.mesh.slices or None)
+  mesh = distributed.make_mesh(devices, num_slices=config.mesh.slices or None, regions=config.model.regions)
   program = components.build_program(config, mesh, backend="tpu")
   tc = config.train
   hosts = sorted({d.process_index for d in devices})

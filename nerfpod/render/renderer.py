@@ -10,17 +10,43 @@ import numpy as np
 from jax.sharding import PartitionSpec as P
 
 from nerfpod import distributed
-from nerfpod.nerf import cameras, compositing
+from nerfpod.nerf import cameras, compositing, regions
+from nerfpod.nerf import model as nerf_model
 
 def make_renderer(model, mesh, near: float, far: float, background, compiler_options: dict | None = None):
-  """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh,
+  """(params, origins, directions) -> final-level rgb/depth/acc/disparity; rays sharded over the mesh (a region
+  model's over its batch axes, each device rendering its own regions: _region_renderer),
   compiled with XLA's `compiler_options` (compilation.compiler_options)."""
   def local(params, origins, directions):
     out = model.apply(params, origins, directions, near, far, jnp.asarray(background))[-1]
     return {k: out[k] for k in compositing.OUTPUTS}
   axis = distributed.batch_axes(mesh)  # every axis: DATA_AXIS, or (SLICE_AXIS, DATA_AXIS) across slices
+  if model.regions > 1 and distributed.num_regions(mesh) > 1:
+    return _region_renderer(model, mesh, near, far, background, compiler_options)
   return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(P(), P(axis), P(axis)), out_specs=P(axis)),
                  compiler_options=compiler_options)
+
+
+def _region_renderer(model, mesh, near: float, far: float, background, compiler_options):
+  """make_renderer's for a model of K regions on a mesh with a region axis: each device renders its rays
+  through its own regions with its share of their parameters (as the train step does), the per-ray partial
+  sums are gathered over the region axis and composited; no device holds another region's fields."""
+  axis = distributed.batch_axes(mesh)
+  local_count = model.regions // distributed.num_regions(mesh)
+
+  def local(params, origins, directions):
+    ids = jax.lax.axis_index(distributed.REGION_AXIS) * local_count + jnp.arange(local_count)
+    partials, _ = model.apply(params, origins, directions, near, far, ids, method="render_partials")
+    out = regions.composite_regions(distributed.gather_regions(partials), jnp.asarray(background))
+    return {k: out[k] for k in compositing.OUTPUTS}
+
+  def render(params, origins, directions):
+    specs = jax.tree_util.tree_map_with_path(
+        lambda path, _: P(distributed.REGION_AXIS) if nerf_model.in_region(path) else P(), params)
+    return jax.shard_map(local, mesh=mesh, in_specs=(specs, P(axis), P(axis)), out_specs=P(axis))(
+        params, origins, directions)
+
+  return jax.jit(render, compiler_options=compiler_options)
 
 
 def balanced_chunk(chunk: int, num_rays: int, devices: int) -> int:

@@ -76,8 +76,9 @@ class Components:
   near: float
   far: float
   background: tuple
-  state_shapes: TrainState  # jax.ShapeDtypeStruct leaves, replicated over `mesh`: what a restore fills
-  batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over every mesh axis
+  state_shapes: TrainState  # jax.ShapeDtypeStruct leaves laid over `mesh` (train_state.state_shardings): what a
+                            # restore fills
+  batch_shapes: dict        # the global training batch as ShapeDtypeStructs, sharded over the batch's axes
   compiler_options: dict    # XLA options of the step and the renderer (compilation.compiler_options)
   scene: scenes.Scene | None = None  # None: the pod compile tool's, without a scene
   renderer: Any = None      # make_renderer() of the run's mesh, where there is a scene
@@ -99,14 +100,15 @@ class Components:
 
 
   def init_state(self) -> TrainState:
-    """The initial train state, created directly replicated on every device of the mesh."""
+    """The initial train state, created directly laid over the mesh (replicated, bar region fields)."""
     return train_state.initial_state(self.model, self.optimizer, self.config.train.seed, self.mesh)
 
   def batches(self, start_step: int):
     """This host's slices of the global training batches from `start_step` on."""
     tc = self.config.train
     dataset = data.ray_batches(self.scene.split("train"), tc.seed, tc.batch_size,
-                               distributed.local_slice(tc.batch_size), self.config.data.pixel_center,
+                               distributed.local_slice(tc.batch_size, self.mesh if self.config.model.regions > 1
+                                                       else None), self.config.data.pixel_center,
                                max(tc.num_steps, 1), self.config.data.shards, uses_frames(self.config))
     # On a CPU the batches are made in the training loop's thread, between the dispatch of a step and the
     # next (the step runs meanwhile): a background thread would run on the cores that compute the step, and
@@ -148,14 +150,16 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     near, far = ray_bounds(config, scene)
     background, with_alpha = tuple(scene.background), scene.split("train").alphas is not None
     num_frames = len(scene.split("train"))
+    cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # model.region_cut=cameras cuts around them
   else:
+    cameras = None
     num_frames = _PLACEHOLDER_FRAMES
     ndc = _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None
     near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
-  model = nerf_model.from_config(config, ndc, backend, num_frames)
-  optimizer = train_state.make_optimizer(config.train)
+  model = nerf_model.from_config(config, ndc, backend, num_frames, cameras)
+  optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1)  # regions: the step's
   return Components(config, mesh, model, optimizer, float(near), float(far), background,
                     train_state.state_shapes(model, optimizer, mesh),
                     batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),
@@ -225,6 +229,6 @@ def build(config, mesh: Mesh | None = None) -> Components:
   if config.orbit.path == "file":
     camera_path.read(config.orbit.path_file)
   if mesh is None:
-    mesh = distributed.make_mesh(num_slices=config.mesh.slices or None)
+    mesh = distributed.make_mesh(num_slices=config.mesh.slices or None, regions=config.model.regions)
   comps = build_program(config, mesh, scene=scene)
   return dataclasses.replace(comps, renderer=comps.make_renderer())

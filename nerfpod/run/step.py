@@ -20,7 +20,8 @@ from nerfpod.run.components import Components
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 from nerfpod.render.metrics import mse_to_psnr
-from nerfpod.nerf import stepfun
+from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import regions, stepfun
 
 
 def per_ray_uniforms(key, ray_ids, count: int):
@@ -42,6 +43,7 @@ class Options:
   ordered_mean: bool = True
   update_under_cond: bool | None = None  # None: compilation.update_under_cond() for JAX's backend
   compiler_options: dict | None = None
+  grad_clip: float = 0.0  # model.regions > 1: the step clips the global gradient norm (make_optimizer(clip=False))
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -51,7 +53,7 @@ class Options:
     tc = config.train
     return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
-               comps.compiler_options)
+               comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0)
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -113,6 +115,17 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
     return loss, (mses, extra)
 
+  # Parameters made device-varying (below), the gradients' and metrics' reduction, the gradients' norm.
+  vary = lambda params: jax.lax.pcast(params, axes, to="varying")  # noqa: E731
+  def reduce(tree):
+    if ordered_mean:
+      return distributed.ordered_mean(tree, mesh.axis_names, axis_sizes)
+    return jax.lax.pmean(tree, axes)
+  norm = optax.tree.norm
+  if model.regions > 1:
+    loss_fn = _region_loss_fn(model, mesh, near, far, background, options)
+    vary, reduce, norm = _region_reductions(mesh, ordered_mean)
+
   value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
 
   def accumulate(params, batch, key):
@@ -132,12 +145,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # Differentiate w.r.t. a device-varying view of the replicated parameters: each device then gets the
     # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
-    params = jax.lax.pcast(state.params, axes, to="varying")
+    params = vary(state.params)
     (loss, (mses, extra)), grads = accumulate(params, batch, key)
-    if ordered_mean:
-      grads, loss, mses, extra = distributed.ordered_mean((grads, loss, mses, extra), mesh.axis_names, axis_sizes)
-    else:
-      grads, loss, mses, extra = jax.lax.pmean((grads, loss, mses, extra), axes)
+    grads, loss, mses, extra = reduce((grads, loss, mses, extra))
     # A non-finite loss or gradient never reaches the state: the step is skipped (the parameters and Adam's
     # moments and count stay as they were; the data moves on) and counted in metrics["skipped"]. The test is
     # read before the update, off the loss and the gradients' global norm (finite only where every gradient
@@ -145,8 +155,11 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # (under a conditional, or fused with the select), where a test of the new state would take three. A
     # finite gradient gives a finite update (Adam's eps > 0; the sum of squares bounds the second moment),
     # so the state stays finite; checkpoints.Checkpoints.save checks it again before any save.
-    grad_norm = optax.tree.norm(grads)
+    grad_norm = norm(grads)
     finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+    if model.regions > 1 and options.grad_clip > 0:  # optax.clip_by_global_norm's, on every region's norm
+      grads = jax.tree.map(lambda g: jnp.where(grad_norm < options.grad_clip, g,
+                                               g / grad_norm.astype(g.dtype) * options.grad_clip), grads)
 
     def update(operands):
       grads, params, opt_state = operands
@@ -164,9 +177,115 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                "skipped": 1 - finite.astype(jnp.int32), **extra}
     return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
-  step = jax.shard_map(local_step, mesh=mesh, in_specs=(P(), distributed.batch_spec(mesh), P()),
-                       out_specs=(P(), P()))
+  state_spec = train_state.state_specs(model, optimizer, mesh)  # P() but for a region model's region axis
+  step = jax.shard_map(local_step, mesh=mesh, in_specs=(state_spec, distributed.batch_spec(mesh), P()),
+                       out_specs=(state_spec, P()))
   return jax.jit(step, donate_argnums=0, compiler_options=options.compiler_options)
+
+
+def _region_loss_fn(model, mesh, near: float, far: float, background, options: Options):
+  """loss_fn(params, batch, key) of a model of K regions (model.regions > 1) on `mesh`, whose region axis (of
+  size K / L, or none: L = K) gives each device L regions: it renders each ray through its own regions
+  (NeRF.render_partials), gathers every region's partial sums of its rays over the region axis and composites
+  them in ray order (regions.composite_regions): the loss is the whole ray's, the same on every device of the
+  region axis.
+
+  The gather is invariant (distributed.gather_regions): its result is formally the same on every device of
+  the axis, and its transpose hands each device the cotangent of its own regions' sums only (a slice of the
+  one invariant cotangent). jax.lax.all_gather's result would vary over the axis, its transpose
+  (psum_scatter) would sum the K identical cotangents of the K devices' identical losses, and every gradient
+  would come out K times too large. The interlevel loss is per segment (regions.interlevel_loss, each
+  region's own histograms scaled by the NeRF's transmittance before its segment), its per-ray terms gathered
+  the same way; the distortion loss is the whole ray's, from the gathered sums."""
+  count = model.regions
+  axis_size = distributed.num_regions(mesh)
+  if count % axis_size:
+    raise ValueError(f"model.regions={count} does not split over the mesh's region axis of {axis_size}")
+  local = count // axis_size
+  background = jnp.asarray(background, jnp.float32)
+
+  def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
+    return x if axis_size == 1 else distributed.gather_regions(x)
+
+  def loss_fn(params, batch, key):
+    first = jax.lax.axis_index(distributed.REGION_AXIS) * local if axis_size > 1 else 0
+    ids = first + jnp.arange(local)
+    # Region r's numbers of round i: stream i (as the one-field model's), then r folded in.
+    def region_uniforms(stream, n):
+      stream_key = jax.random.fold_in(key, stream)
+      return jax.vmap(lambda r: per_ray_uniforms(jax.random.fold_in(stream_key, r), batch["ray_ids"], n))(ids)
+    uniforms = [region_uniforms(i if i < 2 else i + 1, n) for i, n in enumerate(model.sample_counts())]
+    target, ray_background = batch["rgb"], background
+    if options.random_background and "alpha" in batch:
+      ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
+      target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
+    partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
+                                frames=batch.get("frame"), method="render_partials")
+    out = regions.composite_regions(gather(partials), ray_background)
+    mse = jnp.mean((out["rgb"] - target)**2)
+    mses, loss, extra = mse[None], mse, {}
+    if own["proposals"]:
+      prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
+      weights = jax.lax.stop_gradient(own["weights"])
+      per_ray = sum(jax.vmap(regions.interlevel_loss)(own["s_edges"], weights, p["s_edges"], p["weights"], prefix)
+                    for p in own["proposals"])  # (L, R)
+      extra["interlevel"] = jnp.mean(jnp.sum(gather(per_ray), axis=0))
+      extra["distortion"] = jnp.mean(out["distortion"])
+      loss = loss + options.interlevel_weight * extra["interlevel"] + options.distortion_weight * extra["distortion"]
+    return loss, (mses, extra)
+
+  return loss_fn
+
+
+def _region_reductions(mesh, ordered_mean: bool):
+  """(vary, reduce, norm) of the region step: `vary` makes the parameters device-varying where the gradient
+  of each device's own loss is wanted (a region's over the batch's axes: they already vary over the region
+  axis; the replicated ones, per-frame tables, over the region axis too); `reduce` sums the replicated
+  parameters' gradients over the region axis (each device's holds its own regions' part) and takes the mean
+  of every gradient and metric over the batch's axes only (a region's gradients never leave its devices of
+  the region axis); `norm`, the global norm of the gradients of every region."""
+  axes = distributed.batch_axes(mesh)
+  names = (axes,) if isinstance(axes, str) else tuple(axes)
+  sizes = distributed.batch_axis_sizes(mesh)
+  with_regions = distributed.num_regions(mesh) > 1
+  region = (distributed.REGION_AXIS,) if with_regions else ()
+
+  def vary(params):
+    return jax.tree_util.tree_map_with_path(
+        lambda path, x: jax.lax.pcast(x, names if nerf_model.in_region(path) or not with_regions
+                                      else names + region, to="varying"), params)
+
+  def mean(tree):
+    if ordered_mean:
+      return distributed.ordered_mean(tree, names, sizes)
+    return jax.lax.pmean(tree, axes)
+
+  def reduce(tree):
+    grads, *rest = tree
+    if not with_regions:
+      return mean(tree)
+    # Two means: ordered_mean packs a tree's leaves into one vector, which must not mix the region fields'
+    # gradients (varying over the region axis) with values the same on all of it.
+    paths, treedef = jax.tree_util.tree_flatten_with_path(grads)
+    own = [nerf_model.in_region(path) for path, _ in paths]
+    sharded = mean([g for (_, g), o in zip(paths, own) if o])
+    shared, *rest = mean(([jax.lax.psum(g, distributed.REGION_AXIS) for (_, g), o in zip(paths, own) if not o],
+                          *rest))
+    sharded, shared = iter(sharded), iter(shared)
+    return (jax.tree.unflatten(treedef, [next(sharded) if o else next(shared) for o in own]), *rest)
+
+  def norm(grads):
+    if not with_regions:
+      return optax.tree.norm(grads)
+    squares = jax.tree_util.tree_map_with_path(
+        lambda path, g: (jnp.sum(jnp.square(g)), nerf_model.in_region(path)), grads,
+        is_leaf=lambda x: isinstance(x, jax.Array))
+    pairs = jax.tree.leaves(squares, is_leaf=lambda x: isinstance(x, tuple))
+    sharded = sum((s for s, own in pairs if own), jnp.zeros(()))
+    shared = sum((s for s, own in pairs if not own), jnp.zeros(()))
+    return jnp.sqrt(jax.lax.psum(sharded, distributed.REGION_AXIS) + shared)
+
+  return vary, reduce, norm
 
 
 def for_program(comps: Components, microbatches: int, backend: str | None = None):
@@ -199,7 +318,7 @@ def compile_fitted(program: Components, key, budget_bytes: int, backend: str | N
   if tc.microbatches:
     need = compile_with(tc.microbatches)
     return tc.microbatches, compiled[tc.microbatches], need
-  per_device = tc.batch_size // program.mesh.size
+  per_device = tc.batch_size // distributed.batch_devices(program.mesh)
   count, need = compilation.fewest_microbatches(per_device, budget_bytes, compile_with)
   if count in refused:  # even the most micro-batches there can be do not compile
     raise refused[count]
@@ -214,7 +333,7 @@ def compile_for_run(comps: Components):
   capacity = compilation.device_memory_bytes()
   if need is not None and need > capacity:  # not a budget: what the device has (fitted ones are said below)
     tc = comps.config.train
-    per_device = tc.batch_size // comps.mesh.size
+    per_device = tc.batch_size // distributed.batch_devices(comps.mesh)
     more = (f"set --config.train.microbatches=0 (the fewest that fit, found at start-up) or more than {count}, "
             f"or a smaller --config.train.batch_size" if tc.microbatches else
             "set a smaller --config.train.batch_size")
@@ -224,7 +343,7 @@ def compile_for_run(comps: Components):
   if comps.config.train.microbatches == 0 and jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
-    per_device = comps.config.train.batch_size // comps.mesh.size
+    per_device = comps.config.train.batch_size // distributed.batch_devices(comps.mesh)
     print(f"nerfpod: train.microbatches=0: {count} micro-batch(es) of {per_device // count} rays per device "
           f"({shown} per device by XLA's analysis) {fits} the budget of {budget / 2**20:,.1f} MiB per device",
           flush=True)

@@ -4,8 +4,9 @@ the shapes a restore fills, and the streams of randomness.
     TrainState              step, params, opt_state (a flax struct: what checkpoints hold)
     learning_rate_schedule  warm-up, then log-linear decay (the original NeRF's)
     make_optimizer          Adam (and AdamW for pose corrections), after gradient clipping
-    initial_state           the state from the seed, replicated over the mesh
+    initial_state           the state from the seed, laid over the mesh (state_shardings)
     state_shapes            its ShapeDtypeStructs, without computing anything
+    state_specs             where each leaf lives: a region's fields on the region axis, the rest replicated
     rays_key                the rays' key, replicated over the mesh
 
 Randomness is a function of (seed, what): the parameters and the rays draw from their own streams, folded
@@ -17,9 +18,10 @@ import flax
 import jax
 import jax.numpy as jnp
 import optax
-from jax.sharding import Mesh
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from nerfpod import distributed
+from nerfpod.nerf import model as nerf_model
 from nerfpod.nerf import pose_correction
 
 # Tags folded into the seed so that each use of randomness has its own stream.
@@ -55,17 +57,19 @@ def _pose_labels(params):
   return jax.tree_util.tree_map_with_path(label, params)
 
 
-def make_optimizer(train_config) -> optax.GradientTransformation:
-  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0). With
-  train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
-  train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser)."""
+def make_optimizer(train_config, clip: bool = True) -> optax.GradientTransformation:
+  """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0 and
+  `clip`: a model of several regions clips in its step instead, where the norm of every region's gradients is
+  known; each device's optimiser sees its own regions' only). With train.pose_refine, the pose corrections
+  have their own: AdamW on the same schedule's shape from train.pose_lr_init to train.pose_lr_final, with
+  train.pose_weight_decay (nerfacto's camera optimiser)."""
   tc = train_config
   adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
   if tc.pose_refine:
     pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
                        weight_decay=tc.pose_weight_decay)
     adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
-  return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if tc.grad_clip > 0 else adam
+  return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if clip and tc.grad_clip > 0 else adam
 
 
 def rays_key(seed: int, mesh: Mesh) -> jax.Array:
@@ -85,14 +89,38 @@ def _initializer(model, optimizer):
   return init
 
 
+def state_specs(model, optimizer, mesh: Mesh):
+  """The train state's PartitionSpecs on `mesh`: with model.regions > 1 and a region axis, the region fields'
+  parameters and their optimiser state split over it, P(REGION_AXIS) (each device holds its regions' only),
+  and every other leaf (the step, per-frame tables, the optimiser's count) replicated; else P() for the whole
+  state (a prefix of every leaf)."""
+  if model.regions == 1 or distributed.num_regions(mesh) == 1:
+    return P()
+  shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
+  return jax.tree_util.tree_map_with_path(
+      lambda path, _: P(distributed.REGION_AXIS) if nerf_model.in_region(path) else P(), shapes)
+
+
+def state_shardings(model, optimizer, mesh: Mesh):
+  """state_specs as NamedShardings on `mesh` (one replicated sharding where the whole state is)."""
+  specs = state_specs(model, optimizer, mesh)
+  if specs == P():
+    return distributed.replicated(mesh)
+  return jax.tree.map(lambda spec: NamedSharding(mesh, spec), specs, is_leaf=lambda x: isinstance(x, P))
+
+
 def initial_state(model, optimizer, seed: int, mesh: Mesh) -> TrainState:
-  """The initial train state of `model` and `optimizer` from `seed`, created replicated over `mesh`."""
+  """The initial train state of `model` and `optimizer` from `seed`, created laid over `mesh`
+  (state_shardings: replicated, bar a region model's region fields)."""
   key = jax.random.fold_in(jax.random.key(seed), _PARAMS_STREAM)
-  return jax.jit(_initializer(model, optimizer), out_shardings=distributed.replicated(mesh))(key)
+  return jax.jit(_initializer(model, optimizer), out_shardings=state_shardings(model, optimizer, mesh))(key)
 
 
 def state_shapes(model, optimizer, mesh: Mesh) -> TrainState:
-  """The train state's leaves as ShapeDtypeStructs replicated over `mesh`, without computing anything."""
+  """The train state's leaves as ShapeDtypeStructs laid over `mesh` (state_shardings), without computing
+  anything."""
   shapes = jax.eval_shape(_initializer(model, optimizer), jax.random.key(0))
-  sharding = distributed.replicated(mesh)
-  return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
+  sharding = state_shardings(model, optimizer, mesh)
+  if isinstance(sharding, NamedSharding):
+    return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding), shapes)
+  return jax.tree.map(lambda s, sh: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sh), shapes, sharding)

@@ -1,0 +1,228 @@
+"""Space cut into K convex regions, each rendered on its own segment of a ray, and the segments composited.
+
+NeRF-XL (Li et al. 2024, arXiv 2404.16221): a scene too big for one chip's memory is cut into K regions,
+each its own field. A ray crosses each convex region at most once, on one segment [t_in_k, t_out_k]; each
+region renders its segment alone, from transmittance 1, into a few per-ray partial sums, and only those
+sums are combined, in the order the ray meets the regions:
+
+    near                                                                              far
+     |---- region 2 ----|------- region 0 -------|--- region 3 ---|      (region 1 missed: empty)
+       C_2, T_2, D_2        C_0, T_0, D_0            C_3, T_3
+    C = C_2 + T_2 C_0 + T_2 T_0 C_3 + T_2 T_0 T_3 background
+
+This is exactly the rendering of one field that is region k's inside region k, on the union of the samples
+(volume rendering's weights factor as w_i = (prod of the earlier segments' T) x (the weight within its own
+segment)); tests/test_regions.py checks it, values and gradients, against that stitched field.
+
+    Partition         the regions as half-space sets: region k = {x : n . x < b (or == b where closed)}
+    grid              a grid of cells in the ground plane (x, y; z is up) over [-bound, bound]^2
+    voronoi, kmeans   the Voronoi cells of points of the ground plane (k-means centres of the camera positions)
+    region_of         which region each point lies in (the stitched field's choice; tests)
+    segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised)
+    partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
+    composite_regions the regions' partial sums of a ray composited in the ray's order
+    interlevel_loss   mip-NeRF 360's interlevel loss of one segment, weighed by what reaches it
+
+The regions cover all of space (the outer cells reach to infinity), so a ray's segments tile its [near, far]
+with no gap; a region a ray misses gets the empty segment [far, far], where its samples weigh nothing.
+"""
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from nerfpod.nerf import stepfun
+
+# |n . d| below this: the ray runs parallel to the plane (it is then inside or outside along its whole length).
+_PARALLEL = 1e-12
+
+
+class Partition(NamedTuple):
+  """K convex regions, each the intersection of P half-spaces (padded with planes that hold everything):
+  region k holds x where n_kp . x < b_kp for every p, or n_kp . x == b_kp where closed_kp (a boundary shared
+  by two regions is closed on exactly one side, so every point lies in exactly one region)."""
+  normals_KxPx3: np.ndarray
+  offsets_KxP: np.ndarray
+  closed_KxP: np.ndarray
+
+  @property
+  def size(self) -> int:
+    return self.normals_KxPx3.shape[0]
+
+
+def _pad(planes: list[list[tuple]]) -> Partition:
+  """Per region a list of (normal (3,), offset, closed) -> a Partition, padded with 0 . x <= 1."""
+  count = max(1, max(len(p) for p in planes))
+  padded = [p + [((0.0, 0.0, 0.0), 1.0, True)] * (count - len(p)) for p in planes]
+  return Partition(np.array([[n for n, _, _ in p] for p in padded], np.float32),
+                   np.array([[b for _, b, _ in p] for p in padded], np.float32),
+                   np.array([[c for _, _, c in p] for p in padded], bool))
+
+
+def grid_shape(count: int) -> tuple[int, int]:
+  """(columns along x, rows along y) of a grid of `count` cells, as square as `count`'s divisors allow."""
+  rows = max(d for d in range(1, int(np.sqrt(count)) + 1) if count % d == 0)
+  return count // rows, rows
+
+
+def grid(count: int, bound: float) -> Partition:
+  """`count` cells of a grid in the ground plane (grid_shape), cut at even steps over [-bound, bound] along
+  x and y; the cells are columns along z, and the outer ones reach to infinity. A cell holds its lower
+  boundaries (x = its left cut), not its upper ones."""
+  columns, rows = grid_shape(count)
+  cuts = [np.linspace(-bound, bound, n + 1, dtype=np.float32)[1:-1] for n in (columns, rows)]
+  planes = []
+  for j in range(rows):
+    for i in range(columns):
+      cell = []
+      for axis, index, n in ((0, i, columns), (1, j, rows)):
+        unit = np.eye(3, dtype=np.float32)[axis]
+        if index > 0:  # -x <= -cut: at or beyond the lower cut (closed)
+          cell.append((tuple(-unit), -float(cuts[axis][index - 1]), True))
+        if index < n - 1:  # x < cut: before the upper cut (open)
+          cell.append((tuple(unit), float(cuts[axis][index]), False))
+      planes.append(cell)
+  return _pad(planes)
+
+
+def voronoi(centres_Kx2) -> Partition:
+  """The Voronoi cells of K points of the ground plane (x, y), as columns along z: region k holds the points
+  nearer to centre k than to any other (the bisector (c_j - c_k) . x <= (|c_j|^2 - |c_k|^2) / 2 for every
+  j != k), a tie going to the lower index."""
+  c = np.asarray(centres_Kx2, np.float32)
+  sq = np.sum(c * c, axis=-1)
+  planes = []
+  for k in range(len(c)):
+    cell = []
+    for j in range(len(c)):
+      if j != k:
+        normal = (float(c[j, 0] - c[k, 0]), float(c[j, 1] - c[k, 1]), 0.0)
+        # 0.5 * (a - b) and 0.5 * (b - a) are exact negatives: both cells meet on the very same plane.
+        cell.append((normal, float(np.float32(0.5) * (sq[j] - sq[k])), k < j))
+    planes.append(cell)
+  return _pad(planes)
+
+
+def kmeans(points_Nx2, count: int, iterations: int = 50) -> np.ndarray:
+  """`count` centres (count, 2) of the points by Lloyd's k-means, deterministic: started from the points
+  farthest apart (the first the point farthest from their mean, each next the farthest from those chosen).
+  A centre that loses all its points keeps its place. Needs at least `count` distinct points."""
+  p = np.asarray(points_Nx2, np.float64)
+  chosen = [int(np.argmax(np.sum((p - p.mean(0))**2, -1)))]
+  for _ in range(count - 1):
+    dist = np.min(np.sum((p[:, None] - p[chosen][None])**2, -1), axis=1)
+    chosen.append(int(np.argmax(dist)))
+  centres = p[chosen].copy()
+  for _ in range(iterations):
+    nearest = np.argmin(np.sum((p[:, None] - centres[None])**2, -1), axis=1)
+    moved = np.array([p[nearest == k].mean(0) if np.any(nearest == k) else centres[k] for k in range(count)])
+    if np.allclose(moved, centres):
+      break
+    centres = moved
+  return centres.astype(np.float32)
+
+
+def _inside(value, offset, closed):
+  return (value < offset) | (closed & (value == offset))
+
+
+def region_of(points_Nx3, partition: Partition):
+  """(N,) int32: the region each point lies in."""
+  values = jnp.einsum("kpc,nc->nkp", jnp.asarray(partition.normals_KxPx3), points_Nx3)
+  inside = jnp.all(_inside(values, partition.offsets_KxP, partition.closed_KxP), axis=-1)
+  return jnp.argmax(inside, axis=-1).astype(jnp.int32)
+
+
+def segments(origins_Rx3, directions_Rx3, near, far, partition: Partition):
+  """(t_in, t_out), each (K, R): the part of each ray's [near, far] inside each region (near/far floats or
+  (R, 1)). A convex region meets a line on one interval: the latest of the planes the ray enters through and
+  the earliest it leaves through (the slab method, generalised to any planes). A region the ray misses (or
+  meets on nothing longer than a point) gets [far, far]. No gradient flows through the segments."""
+  normals = jnp.asarray(partition.normals_KxPx3)
+  nd = jnp.einsum("kpc,rc->krp", normals, directions_Rx3)
+  gap = partition.offsets_KxP[:, None, :] - jnp.einsum("kpc,rc->krp", normals, origins_Rx3)  # b - n . o
+  parallel = jnp.abs(nd) < _PARALLEL
+  cross = gap / jnp.where(parallel, 1.0, nd)
+  inf = jnp.inf
+  enter = jnp.max(jnp.where(~parallel & (nd < 0), cross, -inf), axis=-1)
+  leave = jnp.min(jnp.where(~parallel & (nd > 0), cross, inf), axis=-1)
+  outside = jnp.any(parallel & ~_inside(0.0, gap, partition.closed_KxP[:, None, :]), axis=-1)
+  near_R = jnp.broadcast_to(jnp.reshape(jnp.asarray(near, jnp.float32), (-1,)), enter.shape[1:])
+  far_R = jnp.broadcast_to(jnp.reshape(jnp.asarray(far, jnp.float32), (-1,)), enter.shape[1:])
+  t_in = jnp.maximum(enter, near_R)
+  t_out = jnp.minimum(leave, far_R)
+  empty = outside | (t_out <= t_in)
+  t_in, t_out = jnp.where(empty, far_R, t_in), jnp.where(empty, far_R, t_out)
+  return jax.lax.stop_gradient(t_in), jax.lax.stop_gradient(t_out)
+
+
+def partial_sums(rgb_RxSx3, sigma_RxS, t_RxS, deltas_RxS, directions_Rx3, s_edges_RxS1=None):
+  """One region's per-ray partial sums of its S samples, each at t holding over an interval of (ray-parameter)
+  length `deltas`, composited from transmittance 1 at the segment's start: a dict of
+  rgb (R, 3)            sum_i w_i c_i (no background)
+  optical_depth (R,)    sum_i sigma_i delta_i |d|: the segment's transmittance is exp(-optical_depth)
+  depth, acc (R,)       sum_i w_i t_i, sum_i w_i
+  weights (R, S)        w_i = (1 - exp(-tau_i)) exp(-sum_{j<i} tau_j), the segment's own (not gathered)
+  and with `s_edges` (the samples' intervals in the normalised distance s), the distortion loss's sums:
+  distortion (R,)       stepfun.distortion_loss of the segment's own weights
+  moment (R,)           sum_i w_i m_i, m the intervals' midpoints in s
+  """
+  tau = sigma_RxS * deltas_RxS * jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
+  accumulated = jnp.concatenate([jnp.zeros_like(tau[..., :1]), jnp.cumsum(tau[..., :-1], axis=-1)], axis=-1)
+  weights = (1.0 - jnp.exp(-tau)) * jnp.exp(-accumulated)
+  out = {"rgb": jnp.sum(weights[..., None] * rgb_RxSx3, axis=-2), "optical_depth": jnp.sum(tau, axis=-1),
+         "depth": jnp.sum(weights * t_RxS, axis=-1), "acc": jnp.sum(weights, axis=-1), "weights": weights}
+  if s_edges_RxS1 is not None:
+    mids = 0.5 * (s_edges_RxS1[..., 1:] + s_edges_RxS1[..., :-1])
+    out["distortion"] = stepfun.distortion_loss(s_edges_RxS1, weights)
+    out["moment"] = jnp.sum(weights * mids, axis=-1)
+  return out
+
+
+# The partial sums that cross devices: per region and ray, a few numbers each (the weights stay local).
+GATHERED = ("t_in", "rgb", "optical_depth", "depth", "acc", "distortion", "moment")
+
+
+def composite_regions(partials, background=None):
+  """The K regions' partial sums of each ray (a dict of (K, R, ...) arrays: partial_sums' and `t_in` (K, R),
+  each segment's start) composited in the order the ray meets them (sorted by t_in):
+  C = sum_k P_k C_k + P_K background, P_k = prod of the transmittances T_j of the segments before k, and
+  depth and acc likewise. Returns rgb (R, 3), depth, acc, disparity (R,); `prefix` (K, R), each region's P_k
+  in the regions' own order (what reaches region k); and with the distortion sums, `distortion` (R,): the
+  whole ray's mip-NeRF 360 distortion loss, sum_k P_k^2 D_k + 2 sum_{a before b} P_a P_b (W_a M_b - M_a W_b)
+  (W the segment's sum of weights, M of weights times midpoints: every midpoint of a lies before every one
+  of b). `background`: (3,) or (R, 3), or None."""
+  order = jnp.argsort(partials["t_in"], axis=0)
+  ordered = {k: jnp.take_along_axis(v, order.reshape(order.shape + (1,) * (v.ndim - 2)), axis=0)
+             for k, v in partials.items() if k in GATHERED}
+  od = ordered["optical_depth"]
+  before = jnp.cumsum(od, axis=0) - od  # optical depth of the segments before each, in ray order
+  prefix = jnp.exp(-before)
+  rgb = jnp.sum(prefix[..., None] * ordered["rgb"], axis=0)
+  acc = jnp.sum(prefix * ordered["acc"], axis=0)
+  depth = jnp.sum(prefix * ordered["depth"], axis=0)
+  if background is not None:
+    rgb = rgb + jnp.exp(-jnp.sum(od, axis=0))[..., None] * jnp.asarray(background, rgb.dtype)
+  out = {"rgb": rgb, "depth": depth, "acc": acc, "disparity": acc / jnp.maximum(depth, 1e-10)}
+  # Back to the regions' own order: the inverse permutation scatters each ray's k-th segment to its region.
+  inverse = jnp.argsort(order, axis=0)
+  out["prefix"] = jnp.take_along_axis(prefix, inverse, axis=0)
+  if "distortion" in ordered:
+    w, m = prefix * ordered["acc"], prefix * ordered["moment"]
+    w_before = jnp.cumsum(w, axis=0) - w
+    m_before = jnp.cumsum(m, axis=0) - m
+    out["distortion"] = (jnp.sum(prefix**2 * ordered["distortion"], axis=0)
+                         + 2.0 * jnp.sum(w_before * m - m_before * w, axis=0))
+  return out
+
+
+def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, prefix_R):
+  """mip-NeRF 360's interlevel loss (stepfun.interlevel_loss) of one segment, per ray (R,): the NeRF's and
+  the proposal's histograms of the segment (their own weights, from transmittance 1) both scaled by
+  `prefix_R`, the NeRF's transmittance before the segment (composite_regions' prefix). Summed over the
+  segments, this is the whole ray's loss where each proposal's transmittance before a segment equals the
+  NeRF's; docs/scale.md says what differs otherwise. Pass the NeRF's weights and the prefix through
+  stop_gradient (the NeRF is the proposals' target)."""
+  scale = prefix_R[..., None]
+  return stepfun.interlevel_loss(edges_RxB1, scale * weights_RxB, env_edges_RxK1, scale * env_weights_RxK)

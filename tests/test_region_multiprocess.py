@@ -1,0 +1,35 @@
+"""A model of K regions (model.regions) trained by real processes on 127.0.0.1: 2 processes x 4 devices end
+at the parameters of 1 process x 8, whether each process holds whole region groups (K = 4: the partial sums
+gathered within a process, the gradient mean across the two) or a region group spans both (K = 8: the
+gather crosses processes, and both load the same rays)."""
+import jax
+import numpy as np
+import pytest
+
+import procs
+from nerfpod.workdir import checkpoints
+
+pytestmark = pytest.mark.slow
+
+STEPS = 6
+OVERRIDES = {"train.num_steps": STEPS, "train.batch_size": 64, "checkpoint.every_steps": STEPS,
+             "train.log_every": 3, "train.image_every": 0, "eval.max_views": 1,
+             "orbit.render_after_training": False, "train.distortion_weight": 0.01}
+RUN_TIMEOUT = 300
+
+
+@pytest.mark.parametrize("regions", [4, 8])
+def test_two_processes_end_at_one_processs_parameters(tmp_path, regions):
+  overrides = dict(OVERRIDES, **{"model.regions": regions})
+  with procs.Run(tmp_path / "one", overrides, devices_per_process=8) as one:
+    one.wait_ok(RUN_TIMEOUT)
+  with procs.Run(tmp_path / "pod", overrides, num_processes=2, devices_per_process=4) as pod:
+    pod.wait_ok(RUN_TIMEOUT)
+  assert "2 process(es), 8 device(s)" in pod.output(0)
+  want, _, step = checkpoints.read_numpy(str(tmp_path / "one"))
+  got, _, pod_step = checkpoints.read_numpy(str(tmp_path / "pod"))
+  assert step == pod_step == STEPS
+  stacked = want["params"]["params"]["regions"]["coarse"]["rgb"]["kernel"]
+  assert stacked.shape[0] == regions  # saved whole, every region's fields
+  for (path, a), (_, b) in zip(jax.tree.leaves_with_path(got["params"]), jax.tree.leaves_with_path(want["params"])):
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7, err_msg=jax.tree_util.keystr(path))

@@ -1,0 +1,256 @@
+"""A model of K regions (model.regions, NeRF-XL) in the model, on the mesh and in the train step: each device
+renders its regions, partial sums are gathered over the region axis; the same loss, gradients and parameters as
+the whole model on one device."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import Mesh
+
+from conftest import smoke_config
+from nerfpod import data, distributed, scenes
+from nerfpod.errors import UserError
+from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import regions
+from nerfpod.run import step, train_state
+
+
+def _config(**overrides):
+  tiny = {"model.regions": 4, "model.hashgrid.num_levels": 2, "model.hashgrid.log2_table_size": 6,
+          "model.hashgrid.max_resolution": 32, "model.hashgrid.hidden_width": 8,
+          "model.proposal.num_levels": 2, "model.proposal.log2_table_size": 6, "model.proposal.max_resolution": 32,
+          "model.proposal.hidden_width": 8, "render.proposal_samples": (8,), "render.num_samples": 6,
+          "train.batch_size": 64, "train.distortion_weight": 0.01, "model.hashgrid.bound": 1.5}
+  return smoke_config(**(tiny | overrides))
+
+
+def _rays(count=64, seed=0):
+  rng = np.random.default_rng(seed)
+  origins = rng.normal(size=(count, 3)) * 0.3 + np.array([0.0, 0.0, 4.0])
+  directions = np.array([0.0, 0.0, -1.0]) + 0.3 * rng.normal(size=(count, 3))
+  return jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32)
+
+
+def test_regions_one_is_the_one_field_model():
+  model = nerf_model.from_config(_config(**{"model.regions": 1}))
+  assert model.regions == 1 and model.region_planes == ()  # NeRF's defaults: the model it always was
+
+
+def test_each_device_share_of_the_regions_composites_to_the_whole_model():
+  """The model's own rendering of all K regions equals rendering the regions in two halves, each with its half
+  of the stacked parameters only (a device's share), composited after."""
+  model = nerf_model.from_config(_config())
+  origins, directions = _rays()
+  params = model.init(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
+  stacked = params["params"]["regions"]
+  assert all(leaf.shape[0] == 4 for leaf in jax.tree.leaves(stacked))
+  whole = jax.jit(model.apply)(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
+  partials_of = jax.jit(lambda share, ids: model.apply(share, origins, directions, 2.0, 6.0, ids,
+                                                       method="render_partials")[0])
+  halves = []
+  for ids in (jnp.arange(2), jnp.arange(2, 4)):
+    halves.append(partials_of({"params": {"regions": jax.tree.map(lambda p: p[ids], stacked)}}, ids))
+  partials = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), *halves)
+  out = regions.composite_regions(partials, jnp.ones(3))
+  for key in ("rgb", "depth", "acc"):
+    np.testing.assert_allclose(out[key], whole[key], rtol=1e-4, atol=1e-5)  # (jit moves a sample by round-off)
+  assert float(jnp.std(whole["rgb"])) > 0  # rays saw the fields
+
+
+def _batches(config, steps, with_frames=False):
+  scene = scenes.load(config.data)
+  dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size,
+                             slice(0, config.train.batch_size), 0.5, steps, with_frames=with_frames)
+  out = []
+  for i in range(steps):
+    batch = dict(dataset[i])
+    batch.pop("step")
+    out.append(batch)
+  return scene, out
+
+
+def _run(mesh, config, steps, optimizer, grad_clip=0.0):
+  per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
+  model = nerf_model.from_config(config, num_frames=100 if per_frame else 0)
+  scene, batches = _batches(config, steps, per_frame)
+  state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+                                 step.Options(random_background=True, distortion_weight=0.01, grad_clip=grad_clip))
+  metrics_all = []
+  for batch in batches:
+    state, metrics = step_fn(state, jax.device_put(batch, distributed.batch_sharding(mesh)), jax.random.key(7))
+    metrics_all.append(jax.device_get(metrics))
+  return state, metrics_all
+
+
+def test_the_mesh_gains_a_region_axis_and_refuses_what_does_not_split():
+  mesh = distributed.make_mesh(regions=4)
+  assert mesh.axis_names == ("data", "region") and mesh.devices.shape == (2, 4)
+  assert distributed.batch_axes(mesh) == "data" and distributed.batch_devices(mesh) == 2
+  assert distributed.make_mesh(num_slices=2, regions=2).devices.shape == (2, 2, 2)
+  assert distributed.make_mesh(regions=1).axis_names == ("data",)
+  with pytest.raises(UserError, match="model.regions=3 does not split over the 8 devices"):
+    distributed.make_mesh(regions=3)
+  with pytest.raises(UserError, match="model.regions=8 does not split over the 4 devices of a slice"):
+    distributed.make_mesh(num_slices=2, regions=8)
+  assert distributed.local_slice(64, mesh) == slice(0, 64)
+
+
+@pytest.mark.parametrize("shape", [(2, 4), (4, 2), (2, 1, 4)])
+def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
+  """Loss, metrics and parameters after two steps (plain SGD: parameters move exactly as the gradients) on
+  8 devices, (data, region) = `shape`, equal the whole model's on one device, which holds every region and
+  needs no gather: its gradients are plain autodiff of the stitched model's loss. A gradient K times too large
+  (the gather's transpose summing every region device's cotangent) would show at once. (2, 1, 4): two
+  simulated slices, (slice, data, region)."""
+  config = _config(**{"model.regions": 4})
+  sgd = optax.sgd(1.0)
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  if len(shape) == 3:
+    mesh = distributed.make_mesh(num_slices=shape[0], regions=shape[2])
+    assert mesh.axis_names == (distributed.SLICE_AXIS, distributed.DATA_AXIS, distributed.REGION_AXIS)
+  else:
+    mesh = _region_mesh(shape)
+  state_1, metrics_1 = _run(one, config, 2, sgd)
+  state_8, metrics_8 = _run(mesh, config, 2, sgd)
+  for m1, m8 in zip(metrics_1, metrics_8):
+    for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
+      np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
+  assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
+  params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
+  initial = jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params)
+  moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
+  assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
+  # Each device holds its regions' fields only: 1/K (4 regions on the axis) or 2/K of them.
+  leaf = state_8.params["params"]["regions"]["coarse"]["rgb"]["kernel"]
+  assert tuple(leaf.sharding.spec)[:1] == (distributed.REGION_AXIS,) and not any(tuple(leaf.sharding.spec)[1:])
+  assert leaf.addressable_shards[0].data.shape[0] == 4 // shape[-1]
+
+
+def _region_mesh(shape):
+  return Mesh(np.array(jax.devices()).reshape(shape), (distributed.DATA_AXIS, distributed.REGION_AXIS))
+
+
+def test_each_device_holds_one_kth_of_the_region_fields():
+  """Per-device parameter (and Adam moment) bytes, read off the state's shardings: the region fields' 1/K on
+  each device of a (2 data x 4 regions) mesh, against the whole model replicated on every device."""
+  config = _config(**{"model.regions": 4})
+  model, adam = nerf_model.from_config(config), optax.adam(1e-2)
+
+  def per_device_bytes(shapes, where):
+    total = 0
+    for path, leaf in jax.tree_util.tree_leaves_with_path(shapes):
+      if where(path):
+        shard = leaf.sharding.shard_shape(leaf.shape)
+        total += int(np.prod(shard)) * leaf.dtype.itemsize
+    return total
+
+  sharded = train_state.state_shapes(model, adam, _region_mesh((2, 4)))
+  whole = train_state.state_shapes(model, adam, Mesh(np.array(jax.devices()), (distributed.DATA_AXIS,)))
+  region_bytes = per_device_bytes(sharded, nerf_model.in_region)
+  assert region_bytes > 0 and region_bytes * 4 == per_device_bytes(whole, nerf_model.in_region)
+  # Parameters, and Adam's two moments of them, all split the same way; nothing else is in the state here.
+  assert per_device_bytes(sharded, lambda path: True) == region_bytes + 4 * 2  # + step and Adam's count
+  leaf = sharded.params["params"]["regions"]["coarse"]["rgb"]["kernel"]
+  assert leaf.sharding.spec == jax.sharding.PartitionSpec(distributed.REGION_AXIS)
+
+
+def test_the_region_renderer_renders_each_devices_regions_as_the_whole_model():
+  config = _config(**{"model.regions": 4})
+  model, sgd = nerf_model.from_config(config), optax.sgd(1.0)
+  origins, directions = _rays(count=64, seed=2)
+  from nerfpod.render import renderer
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  params_1 = train_state.initial_state(model, sgd, 0, one).params
+  want = renderer.render_rays(renderer.make_renderer(model, one, 2.0, 6.0, (1.0, 1.0, 1.0)), params_1, one,
+                              np.asarray(origins), np.asarray(directions), 64)
+  mesh = _region_mesh((2, 4))
+  params_8 = train_state.initial_state(model, sgd, 0, mesh).params
+  got = renderer.render_rays(renderer.make_renderer(model, mesh, 2.0, 6.0, (1.0, 1.0, 1.0)), params_8, mesh,
+                             np.asarray(origins), np.asarray(directions), 64)
+  for key in got:
+    np.testing.assert_allclose(got[key], want[key], rtol=1e-5, atol=1e-6, err_msg=key)
+
+
+def test_checkpoints_restore_the_region_fields_split_over_any_region_mesh(tmp_path):
+  from nerfpod.workdir import checkpoints
+  config = _config(**{"model.regions": 4})
+  model, adam = nerf_model.from_config(config), optax.adam(1e-2)
+  state = train_state.initial_state(model, adam, 0, _region_mesh((2, 4)))
+  with checkpoints.Checkpoints(str(tmp_path), 1, 2) as ckpt:
+    assert ckpt.save(1, state, {"next_step": 1})
+  for shape in ((2, 4), (1, 4)):
+    mesh = Mesh(np.array(jax.devices()[:shape[0] * shape[1]]).reshape(shape),
+                (distributed.DATA_AXIS, distributed.REGION_AXIS))
+    with checkpoints.Checkpoints(str(tmp_path), 1, 2) as ckpt:
+      restored, position = ckpt.restore(train_state.state_shapes(model, adam, mesh))
+    assert position == {"next_step": 1}
+    leaf = restored.opt_state[0].mu["params"]["regions"]["coarse"]["rgb"]["kernel"]
+    assert leaf.sharding.mesh.shape == mesh.shape and leaf.sharding.spec == jax.sharding.PartitionSpec("region")
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(np.asarray(a), np.asarray(b)), restored, state)
+
+
+def test_per_frame_tables_and_stratified_regions_step_as_the_whole_model():
+  """The MLP field with stratified samples per segment (no proposals), per-frame appearance codes and pose
+  corrections, replicated over the region axis: their gradients, summed over the region devices (each holds
+  the part through its own region), then averaged over the data axis, equal the whole model's on one device."""
+  config = _config(**{"model.regions": 4, "model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
+                      "model.mlp.skips": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
+                      "train.pose_refine": True, "render.proposal_samples": (), "render.num_samples": 8})
+  sgd = optax.sgd(1.0)
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  state_1, metrics_1 = _run(one, config, 2, sgd)
+  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, sgd)
+  for m1, m8 in zip(metrics_1, metrics_8):
+    for key in ("loss", "grad_norm"):
+      np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
+  params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
+  assert np.abs(params_1["params"]["appearance"]).max() > 0  # the per-frame tables did move
+  assert np.abs(params_1["params"]["pose_correction"]).max() > 0
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
+  assert state_8.params["params"]["appearance"].sharding.spec == jax.sharding.PartitionSpec()
+
+
+def test_regions_cut_around_the_cameras():
+  config = _config(**{"model.regions": 3, "model.region_cut": "cameras"})
+  angles = np.linspace(0, 2 * np.pi, 30, endpoint=False)
+  cameras = np.stack([4 * np.cos(angles), 4 * np.sin(angles), np.ones_like(angles)], -1)
+  model = nerf_model.from_config(config, camera_positions=cameras)
+  part = model.partition
+  assert part.size == 3
+  # Each camera lies in the region of its nearest k-means centre, and the centres share out the ring.
+  which = np.asarray(regions.region_of(jnp.asarray(cameras, jnp.float32), part))
+  centres = regions.kmeans(cameras[:, :2], 3)
+  np.testing.assert_array_equal(which, np.argmin(((cameras[:, None, :2] - centres[None])**2).sum(-1), axis=1))
+  assert min(np.bincount(which, minlength=3)) >= 8
+  assert nerf_model.from_config(config).partition.size == 3  # without cameras: a placeholder ring
+
+
+def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(tmp_path):
+  import procs
+  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", "--config.model.regions=3",
+                          devices_per_process=8)
+  assert result.returncode == 2, result.stderr
+  lines = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: error:")]
+  assert lines == ["nerfpod: error: model.regions=3 does not split over the 8 devices of a slice (each region's "
+                   "fields live on the devices of its place on the mesh's region axis); make it a divisor of 8 "
+                   "(one of 2, 4, 8) or 1."]
+  assert "Traceback" not in result.stderr
+
+
+def test_the_step_clips_the_norm_of_every_regions_gradients():
+  """train.grad_clip with regions: the step clips by the global norm (every region's gradients, which no
+  device's optimiser sees alone), as optax.clip_by_global_norm clips the whole model's on one device."""
+  config = _config(**{"model.regions": 4, "train.grad_clip": 0.005})
+  assert train_state.make_optimizer(config.train, clip=False) is not None
+  sgd = optax.sgd(1.0)
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  whole_model = optax.chain(optax.clip_by_global_norm(0.005), sgd)  # no region axis: optax's own clip
+  state_1, metrics_1 = _run(one, config, 1, whole_model)
+  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 1, sgd, grad_clip=0.005)
+  assert metrics_1[0]["grad_norm"] > 0.005  # the clip was at work
+  np.testing.assert_allclose(metrics_8[0]["grad_norm"], metrics_1[0]["grad_norm"], rtol=2e-5)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
+               jax.device_get(state_8.params), jax.device_get(state_1.params))
