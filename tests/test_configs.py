@@ -99,6 +99,7 @@ SNAPSHOT_CASES = [
     ("llff", "scene=horns,big,smoke"),
     ("capture", None), ("capture", "smoke"), ("capture", "path=/x/cup,downscale=2"), ("capture", "path=/x/cup,big"),
     ("capture", "path=/x/cup,downscale=1,big"), ("capture", "path=/x/cup,big,smoke"),
+    ("street", None), ("street", "regions=4"), ("street", "smoke,regions=4"),
 ]
 
 
