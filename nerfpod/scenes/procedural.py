@@ -83,13 +83,23 @@ def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = 
 
   With return_alpha, also whether each ray hits a surface (1.0) or not (0.0), like an RGBA render's alpha.
   """
+  return trace_solids(_objects(), origins, directions, background, return_alpha)
+
+
+def trace_solids(objects, origins, directions, background, return_alpha: bool):
+  """`trace` over any solids: (intersect(o, d) -> (t, normal), albedo) pairs, the albedo a colour (3,) or a
+  function of the hit points (..., 3) -> (..., 3) (a texture; nerfpod/scenes/street.py's)."""
   o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
   best_t = np.full(o.shape[:-1], np.inf)
   colour = np.broadcast_to(np.asarray(background, np.float64), o.shape).copy()
-  for intersect, albedo in _objects():
+  for intersect, albedo in objects:
     with np.errstate(invalid="ignore"):
       t, normal = intersect(o, d)
     closer = t < best_t
+    if callable(albedo):
+      if not closer.any():
+        continue
+      albedo = albedo(o + np.where(closer, t, 0.0)[..., None] * d)
     normal = np.where(closer[..., None], normal, 0.0)
     shade = _AMBIENT + (1 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, 1.0)
     colour = np.where(closer[..., None], albedo * shade[..., None], colour)
@@ -116,12 +126,22 @@ def load(path: str, data_config, shards=None) -> Scene:
 def make(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test: int = 8,
          pixel_center: float = 0.5) -> Scene:
   """The procedural scene; the same arguments always give the same pixels."""
-  focal = 0.5 * image_size / np.tan(0.5 * CAMERA_ANGLE_X)
+  splits = traced_splits(trace, lambda n, seed: hemisphere_poses(n, seed=seed), image_size, CAMERA_ANGLE_X,
+                         {"train": num_train, "val": num_val, "test": num_test}, pixel_center)
+  return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="procedural")
+
+
+def traced_splits(trace_fn, poses_fn, image_size: int, angle_x: float, counts: dict, pixel_center: float,
+                  first_seed: int = 0) -> dict:
+  """{split: Split} of a built-in scene: the images that `trace_fn(origins, directions, return_alpha=True)`
+  gives from the poses `poses_fn(n, seed)` draws for each split (seeds first_seed, first_seed + 1, ... in the
+  order of `counts`), square cameras of `image_size` pixels with a horizontal field of view of angle_x."""
+  focal = 0.5 * image_size / np.tan(0.5 * angle_x)
   intr = Intrinsics.from_focal(image_size, image_size, focal)
   splits = {}
-  for seed, (name, n) in enumerate((("train", num_train), ("val", num_val), ("test", num_test))):
-    poses = hemisphere_poses(n, seed=seed)
-    traced = [trace(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
+  for seed, (name, n) in enumerate(counts.items(), start=first_seed):
+    poses = poses_fn(n, seed)
+    traced = [trace_fn(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
     images, alphas = np.stack([r[0] for r in traced]), np.stack([r[1] for r in traced])
     splits[name] = Split.from_images(images, poses, intr, [f"{name}_{i}" for i in range(n)], alphas=alphas)
-  return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="procedural")
+  return splits

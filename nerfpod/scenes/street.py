@@ -16,9 +16,10 @@ views saw. Everything comes from fixed seeds: the same arguments always give the
 """
 import numpy as np
 
-from nerfpod.nerf.cameras import Intrinsics, image_rays, look_at
-from nerfpod.scenes.base import Scene, Split
-from nerfpod.scenes.procedural import _AMBIENT, _LIGHT, _box, _cylinder, _sphere
+from nerfpod.nerf.cameras import look_at
+from nerfpod.scenes import procedural
+from nerfpod.scenes.base import Scene
+from nerfpod.scenes.procedural import _box, _cylinder, _sphere
 
 LENGTH = 14.0         # the street's length along x
 HALF_WIDTH = 3.5      # the ground's half width along y
@@ -90,23 +91,7 @@ def _objects():
 def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
   """Exact colours of rays (..., 3): the nearest surface's shaded albedo, or the background (the sky); with
   return_alpha also whether each ray hits a surface (1.0) or not (0.0)."""
-  o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
-  best_t = np.full(o.shape[:-1], np.inf)
-  colour = np.broadcast_to(np.asarray(background, np.float64), o.shape).copy()
-  for intersect, albedo in _objects():
-    with np.errstate(invalid="ignore"):
-      t, normal = intersect(o, d)
-    closer = t < best_t
-    if not closer.any():
-      continue
-    normal = np.where(closer[..., None], normal, 0.0)
-    shade = _AMBIENT + (1 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, 1.0)
-    points = o + np.where(closer, t, 0.0)[..., None] * d
-    colour = np.where(closer[..., None], albedo(points) * shade[..., None], colour)
-    best_t = np.where(closer, t, best_t)
-  if return_alpha:
-    return colour.astype(np.float32), np.isfinite(best_t).astype(np.float32)
-  return colour.astype(np.float32)
+  return procedural.trace_solids(_objects(), origins, directions, background, return_alpha)
 
 
 def street_poses(n: int, seed: int) -> np.ndarray:
@@ -133,12 +118,7 @@ def load(path: str, data_config, shards=None) -> Scene:
 def make(image_size: int = 64, num_train: int = 120, num_val: int = 8, num_test: int = 8,
          pixel_center: float = 0.5) -> Scene:
   """The street scene (module docstring)."""
-  focal = 0.5 * image_size / np.tan(0.5 * FIELD_OF_VIEW)
-  intr = Intrinsics.from_focal(image_size, image_size, focal)
-  splits = {}
-  for seed, (name, n) in enumerate((("train", num_train), ("val", num_val), ("test", num_test))):
-    poses = street_poses(n, seed=100 + seed)
-    traced = [trace(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
-    images, alphas = np.stack([r[0] for r in traced]), np.stack([r[1] for r in traced])
-    splits[name] = Split.from_images(images, poses, intr, [f"{name}_{i}" for i in range(n)], alphas=alphas)
+  splits = procedural.traced_splits(trace, street_poses, image_size, FIELD_OF_VIEW,
+                                    {"train": num_train, "val": num_val, "test": num_test}, pixel_center,
+                                    first_seed=100)
   return Scene("street", splits, near=NEAR, far=FAR, background=(1.0, 1.0, 1.0), kind="street")
