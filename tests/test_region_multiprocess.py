@@ -2,6 +2,8 @@
 at the parameters of 1 process x 8, whether each process holds whole region groups (K = 4: the partial sums
 gathered within a process, the gradient mean across the two) or a region group spans both (K = 8: the
 gather crosses processes, and both load the same rays)."""
+import json
+
 import jax
 import numpy as np
 import pytest
@@ -26,6 +28,17 @@ def test_two_processes_end_at_one_processs_parameters(tmp_path, regions):
   with procs.Run(tmp_path / "pod", overrides, num_processes=2, devices_per_process=4) as pod:
     pod.wait_ok(RUN_TIMEOUT)
   assert "2 process(es), 8 device(s)" in pod.output(0)
+  # regions.json: where each region's fields live, as the model cut them (model.region_cut=grid over the box).
+  from conftest import smoke_config
+  from nerfpod.nerf import model as nerf_model
+  want_cut = nerf_model.partition(smoke_config(**overrides))
+  for workdir in ("one", "pod"):
+    saved = json.loads((tmp_path / workdir / "regions.json").read_text())
+    assert saved["cut"] == "grid" and saved["count"] == len(saved["regions"]) == regions
+    normals = [[p["normal"] for p in r["planes"]] for r in saved["regions"]]
+    offsets = [[p["offset"] for p in r["planes"]] for r in saved["regions"]]
+    np.testing.assert_allclose(normals, want_cut.normals_KxPx3, atol=1e-7)
+    np.testing.assert_allclose(offsets, want_cut.offsets_KxP, atol=1e-6)
   want, _, step = checkpoints.read_numpy(str(tmp_path / "one"))
   got, _, pod_step = checkpoints.read_numpy(str(tmp_path / "pod"))
   assert step == pod_step == STEPS

@@ -11,7 +11,7 @@ from nerfpod.render import renderer, video
 from nerfpod.run import components, preemption, profiling, train_state
 from nerfpod.workdir import checkpoints
 from nerfpod.run import step as train_step
-from nerfpod.workdir.files import write_config, write_scene
+from nerfpod.workdir.files import write_config, write_regions, write_scene
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 
@@ -142,6 +142,8 @@ def _announce(comps: components.Components, workdir: str, start_step: int) -> No
   config, tc = comps.config, comps.config.train
   write_config(workdir, json.loads(config.to_json_best_effort()))
   write_scene(workdir, comps.scene.description())
+  if config.model.regions > 1:  # where each region's fields live (regions.json)
+    write_regions(workdir, config.model.region_cut, comps.model.region_planes)
   slices = distributed.num_slices(comps.mesh)
   print(f"nerfpod: JAX {jax.__version__} on {jax.default_backend()}: {jax.device_count()} x "
         f"{jax.devices()[0].device_kind}", flush=True)

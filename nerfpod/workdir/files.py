@@ -1,4 +1,5 @@
-"""The workdir's own files: config.json (the resolved config), scene.json, and the checks of a workdir.
+"""The workdir's own files: config.json (the resolved config), scene.json, regions.json (a region model's
+regions), and the checks of a workdir.
 
     check_workdir      a --workdir that is a file, or cannot be written (training), in one sentence
     check_compatible   a workdir whose checkpoints came from a config of another shape or data is refused
@@ -117,6 +118,18 @@ def write_scene(workdir: str, scene_json: dict) -> None:
   """Writes workdir/scene.json (the scene's name, format, space, ray bounds and the capture -> scene
   similarity, so that renders and exports can be mapped back to a capture's frame); call on process 0 only."""
   write_json(storage.path(workdir) / "scene.json", scene_json)
+
+
+def write_regions(workdir: str, cut: str, region_planes) -> None:
+  """Writes workdir/regions.json: a region model's K convex regions (model.regions > 1, nerf/regions.py's
+  Partition), each the points x with normal . x < offset (<= where closed) for each of its planes, so that
+  a user or a tool sees where each field lives without the scene; call on process 0 only."""
+  normals, offsets, closed = region_planes  # (K, P, 3), (K, P), (K, P): arrays or nested sequences
+  write_json(storage.path(workdir) / "regions.json",
+             {"cut": cut, "count": len(normals),
+              "regions": [{"planes": [{"normal": list(map(float, n)), "offset": float(b), "closed": bool(c)}
+                                      for n, b, c in zip(ns, bs, cs)]}
+                          for ns, bs, cs in zip(normals, offsets, closed)]})
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
