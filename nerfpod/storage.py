@@ -129,6 +129,13 @@ def forget_listings() -> None:
   gcsfs = sys.modules.get("gcsfs")
   if gcsfs is None:  # no bucket read yet
     return
+  # etils.epath (orbax's paths, nerfpod's writes) keeps the gcsfs instance it first got in a cache of its own: one
+  # that fsspec's cache no longer holds (gcsfs.GCSFileSystem.clear_instance_cache(), as a client for another
+  # endpoint calls) would keep its listings below for good. Dropped, epath asks fsspec again.
+  epath_backend = sys.modules.get("etils.epath.backend")
+  get_filesystem = getattr(getattr(epath_backend, "_FileSystemSpecBackend", None), "_get_filesystem", None)
+  if hasattr(get_filesystem, "cache_clear"):
+    get_filesystem.cache_clear()
   classes = [gcsfs.GCSFileSystem]
   while classes:  # fsspec keeps the instances of each class (and subclass) apart
     cls = classes.pop()

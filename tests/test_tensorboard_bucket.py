@@ -31,7 +31,12 @@ def _read_back(url: str) -> dict:
   from tensorboard.backend.event_processing import event_accumulator
   gcsfs.GCSFileSystem.clear_instance_cache()
   board = event_accumulator.EventAccumulator(url, size_guidance={"scalars": 0})
-  board.Reload()
+  try:
+    board.Reload()
+  except Exception as e:  # noqa: BLE001 (the run folder not in the bucket yet: its first upload is under way)
+    if "NotFound" not in type(e).__name__ and "DirectoryDeleted" not in type(e).__name__:
+      raise
+    return {}
   return {tag: [(e.step, round(e.value, 6)) for e in board.Scalars(tag)] for tag in board.Tags()["scalars"]}
 
 
