@@ -46,13 +46,8 @@ def _facade(colour):
   return albedo
 
 
-def _uniform(colour):
-  colour = np.asarray(colour, np.float64)
-  return lambda points: np.broadcast_to(colour, points.shape)
-
-
 def _objects():
-  """(intersect function, albedo function of the hit points) of every solid of the street."""
+  """(intersect function, albedo: a colour, or a function of the hit points) of every solid of the street."""
   rng = np.random.default_rng(_LAYOUT_SEED)
   half = LENGTH / 2
   objects = [
@@ -78,13 +73,13 @@ def _objects():
         crown = np.array([x, y, rng.uniform(0.9, 1.2)])
         radius = rng.uniform(0.3, 0.45)
         objects.append((lambda o, d, c=crown, r=radius: _sphere(o, d, c, r),
-                        _uniform(rng.uniform([0.1, 0.4, 0.1], [0.3, 0.7, 0.25]))))
+                        rng.uniform([0.1, 0.4, 0.1], [0.3, 0.7, 0.25])))
         objects.append((lambda o, d, x=x, y=y, top=crown[2]: _cylinder(o, d, (x, y), 0.06, 0.0, top),
-                        _uniform((0.4, 0.28, 0.18))))
+                        np.array([0.4, 0.28, 0.18])))
       else:  # a lamp post with its lamp
-        objects.append((lambda o, d, x=x, y=y: _cylinder(o, d, (x, y), 0.04, 0.0, 1.5), _uniform((0.2, 0.2, 0.22))))
+        objects.append((lambda o, d, x=x, y=y: _cylinder(o, d, (x, y), 0.04, 0.0, 1.5), np.array([0.2, 0.2, 0.22])))
         objects.append((lambda o, d, x=x, y=y: _sphere(o, d, np.array([x, y, 1.55]), 0.1),
-                        _uniform((0.95, 0.85, 0.4))))
+                        np.array([0.95, 0.85, 0.4])))
   return objects
 
 
