@@ -132,21 +132,29 @@ def remove_cut_off_saves(workdir: str) -> list[str]:
 
 
 @functools.cache
-def _save_arrays_whole_on_one_cpu_process() -> None:
-  """With one process on a CPU, orbax saves each replicated array from one replica, whole: its default
+def _register_array_handler(storage_timeout_s: float | None = None) -> None:
+  """orbax's handler for jax.Array, as nerfpod saves them.
+
+  With one process on a CPU, orbax saves each replicated array from one replica, whole: its default
   (replica-parallel) slices every array into one piece per replica, each an eager dispatch (and, the first
   time in a process, a compilation per shape), to copy within one host's memory (docs/results.md has the
   cost). Several processes, or accelerators (whose replicas copy to the host in parallel), keep orbax's
-  default. Either way the checkpoint holds the same arrays, and reads back the same."""
-  if jax.process_count() == 1 and jax.default_backend() == "cpu":
-    absl_logger = logging.getLogger("absl")
-    level = absl_logger.level
-    absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
-    try:
-      ocp.type_handlers.register_type_handler(
-          jax.Array, ocp.type_handlers.ArrayHandler(use_replica_parallel=False), override=True)
-    finally:
-      absl_logger.setLevel(level)
+  default. Either way the checkpoint holds the same arrays, and reads back the same. With
+  `storage_timeout_s` (a training run whose workdir is in a bucket), the arrays' tensorstore requests are
+  bounded too (_BoundedRequests)."""
+  whole = jax.process_count() == 1 and jax.default_backend() == "cpu"
+  if not whole and storage_timeout_s is None:
+    return  # orbax's own
+  options = {"use_replica_parallel": False} if whole else {}
+  handler = (ocp.type_handlers.ArrayHandler(**options) if storage_timeout_s is None else
+             _BoundedRequests(storage_timeout_s, **options))
+  absl_logger = logging.getLogger("absl")
+  level = absl_logger.level
+  absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
+  try:
+    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
+  finally:
+    absl_logger.setLevel(level)
 
 
 # tensorstore's gcs driver retries a request up to 32 times, waiting up to 32 s between tries: nerfpod's
@@ -181,20 +189,6 @@ class _BoundedRequests(ocp.type_handlers.ArrayHandler):
 
   async def deserialize(self, infos, args=None):
     return await super().deserialize(self._bounded(infos), args)
-
-
-def _bound_tensorstore_requests(storage_timeout_s: float) -> None:
-  """Registers _BoundedRequests for jax.Array (as _save_arrays_whole_on_one_cpu_process's handler: whole
-  arrays on one CPU process, replica-parallel elsewhere). For a training run whose workdir is in a bucket."""
-  absl_logger = logging.getLogger("absl")
-  level = absl_logger.level
-  absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
-  try:
-    whole = jax.process_count() == 1 and jax.default_backend() == "cpu"
-    handler = _BoundedRequests(storage_timeout_s, use_replica_parallel=False if whole else None)
-    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
-  finally:
-    absl_logger.setLevel(level)
 
 
 @dataclasses.dataclass
@@ -236,9 +230,7 @@ class Checkpoints:
     self._directory = checkpoint_dir(workdir)
     self._read_only = read_only
     self._every_steps = every_steps
-    _save_arrays_whole_on_one_cpu_process()
-    if self._timeout is not None:
-      _bound_tensorstore_requests(self._timeout)
+    _register_array_handler(self._timeout)
     def open_manager():
       manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
       if not read_only:
