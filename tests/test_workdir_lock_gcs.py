@@ -387,6 +387,17 @@ def test_another_hosts_gs_lock_is_refused_while_it_beats_and_taken_over_once_it_
     fake.close()
 
 
+def _agreed(gcs, lock, within_s=2.0):
+  """Whether the lock's generation is the stored object's: beats run every 0.1 s here, so a beat in flight (the
+  object written, its answer not yet read) is waited out rather than taken for a disagreement."""
+  deadline = time.monotonic() + within_s
+  while gcs.generation() != lock._store._generation:
+    if time.monotonic() > deadline:
+      return False
+    time.sleep(0.01)
+  return True
+
+
 @pytest.mark.parametrize("late", [False, True], ids=["together", "one-late"])
 def test_of_two_runs_racing_for_a_stale_gs_lock_exactly_one_takes_it(gcs, monkeypatch, late):
   """Both runs judge the same lock stale before either removes it; then both remove it at once (together), or
@@ -430,7 +441,7 @@ def test_of_two_runs_racing_for_a_stale_gs_lock_exactly_one_takes_it(gcs, monkey
     winner = locks[outcomes.index("took it")]
     if late:
       assert winner is locks[0]
-    assert gcs.generation() == winner._store._generation
+    assert _agreed(gcs, winner)
     winner.release()
     assert gcs.holder() is None
 
@@ -548,17 +559,6 @@ def test_a_service_account_key_file_takes_the_lock(monkeypatch, cloud, tmp_path)
       f"could not take the lock {PATH}: service account {email} (the key file {key}) gave no access token "
       f"(invalid_grant: Bad Request); renew them (`gcloud auth application-default login`, a new key file), or "
       f"pass a local --workdir.")
-
-
-def _agreed(gcs, lock, within_s=2.0):
-  """Whether the lock's generation is the stored object's: beats run every 0.1 s here, so a beat in flight (the
-  object written, its answer not yet read) is waited out rather than taken for a disagreement."""
-  deadline = time.monotonic() + within_s
-  while gcs.generation() != lock._store._generation:
-    if time.monotonic() > deadline:
-      return False
-    time.sleep(0.01)
-  return True
 
 
 def test_the_locks_calls_are_retried_and_a_lost_answer_is_its_own(gcs, capfd):
