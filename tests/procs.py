@@ -43,7 +43,28 @@ DEFAULT_COMPILATION_CACHE = pathlib.Path(tempfile.gettempdir()) / f"nerfpod-test
 # Every test process compiles alike, so what tests compare between runs is compared under one compiler, and
 # tests/test_golden.py also runs the smoke job under users' own flags (XLA's defaults) against the same
 # recorded values. docs/results.md has the figures.
-TEST_XLA_FLAGS = "--xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
+# jaxlib 0.12 has no loop emitters (nor the flag: an unknown flag in XLA_FLAGS aborts the process), so from
+# jaxlib 0.11 on, the flag is kept only where a probe process accepts it (once per test session: the answer
+# travels to its processes in NERFPOD_TEST_XLA_FLAGS).
+LOOP_EMITTERS = "--xla_cpu_use_fusion_emitters=false"
+
+
+def _test_xla_flags() -> str:
+  flags = f"--xla_backend_optimization_level=1 {LOOP_EMITTERS}"
+  known = os.environ.get("NERFPOD_TEST_XLA_FLAGS")
+  if known is not None:
+    return known
+  from importlib import metadata
+  if tuple(int(p) for p in metadata.version("jaxlib").split(".")[:2]) >= (0, 11):
+    probe = subprocess.run([sys.executable, "-c", "import jax; jax.jit(lambda x: x + 1)(1)"], capture_output=True,
+                           text=True, env=dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu"), timeout=120)
+    if f"Unknown flag in XLA_FLAGS: {LOOP_EMITTERS}" in probe.stderr:
+      flags = flags.replace(f" {LOOP_EMITTERS}", "")
+  os.environ["NERFPOD_TEST_XLA_FLAGS"] = flags
+  return flags
+
+
+TEST_XLA_FLAGS = _test_xla_flags()
 # Multi-process runs in tests: quick to notice a dead peer, quick to exit.
 FAST_FAILURE_FLAGS = ("--heartbeat_timeout_seconds=30", "--shutdown_timeout_seconds=20",
                       "--initialization_timeout=60")
