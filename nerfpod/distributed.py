@@ -198,11 +198,11 @@ def num_regions(mesh: Mesh) -> int:
 def gather_regions(tree):
   """Inside shard_map: each device's (L, R, ...) leaves -> the (L x region axis, R, ...) leaves of every device of
   the region axis, in the axis' order, formally the same on all of them (invariant). Its transpose hands each
-  device the slice of the cotangent that is its own, with no communication; jax.lax.all_gather's result would
-  vary over the axis instead, and its transpose (a reduce-scatter) would sum every device's cotangent: the
+  device the slice of the cotangent that is its own, with no communication; jax.lax.all_gather's default result
+  (to="varying") would vary over the axis instead, and its transpose (a reduce-scatter) would sum every device's cotangent: the
   gradients of a loss that every device of the axis computes alike would come out (axis size) times too
-  large."""
-  from jax._src.lax.parallel import all_gather_invariant  # no public name in JAX 0.10 (jax.lax has none)
+  large. (to="invarying" relies on shard_map's check_vma, on by default; JAX 0.12 no longer has the private
+  all_gather_invariant this once called.)"""
   import jax.numpy as jnp
   # One gather per dtype for the whole tree (each leaf's trailing axes flattened and packed side by side):
   # a collective's fixed cost is per call, and the per-ray sums are several small leaves.
@@ -214,7 +214,7 @@ def gather_regions(tree):
   for members in by_dtype.values():
     lead = leaves[members[0]].shape[:2]
     packed = jnp.concatenate([leaves[i].reshape(lead + (-1,)) for i in members], axis=-1)
-    gathered = all_gather_invariant(packed, REGION_AXIS, axis=0, tiled=True)
+    gathered = jax.lax.all_gather(packed, REGION_AXIS, axis=0, tiled=True, to="invarying")
     offset = 0
     for i in members:
       width = int(np.prod(leaves[i].shape[2:], dtype=int))
