@@ -102,7 +102,10 @@ def keep_off_absent_tpu() -> bool:
     return False
   try:
     from jax._src import hardware_utils, xla_bridge  # no public way to list the backends before they start
-    factories = set(xla_bridge._backend_factories)
+    # Backends JAX may pick by itself: not those of negative priority, which it starts only when named (JAX
+    # 0.12's "proxy", for an IFRT proxy server, fails at once without one).
+    factories = {name for name, registration in xla_bridge._backend_factories.items()
+                 if getattr(registration, "priority", 0) >= 0}
     chips, _ = hardware_utils.num_available_tpu_chips_and_device_id()
   except Exception:  # a JAX whose internals moved: leave JAX's own choice
     return False
