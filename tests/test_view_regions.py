@@ -43,6 +43,7 @@ def test_a_grids_cells_are_its_squares_and_voronoi_cells_tile_the_square():
 def region_viewer(tmp_path_factory):
   """A viewer (no browser) of a workdir as a run of 4 regions cut around the training cameras writes it at
   step 0: config.json, regions.json and a checkpoint of the initial state."""
+  pytest.importorskip("viser", reason="viser is not installed (pip install 'nerfpod[viewer]')")
   from nerfpod import distributed, view
   from nerfpod.run import components
   from nerfpod.workdir import checkpoints
