@@ -5,6 +5,7 @@ region model whose every region holds one field's parameters exporting that fiel
 No training: the models' initial parameters (a random hash grid: a density that varies everywhere) are
 restored as the exports restore a workdir's (nerfpod.run.trained.Trained, on a mesh of the 8 devices without a
 region axis, as `nerfpod export` makes it)."""
+import dataclasses
 import types
 
 import jax
@@ -32,12 +33,20 @@ def _config(count: int, cut: str = "grid"):
   return smoke_config(**tiny)
 
 
-def _trained(config, workdir, params=None) -> Trained:
+def _trained(config, workdir) -> Trained:
   """What nerfpod.run.trained.restore gives for `config` (its components on every device, no region axis),
-  holding `params` as step 0 (default: random ones, _scrambled)."""
+  holding random parameters (_scrambled) as step 0."""
   comps = components.build(config, distributed.make_mesh())
-  params = _scrambled(comps.init_state().params) if params is None else params
-  return Trained(str(workdir), config, comps, params, 0, np.eye(4))
+  return Trained(str(workdir), config, comps, _scrambled(comps.init_state().params), 0, np.eye(4))
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+  """{name: Trained}, built once for the module: 'one' (model.regions=1), 'grid' (4 regions, a 2 x 2 grid)
+  and 'cameras' (4 regions cut around the training cameras)."""
+  folder = tmp_path_factory.mktemp("models")
+  return {name: _trained(_config(*args), folder / name)
+          for name, args in (("one", (1,)), ("grid", (4, "grid")), ("cameras", (4, "cameras")))}
 
 
 def _scrambled(params, seed=0):
@@ -82,12 +91,12 @@ def _one_point(config):
 
 
 @pytest.mark.parametrize("cut", ["grid", "cameras"])
-def test_each_point_takes_the_field_of_its_own_region(cut, tmp_path):
+def test_each_point_takes_the_field_of_its_own_region(cut, models):
   """The query of a 4-region model equals a loop over the points that applies, to each point alone, the field
   of the region nerf_regions.region_of puts it in: density, colour and normal, on both sides of every
   boundary and on it."""
-  config = _config(4, cut)
-  trained = _trained(config, tmp_path)
+  trained = models[cut]
+  config = trained.config
   partition = trained.comps.model.partition
   points = _points(partition)
   rng = np.random.default_rng(1)
@@ -124,13 +133,12 @@ def _mesh_args(out, level, resolution=20):
   return types.SimpleNamespace(resolution=resolution, level=level, bound=0.0, normalized=True, out=str(out))
 
 
-def test_a_region_models_mesh_and_point_cloud_are_valid_and_one_fields_copies_give_its_very_mesh(tmp_path):
+def test_a_region_models_mesh_and_point_cloud_are_valid_and_one_fields_copies_give_its_very_mesh(models, tmp_path):
   trimesh = pytest.importorskip("trimesh")
   pytest.importorskip("skimage")
-  one = _trained(_config(1), tmp_path / "one")
+  one, split = models["one"], models["grid"]
   assert one.comps.model.regions == 1
-  split = _trained(_config(4), tmp_path / "four")
-  copies = _trained(_config(4), tmp_path / "copies", _stacked_copies(one.params, split.params, 4))
+  copies = dataclasses.replace(split, params=_stacked_copies(one.params, split.params, 4))
   probe = np.random.default_rng(0).uniform(-BOUND, BOUND, (4096, 3))
   level = float(np.median(trained_lib.FieldQuery(split, 1024).density(probe)))
   meshes = {}
@@ -159,10 +167,10 @@ def test_a_region_models_mesh_and_point_cloud_are_valid_and_one_fields_copies_gi
   assert (np.abs(points.vertices) <= BOUND + 1e-5).all()
 
 
-def test_the_one_field_query_is_the_fields_own(tmp_path):
+def test_the_one_field_query_is_the_fields_own(models):
   """model.regions=1 queries the one field as before: the field applied to the points directly."""
-  config = _config(1)
-  trained = _trained(config, tmp_path)
+  trained = models["one"]
+  config = trained.config
   points = np.random.default_rng(2).uniform(-BOUND, BOUND, (500, 3)).astype(np.float32)
   field = fields.make_field(config.model, jnp.float32)
   rgb, sigma = jax.jit(lambda p, x, d: field.apply({"params": p}, x, d))(
