@@ -233,7 +233,8 @@ def _merge_collectives(collectives: list) -> list:
     key = (c.get("network", "ici"), c["op"], c["bytes"], c["group"], c.get("axes"))
     merged[key] = merged.get(key, 0) + c["count"]
   out = []
-  for (network, op, size, group, axes), count in sorted(merged.items(), key=lambda item: (item[0][:4], item[0][4] or ())):
+  ordered = sorted(merged.items(), key=lambda item: (item[0][:4], item[0][4] or ()))  # axes: None or a tuple
+  for (network, op, size, group, axes), count in ordered:
     out.append({"op": op, "bytes": size, "group": group, "network": network, "count": count})
     if axes is not None:
       out[-1]["axes"] = list(axes)
