@@ -112,8 +112,8 @@ class FieldQuery:
   normal of the field of the region it lies in (nerf/regions.py's region_of, the rule the stitched field of
   the renderer's samples follows), so a mesh of the whole scene runs on across the regions' boundaries.
   Each device evaluates, for its share of the points, the field of each region present among them, one
-  after the other (by_region); the points are put in region order on the host first (host_regions), so that
-  a device's share meets one region or two, not K."""
+  after the other (by_region); the points are put in order on the ground plane on the host first
+  (ground_order), so that a device's share meets a few regions, not K."""
 
   def __init__(self, trained: Trained, chunk: int):
     self.trained, self.mesh = trained, trained.comps.mesh
@@ -164,7 +164,7 @@ class FieldQuery:
                 else np.asarray(viewdirs_Nx3, np.float32).reshape(-1, 3))
     if self.partition is None or len(points) == 0:
       return self._map_in_order(program, points, viewdirs)
-    order = np.argsort(host_regions(points, self.partition), kind="stable")  # each region's points together
+    order = ground_order(points)  # neighbours together: each device's share meets a few regions
     out = self._map_in_order(program, points[order], viewdirs[order])
     back = np.empty_like(order)
     back[order] = np.arange(len(order))
@@ -211,16 +211,16 @@ def by_region(fn, stacked, partition: nerf_regions.Partition, points_Nx3, viewdi
   return outs
 
 
-def host_regions(points_Nx3, partition: nerf_regions.Partition, block: int = 65536) -> np.ndarray:
-  """(N,) int32: the region of each point by nerf_regions.region_of's rule, in NumPy on the host, a block of
-  points at a time (K x P plane values a point). For ordering the points only: the devices' own region_of
-  decides which field a point takes (the two may differ by round-off on a boundary, which costs a device one
-  more region's pass, nothing else)."""
-  points = np.asarray(points_Nx3, np.float32)
-  normals, offsets, closed = (np.asarray(a) for a in partition)
-  out = np.empty(len(points), np.int32)
-  for start in range(0, len(points), block):
-    values = np.einsum("kpc,nc->nkp", normals, points[start:start + block])
-    inside = np.all((values < offsets) | (closed & (values == offsets)), axis=-1)
-    out[start:start + block] = np.argmax(inside, axis=-1)
-  return out
+def ground_order(points_Nx3) -> np.ndarray:
+  """A permutation of the points that puts them in Z-order (Morton order) on the ground plane: x and y
+  quantised to 16 bits over the points' extent, their bits interleaved, sorted. A run of consecutive points
+  in Z-order lies in a few squares of about its own size, and the regions are columns over the ground plane
+  (nerf_regions.grid, voronoi), so each device's share of a chunk meets a few regions. A hint for cost only
+  (by_region is right in any order), and cheap: a sort of N integers, where finding each point's region on
+  the host would take K x P plane values a point."""
+  ground = np.asarray(points_Nx3, np.float32)[:, :2]
+  low, span = ground.min(0), np.maximum(np.ptp(ground, axis=0), 1e-30)
+  place = np.clip((ground - low) * (65535 / span), 0, 65535).astype(np.uint32)
+  for shift, mask in ((8, 0x00FF00FF), (4, 0x0F0F0F0F), (2, 0x33333333), (1, 0x55555555)):  # spread the bits
+    place = (place | (place << np.uint32(shift))) & np.uint32(mask)
+  return np.argsort(place[:, 0] | (place[:, 1] << np.uint32(1)), kind="stable")
