@@ -19,7 +19,12 @@ What the page shows: the scene from the camera the user drags, rendered on this 
 or GPU) by the same compiled renderer evaluation and orbits use; the channel picked (rgb, depth, acc,
 disparity, coloured as the orbit videos are); the training and held-out cameras as frustums holding their
 images (the training cameras at their corrected poses where the run refined them: train.pose_refine); the
-checkpoint's step. Rendering is progressive and never blocks the page: each browser has its own render
+checkpoint's step. A region model (model.regions > 1, docs/scale.md) also shows its regions, each in a colour
+of its own (region_colour): its cell (nerf/regions.py's cells: the region within the field's box, a column
+over a polygon of the ground plane: a grid's cells are boxes, a camera cut's the Voronoi cells of its
+centres) as a wireframe, a marker and a label at its centre (the mean of its training cameras: a camera cut's
+k-means centre), and each training camera in the colour of the region its centre lies in ("Show regions"
+hides them). Rendering is progressive and never blocks the page: each browser has its own render
 thread; a moved camera is drawn first at `coarse_resolution` (one renderer call), and at full resolution
 (the canvas's size, at most the page's "Max resolution") once the camera has been still for `STILL_SECONDS`;
 a full render is abandoned between chunks as soon as the camera moves again. Every call
@@ -50,10 +55,19 @@ from nerfpod.run import trained as run_trained
 from nerfpod.workdir import checkpoints
 from nerfpod.errors import UserError, fail, parse_flags
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
+from nerfpod.nerf import regions as nerf_regions
 
 STILL_SECONDS = 0.2       # a camera unchanged this long is "still": render it at full resolution
 THUMBNAIL_PIXELS = 64     # longest side of the images shown in the frustums
 INITIAL_PULL_BACK = 1.3   # a new page's camera: this many times farther back than the first held-out camera
+# The regions' colours, region k the k-th (mod 16): Sasha Trubetskoy's distinct colours, lightest left out.
+REGION_COLOURS = ((230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+                  (70, 240, 240), (240, 50, 230), (210, 245, 60), (0, 128, 128), (220, 190, 255), (170, 110, 40),
+                  (128, 0, 0), (128, 128, 0), (0, 0, 128), (128, 128, 128))
+
+
+def region_colour(k: int) -> tuple[int, int, int]:
+  return REGION_COLOURS[int(k) % len(REGION_COLOURS)]
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -132,6 +146,8 @@ class Viewer:
     # has, so its renderer is not a program on a subset of anyone's slice.
     trained = run_trained.restore(self.workdir)
     self.config, self.comps = trained.config, trained.comps
+    # A region model's regions (nerf_regions.Partition, as the restored model cuts them), drawn on the page.
+    self.partition = self.comps.model.partition if self.comps.model.regions > 1 else None
     mesh = self.comps.mesh
     self.damaged = dict(trained.damaged)  # {step: why it does not read back whole}: skipped, never read again
     self._poll_error = ""  # the last poll's error, said once
@@ -276,6 +292,9 @@ class Viewer:
     self._channel = gui.add_dropdown("Output", compositing.OUTPUTS, initial_value="rgb")
     self._max_resolution = gui.add_slider("Max resolution", 64, 2048, 32, self.max_resolution)
     self._show_cameras = gui.add_checkbox("Show cameras", True)
+    if self.partition is not None:
+      self._show_regions = gui.add_checkbox("Show regions", True)
+      self._show_regions.on_update(lambda _: self._set_regions_visible(self._show_regions.value))
     self._frame_text = gui.add_markdown("")
     for handle in (self._channel, self._max_resolution):
       handle.on_update(lambda _: self._all_changed())
@@ -298,17 +317,59 @@ class Viewer:
     scale = 0.03 * self._scene_extent()
     colours = {"train": (40, 90, 220)}
     corrections = pose_correction.of_params(self.params)
+    train_positions = None
     for name, split in self.comps.scene.splits.items():
       fov = cameras.fov_y(split.intrinsics)
       aspect = split.intrinsics.width / split.intrinsics.height
       poses = split.poses
       if name == "train" and corrections is not None:  # pose refinement: the poses the field was fitted to
         poses = pose_correction.corrected_poses(poses, corrections)
+      colour = [colours.get(name, (230, 120, 30))] * len(poses)
+      if name == "train" and self.partition is not None:  # each in its region's colour
+        train_positions = np.asarray(poses, np.float64)[:, :3, 3]
+        colour = [region_colour(k) for k in self._region_of(train_positions)]
       for i, (pose, image) in enumerate(zip(poses, split.images)):
         wxyz, position = cameras.pose_to_opencv(pose)
         self._frustums.append(scene.add_camera_frustum(
             f"/cameras/{name}/{i}", fov=float(fov), aspect=aspect, scale=scale, wxyz=wxyz, position=position,
-            color=colours.get(name, (230, 120, 30)), image=_thumbnail(image), format="jpeg"))
+            color=colour[i], image=_thumbnail(image), format="jpeg"))
+    self._regions = [] if self.partition is None else self._draw_regions(train_positions)
+
+  def _region_of(self, points_Nx3) -> np.ndarray:
+    return np.asarray(nerf_regions.region_of(np.asarray(points_Nx3, np.float32), self.partition))
+
+  def _draw_regions(self, camera_positions_Nx3) -> list:
+    """A region model's regions on the page, each in its colour: /regions/K/cell, the wireframe of the region
+    within the field's box [-b, b]^3 (its ground polygon, nerf_regions.cells, at z = -b and z = b, joined at
+    the corners); /regions/K/centre, a marker at the mean of its training cameras (the mean of its cell's
+    corners at z = 0 where it has none); /regions/K/label, its name and camera count there. Returns their handles."""
+    scene, bound = self.server.scene, float(self.config.model.hashgrid.bound)
+    held = self._region_of(camera_positions_Nx3) if camera_positions_Nx3 is not None else np.zeros(0, int)
+    radius = 0.01 * self._scene_extent()
+    handles = []
+    for k, polygon in enumerate(nerf_regions.cells(self.partition, bound)):
+      colour = region_colour(k)
+      if len(polygon):
+        ring = np.concatenate([polygon, np.roll(polygon, -1, axis=0)], axis=1).reshape(-1, 2, 2)  # its edges
+        edges = [np.concatenate([ring, np.full(ring.shape[:2] + (1,), z)], axis=-1) for z in (-bound, bound)]
+        upright = np.stack([np.pad(polygon, ((0, 0), (0, 1)), constant_values=-bound),
+                            np.pad(polygon, ((0, 0), (0, 1)), constant_values=bound)], axis=1)
+        handles.append(scene.add_line_segments(f"/regions/{k}/cell", np.concatenate(edges + [upright]), colour,
+                                               thickness=2.0, thickness_units="screen"))
+      mine = camera_positions_Nx3[held == k] if camera_positions_Nx3 is not None else np.zeros((0, 3))
+      if len(mine):
+        centre = mine.mean(0)
+      elif len(polygon):
+        centre = np.append(polygon.mean(0), 0.0)
+      else:  # a region that misses the box and holds no camera: nothing of the field's to show
+        continue
+      handles.append(scene.add_icosphere(f"/regions/{k}/centre", radius=radius, color=colour, position=centre))
+      handles.append(scene.add_label(f"/regions/{k}/label", f"region {k} ({len(mine)} cameras)", position=centre))
+    return handles
+
+  def _set_regions_visible(self, visible: bool):
+    for handle in self._regions:
+      handle.visible = visible
 
   def _scene_extent(self) -> float:
     positions = np.concatenate([s.poses[:, :3, 3] for s in self.comps.scene.splits.values()])

@@ -8,7 +8,9 @@ normal (minus the density gradient), its colour the field's colour seen along th
 Vertices and normals are written in the capture's own coordinates (the inverse of the run's capture ->
 scene similarity in scene.json), or in the normalised scene's with --normalized. A contracted (unbounded)
 scene's mesh covers its bounded part only: the unit ball (b = 1), inside the contraction; a forward-facing
-(NDC) scene is refused (its field lives in NDC space; export a point cloud).
+(NDC) scene is refused (its field lives in NDC space; export a point cloud). A region model (model.regions > 1)
+is meshed as one field: each grid point's density is that of the region it lies in (trained.FieldQuery), so
+the surface runs on across the regions' boundaries.
 
 Before any work, --resolution is weighed against this host's available memory (memory_bytes: the n^3 grid and
 marching cubes' working memory): one that cannot fit is refused in one sentence naming the largest that

@@ -18,6 +18,8 @@ from nerfpod.render import renderer
 from nerfpod.run.trained import Trained
 from nerfpod.errors import UserError
 from nerfpod.nerf import coord, fields
+from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import regions as nerf_regions
 
 
 def say(line: str) -> None:
@@ -104,36 +106,50 @@ class FieldQuery:
       query(points_Nx3, viewdirs_Nx3=None) -> rgb (N, 3), sigma (N,), normals (N, 3)
 
   rgb is the colour seen along the view directions (default: looking down -z), normals the outward unit
-  normals (minus the density's gradient, normalised)."""
+  normals (minus the density's gradient, normalised).
+
+  A region model (model.regions = K > 1) is the stitched field: each point takes the density, colour and
+  normal of the field of the region it lies in (nerf/regions.py's region_of, the rule the stitched field of
+  the renderer's samples follows), so a mesh of the whole scene runs on across the regions' boundaries.
+  Each device evaluates, for its share of the points, the field of each region present among them, one
+  after the other (by_region); the points are put in order on the ground plane on the host first
+  (ground_order), so that a device's share meets a few regions, not K."""
 
   def __init__(self, trained: Trained, chunk: int):
-    if trained.config.model.regions > 1:
-      raise UserError(f"this export queries one trained field at points, and the workdir's model has "
-                      f"model.regions={trained.config.model.regions} fields (one per region of space), which "
-                      f"exports do not query yet; export its depth or video instead (they render the regions).")
     self.trained, self.mesh = trained, trained.comps.mesh
     self.chunk = max(self.mesh.size, chunk - chunk % self.mesh.size)
     model = trained.comps.model
     field = fields.make_field(trained.config.model, model.dtype, matmul_max_rows=model.grid_matmul_max_rows)
     name, contracted = trained.field_name(), trained.config.render.space == "contract"
+    self.partition = model.partition if model.regions > 1 else None
 
-    def apply(params, points, viewdirs):
-      # With appearance codes, the colour is the mean code's, as every held-out rendering's (nerf/model.py).
-      codes = params["params"].get("appearance")
-      codes = () if codes is None else (jnp.broadcast_to(codes.mean(0), points.shape[:-1] + codes.shape[1:]),)
-      return field.apply({"params": params["params"][name]}, coord.contract(points) if contracted else points,
-                         viewdirs, *codes)
+    def apply(field_params, points, viewdirs, codes):
+      return field.apply({"params": field_params}, coord.contract(points) if contracted else points, viewdirs,
+                         *codes)
 
-    def full(params, points, viewdirs):
-      sigma, pullback = jax.vjp(lambda p: apply(params, p, viewdirs)[1], points)
+    def density(field_params, points, viewdirs, codes):
+      return (apply(field_params, points, viewdirs, codes)[1],)
+
+    def full(field_params, points, viewdirs, codes):
+      sigma, pullback = jax.vjp(lambda p: apply(field_params, p, viewdirs, codes)[1], points)
       (gradient,) = pullback(jnp.ones_like(sigma))
       normals = -gradient / jnp.maximum(jnp.linalg.norm(gradient, axis=-1, keepdims=True), 1e-12)
-      return apply(params, points, viewdirs)[0], sigma, normals
+      return apply(field_params, points, viewdirs, codes)[0], sigma, normals
+
+    def local(fn):
+      def run(params, points, viewdirs):
+        # With appearance codes, the colour is the mean code's, as every held-out rendering's (nerf/model.py).
+        codes = params["params"].get("appearance")
+        codes = () if codes is None else (jnp.broadcast_to(codes.mean(0), points.shape[:-1] + codes.shape[1:]),)
+        if self.partition is None:
+          return fn(params["params"][name], points, viewdirs, codes)
+        return by_region(fn, params["params"][nerf_model.REGIONS][name], self.partition, points, viewdirs, codes)
+      return run
 
     axis = distributed.batch_axes(self.mesh)  # every axis of the mesh (slices too)
-    program = lambda fn, outputs: jax.jit(jax.shard_map(fn, mesh=self.mesh, in_specs=(P(), P(axis), P(axis)),
+    program = lambda fn, outputs: jax.jit(jax.shard_map(local(fn), mesh=self.mesh, in_specs=(P(), P(axis), P(axis)),
                                                         out_specs=(P(axis),) * outputs))
-    self._density = program(lambda params, points, viewdirs: (apply(params, points, viewdirs)[1],), 1)
+    self._density = program(density, 1)
     self._full = program(full, 3)
 
   def density(self, points_Nx3) -> np.ndarray:
@@ -146,6 +162,15 @@ class FieldQuery:
     points = np.asarray(points_Nx3, np.float32).reshape(-1, 3)
     viewdirs = (np.broadcast_to(np.float32([0.0, 0.0, -1.0]), points.shape) if viewdirs_Nx3 is None
                 else np.asarray(viewdirs_Nx3, np.float32).reshape(-1, 3))
+    if self.partition is None or len(points) == 0:
+      return self._map_in_order(program, points, viewdirs)
+    order = ground_order(points)  # neighbours together: each device's share meets a few regions
+    out = self._map_in_order(program, points[order], viewdirs[order])
+    back = np.empty_like(order)
+    back[order] = np.arange(len(order))
+    return tuple(o[back] for o in out)
+
+  def _map_in_order(self, program, points, viewdirs):
     n = len(points)
     if n == 0:
       return np.zeros((0, 3), np.float32), np.zeros((0,), np.float32), np.zeros((0, 3), np.float32)
@@ -158,3 +183,44 @@ class FieldQuery:
         self.mesh, (points[s:s + chunk][rows], viewdirs[s:s + chunk][rows]))) for s in range(0, padded, chunk)]
     pieces = distributed.to_host(pieces)
     return tuple(np.concatenate([p[i] for p in pieces])[:n] for i in range(len(pieces[0])))
+
+
+def by_region(fn, stacked, partition: nerf_regions.Partition, points_Nx3, viewdirs_Nx3, codes):
+  """fn(field_params, points, viewdirs, codes) -> a tuple of (N, ...) arrays, of the stitched field: each
+  point's entries are those of the field of the region it lies in (nerf_regions.region_of), `stacked` the
+  fields' parameters on a leading axis of K. The regions present among the points are evaluated one after
+  the other, each at every point, and kept where the points are its own: as many field evaluations as
+  regions present, not K. (A loop inside one device's program: fn's own derivatives, the normals, are taken
+  inside each pass; nothing is differentiated through the loop.)"""
+  count = partition.size
+  ids = nerf_regions.region_of(points_Nx3, partition)
+  first = jax.tree.map(lambda p: p[0], stacked)
+  # Zeros made from the points: inside shard_map the loop's carry must vary over the devices as they do.
+  zeros = lambda s: jnp.broadcast_to(jnp.zeros_like(points_Nx3[:, 0], s.dtype).reshape(  # noqa: E731
+      (-1,) + (1,) * (len(s.shape) - 1)), s.shape)
+  init = tuple(zeros(s) for s in jax.eval_shape(fn, first, points_Nx3, viewdirs_Nx3, codes))
+
+  def one_region(carry):
+    k, outs = carry
+    own = fn(jax.tree.map(lambda p: p[k], stacked), points_Nx3, viewdirs_Nx3, codes)
+    mine = ids == k
+    outs = tuple(jnp.where(mine.reshape(mine.shape + (1,) * (o.ndim - 1)), o_k, o) for o, o_k in zip(outs, own))
+    return jnp.min(jnp.where(ids > k, ids, count)), outs  # the next region present (K: none)
+
+  _, outs = jax.lax.while_loop(lambda carry: carry[0] < count, one_region, (jnp.min(ids), init))
+  return outs
+
+
+def ground_order(points_Nx3) -> np.ndarray:
+  """A permutation of the points that puts them in Z-order (Morton order) on the ground plane: x and y
+  quantised to 16 bits over the points' extent, their bits interleaved, sorted. A run of consecutive points
+  in Z-order lies in a few squares of about its own size, and the regions are columns over the ground plane
+  (nerf_regions.grid, voronoi), so each device's share of a chunk meets a few regions. A hint for cost only
+  (by_region is right in any order), and cheap: a sort of N integers, where finding each point's region on
+  the host would take K x P plane values a point."""
+  ground = np.asarray(points_Nx3, np.float32)[:, :2]
+  low, span = ground.min(0), np.maximum(np.ptp(ground, axis=0), 1e-30)
+  place = np.clip((ground - low) * (65535 / span), 0, 65535).astype(np.uint32)
+  for shift, mask in ((8, 0x00FF00FF), (4, 0x0F0F0F0F), (2, 0x33333333), (1, 0x55555555)):  # spread the bits
+    place = (place | (place << np.uint32(shift))) & np.uint32(mask)
+  return np.argsort(place[:, 0] | (place[:, 1] << np.uint32(1)), kind="stable")

@@ -17,7 +17,8 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     Partition         the regions as half-space sets: region k = {x : n . x < b (or == b where closed)}
     grid              a grid of cells in the ground plane (x, y; z is up) over [-bound, bound]^2
     voronoi, kmeans   the Voronoi cells of points of the ground plane (k-means centres of the camera positions)
-    region_of         which region each point lies in (the stitched field's choice; tests)
+    region_of         which region each point lies in (the stitched field's choice: exports' queries too)
+    cells             each region's cell in the ground plane within a square, a convex polygon (the viewer's)
     segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised)
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
     composite_regions the regions' partial sums of a ray composited in the ray's order
@@ -132,6 +133,37 @@ def region_of(points_Nx3, partition: Partition):
   values = jnp.einsum("kpc,nc->nkp", jnp.asarray(partition.normals_KxPx3), points_Nx3)
   inside = jnp.all(_inside(values, partition.offsets_KxP, partition.closed_KxP), axis=-1)
   return jnp.argmax(inside, axis=-1).astype(jnp.int32)
+
+
+def cells(partition: Partition, bound: float) -> list[np.ndarray]:
+  """Each region's cell in the ground plane within the square [-bound, bound]^2: a convex polygon (M, 2),
+  its corners counter-clockwise ((0, 2) where the region misses the square). The regions are columns along
+  z (grid, voronoi: every plane's normal lies in the ground plane), so this polygon times any height is the
+  region within a box. The square clipped by each of the region's half-planes in turn (Sutherland-Hodgman);
+  which side holds a boundary does not change the polygon."""
+  square = np.array([[-bound, -bound], [bound, -bound], [bound, bound], [-bound, bound]], np.float64)
+  out = []
+  for normals, offsets in zip(np.asarray(partition.normals_KxPx3, np.float64), np.asarray(partition.offsets_KxP,
+                                                                                          np.float64)):
+    if np.any(normals[:, 2]):
+      raise ValueError("cells: a region plane is not vertical (its normal has a z component)")
+    polygon = square
+    for normal, offset in zip(normals[:, :2], offsets):
+      if not np.any(normal) or len(polygon) == 0:
+        continue  # padding (0 . x <= 1: all of space)
+      gap = offset - polygon @ normal  # > 0 inside
+      kept = []
+      for i in range(len(polygon)):
+        a, b, ga, gb = polygon[i], polygon[(i + 1) % len(polygon)], gap[i], gap[(i + 1) % len(polygon)]
+        if ga >= 0:
+          kept.append(a)
+        if (ga > 0 and gb < 0) or (ga < 0 and gb > 0):  # the edge crosses the line: keep the crossing
+          kept.append(a + (b - a) * (ga / (ga - gb)))
+      polygon = np.array(kept).reshape(-1, 2)
+    if len(polygon) < 3:
+      polygon = np.zeros((0, 2))
+    out.append(polygon)
+  return out
 
 
 def segments(origins_Rx3, directions_Rx3, near, far, partition: Partition):

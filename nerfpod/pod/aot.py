@@ -15,7 +15,9 @@ host: every host feeds its own frame's rays, nerfpod.run.orbit). Every program s
 every program of a run does (TPU v5e refuses a program on some of a slice's chips). It reports
 per-chip memory against the chip's HBM, FLOPs and bytes per step, the estimated step time (hlo_cost's
 roofline; XLA's own figures beside it where they are sane), rays/s per chip and for the pod, every
-collective in the step with its size, and the estimated time of the config's train.num_steps. Estimates
+collective in the step with its size and the mesh axes it runs over, a region model's traffic between its
+regions per step (model.regions > 1: region_traffic), and the estimated time of the config's
+train.num_steps. Estimates
 from XLA's program and the chips' published peaks, not measurements. A program too large for a chip is a
 report too (fits_hbm false, with XLA's figures), not a crash.
 
@@ -131,14 +133,14 @@ def _xla_cost(compiled) -> dict:
           "optimal_seconds": optimal if optimal > 0 else None}
 
 
-def _roofline(compiled, pod: chips.Pod, num_devices: int, slices: int = 1):
+def _roofline(compiled, pod: chips.Pod, num_devices: int, slices: int = 1, mesh_axes: dict | None = None):
   from nerfpod.pod import hlo_cost
-  return hlo_cost.HloProgram(compiled.as_text(), pod.chip, num_devices, slices).cost()
+  return hlo_cost.HloProgram(compiled.as_text(), pod.chip, num_devices, slices, mesh_axes).cost()
 
 
 def _program_report(compiled, pod: chips.Pod, num_devices: int, rays: int, seconds_to_compile: float,
-                    slices: int = 1) -> dict:
-  cost = _roofline(compiled, pod, num_devices, slices)
+                    slices: int = 1, mesh_axes: dict | None = None) -> dict:
+  cost = _roofline(compiled, pod, num_devices, slices, mesh_axes)
   memory = _memory(compiled)
   seconds = cost.seconds
   return {
@@ -204,9 +206,11 @@ def _reason(error: Exception) -> str:
   return text if len(text) <= 400 else text[:397] + "..."
 
 
-def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: int, slices: int = 1) -> dict:
+def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: int, slices: int = 1,
+             mesh_axes: dict | None = None) -> dict:
   """compile_fn() and its report; a program too large for the chip is a report too (fits_hbm false), not a
-  crash; any other refusal is a CompileError naming the program, the pod (its slices) and XLA's reason."""
+  crash; any other refusal is a CompileError naming the program, the pod (its slices) and XLA's reason.
+  `mesh_axes` (the program's mesh, name -> size): each collective names the axes it runs over."""
   import jax
   start = time.perf_counter()
   try:
@@ -220,26 +224,53 @@ def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: i
     return report
   except Exception as e:  # noqa: BLE001 (lowering or compiling failed in another way: still one sentence)
     raise CompileError(program, pod, _reason(e), slices) from None
-  return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start, slices)
+  return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start, slices, mesh_axes)
 
 
 def _merge_collectives(collectives: list) -> list:
   merged = {}
   for c in collectives:
-    key = (c.get("network", "ici"), c["op"], c["bytes"], c["group"])
+    key = (c.get("network", "ici"), c["op"], c["bytes"], c["group"], c.get("axes"))
     merged[key] = merged.get(key, 0) + c["count"]
-  return [{"op": op, "bytes": size, "group": group, "network": network, "count": count}
-          for (network, op, size, group), count in sorted(merged.items())]
+  out = []
+  ordered = sorted(merged.items(), key=lambda item: (item[0][:4], item[0][4] or ()))  # axes: None or a tuple
+  for (network, op, size, group, axes), count in ordered:
+    out.append({"op": op, "bytes": size, "group": group, "network": network, "count": count})
+    if axes is not None:
+      out[-1]["axes"] = list(axes)
+  return out
 
 
-def check_collectives(step: dict, state_bytes: int, slices: int = 1) -> list[str]:
+def region_traffic(step: dict) -> dict:
+  """What a region model's step (model.regions > 1) moves between its regions and for its gradients, per
+  step and chip, from the compiled step's collectives within a slice (their mesh axes, hlo_cost): the
+  partial sums all-gathered over the region axis (bytes each chip holds after the gathers: every region's
+  per-ray sums of its group's rays; it receives (K - 1) / K of them from the other chips of the axis), what
+  is reduced over the region axis (the gradient norm's sums, the replicated per-frame tables' gradients, and
+  per-ray terms that XLA sums over the axis instead of gathering them, as the interlevel loss's on a large
+  pod), and the gradient mean over the batch's axes within the slice (1/K of the region fields' gradients,
+  the replicated ones whole); `other_region_bytes`, any other collective over the region axis."""
+  ici = [c for c in step["collectives"] if c.get("network", "ici") == "ici" and c.get("axes") is not None]
+  total = lambda chosen: int(sum(c["bytes"] * c["count"] for c in chosen))  # noqa: E731
+  over_region = [c for c in ici if "region" in c["axes"]]
+  gathers = [c for c in over_region if c["op"] == "all-gather" and c["axes"] == ["region"]]
+  reduces = [c for c in over_region if c["op"] in ("all-reduce", "reduce-scatter")]
+  mean = [c for c in ici if "region" not in c["axes"] and c["axes"] and c["op"] in ("all-reduce", "reduce-scatter")]
+  return {"gathered_bytes": total(gathers), "gathers": int(sum(c["count"] for c in gathers)),
+          "region_reduce_bytes": total(reduces), "gradient_mean_bytes": total(mean),
+          "other_region_bytes": total([c for c in over_region if c not in gathers and c not in reduces])}
+
+
+def check_collectives(step: dict, state_bytes: int, slices: int = 1, regions: bool = False) -> list[str]:
   """What in the step's collectives is not a data-parallel step's: on one slice, anything but all-reduces,
   or all-reduces beyond the gradients plus a few scalars. Across slices the TPU compiler splits the
   gradients' all-reduce in three: within each slice (ICI: an all-reduce or reduce-scatter), across the slices
   (DCN: an all-reduce of each chip's share, or of a small gradient whole), and an all-gather of the shares
   within each slice; anything else, more than the (padded) gradients on either network, or no cross-slice
-  reduction at all, is reported."""
-  ici = [c for c in step["collectives"] if c.get("network", "ici") == "ici"]
+  reduction at all, is reported. A region model's step (`regions`) also gathers its partial sums over the
+  region axis (all-gathers over that axis alone: region_traffic)."""
+  ici = [c for c in step["collectives"] if c.get("network", "ici") == "ici"
+         and not (regions and c["op"] == "all-gather" and c.get("axes") == ["region"])]
   dcn = [c for c in step["collectives"] if c.get("network") == "dcn"]
   within = ("all-reduce",) if slices == 1 else ("all-reduce", "reduce-scatter", "all-gather")
   problems = [f"{c['op']} of {c['bytes']} bytes" for c in ici if c["op"] not in within]
@@ -300,11 +331,14 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
     def compile_step():
       fitted["microbatches"], compiled, _ = step.compile_fitted(program, key, budget, backend="tpu")
       return compiled
-    report["step"] = _compile("step", compile_step, pod, num_chips, tc.batch_size, slices)
+    report["step"] = _compile("step", compile_step, pod, num_chips, tc.batch_size, slices, dict(mesh.shape))
     # Where XLA refused the step as too large: train.microbatches as configured (0: refused while fitting).
     report["microbatches"] = fitted.get("microbatches", tc.microbatches)
     step_report = report["step"]
-    step_report["unexpected_collectives"] = check_collectives(step_report, state_bytes, slices)
+    step_report["unexpected_collectives"] = check_collectives(step_report, state_bytes, slices,
+                                                              regions=config.model.regions > 1)
+    if config.model.regions > 1 and step_report["seconds"] is not None:
+      step_report["region_traffic"] = region_traffic(step_report)
     step_report["run_seconds"] = (step_report["seconds"] * tc.num_steps if step_report["seconds"] is not None
                                   else None)
   params = program.state_shapes.params
@@ -382,11 +416,22 @@ def format_report(report: dict) -> str:
         lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} per chip across {c['group']} slices (DCN), "
                      f"x{c['count']:g}")
       else:
-        lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips, x{c['count']:g}")
+        axes = f" ({' x '.join(c['axes'])} axis)" if c.get("axes") else ""
+        lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips{axes}, x{c['count']:g}")
     verdict = "; ".join(s["unexpected_collectives"]) or (
         "the gradient all-reduce and scalars only" if slices == 1 else
         "the gradient all-reduce (within each slice, then across the slices over DCN) and scalars only")
+    if "region_traffic" in s and not s["unexpected_collectives"]:
+      verdict = verdict.replace(" and scalars only", ", the regions' partial sums gathered and scalars only")
     lines.append(f"  step collectives: {verdict}")
+    if "region_traffic" in s:
+      t, regions = s["region_traffic"], report["mesh"].get("region", 1)
+      lines.append(f"  region traffic per step and chip: {_size(t['gathered_bytes'])} of partial sums all-gathered "
+                   f"over the region axis ({t['gathers']:g} gather(s); {regions - 1}/{regions} of it from the other "
+                   f"{regions - 1} chips), {_size(t['region_reduce_bytes'])} reduced over the region axis, "
+                   f"{_size(t['gradient_mean_bytes'])} in the gradient mean over the batch's axes"
+                   + (f", {_size(t['other_region_bytes'])} other over the region axis" if t["other_region_bytes"]
+                      else ""))
     lines.append(f"  {report['num_steps']} steps (train.num_steps): {duration(s['run_seconds'])} estimated")
   if slices > 1:
     dcn = report["chip"].get("dcn_bytes_per_s")

@@ -177,15 +177,53 @@ class Cost:
       self.collectives.append(dict(c, count=c["count"] * times))
 
 
+def first_group(attributes: str) -> tuple[int, ...] | None:
+  """The device ids of a collective's first group: its first replica group, written out
+  (`replica_groups={{0,1},{2,3}}`) or as an iota (`replica_groups=[2,2]<=[2,2]T(1,0)`: the ids 0..N-1 laid
+  out as the dims, transposed, cut into rows), or a collective-permute's first source and target. None
+  where the HLO names none (every device)."""
+  listed = re.search(r"replica_groups=\{\{([0-9,]+)\}", attributes)
+  if listed:
+    return tuple(int(i) for i in listed.group(1).split(","))
+  iota = re.search(r"replica_groups=\[(\d+),(\d+)\]<=\[([0-9,]+)\](?:T\(([0-9,]+)\))?", attributes)
+  if iota:
+    import numpy as np
+    dims = [int(d) for d in iota.group(3).split(",")]
+    ids = np.arange(math.prod(dims)).reshape(dims)
+    if iota.group(4):
+      ids = ids.transpose([int(a) for a in iota.group(4).split(",")])
+    return tuple(int(i) for i in ids.reshape(int(iota.group(1)), int(iota.group(2)))[0])
+  pair = re.search(r"source_target_pairs=\{\{(\d+),(\d+)\}", attributes)
+  if pair:
+    return int(pair.group(1)), int(pair.group(2))
+  return None
+
+
+def mesh_axes_of(group: tuple[int, ...] | None, mesh_axes: dict) -> tuple[str, ...]:
+  """The axes of a device mesh (`mesh_axes`: name -> size, major first, the devices numbered in that
+  order, as a program's device ids are) along which a group's devices lie: those where their places on the
+  mesh differ (a group of one device: none; no group named: every axis)."""
+  names, sizes = list(mesh_axes), list(mesh_axes.values())
+  if group is None:
+    return tuple(names)
+  import numpy as np
+  places = np.stack(np.unravel_index(np.asarray(group) % math.prod(sizes), sizes), axis=-1)
+  return tuple(name for i, name in enumerate(names) if len(set(places[:, i].tolist())) > 1)
+
+
 class HloProgram:
   """A compiled program's optimised HLO module, costed on a chip: `HloProgram(compiled.as_text(), chip,
   num_devices).cost()`. The chip's peaks are its published figures (chips.Chip: bf16_flops,
   hbm_bytes_per_s, allreduce_bytes_per_s, dcn_bytes_per_s); `num_devices` is the collectives' group where
-  the HLO names none; `num_slices` the slices a DCN collective reduces over."""
+  the HLO names none; `num_slices` the slices a DCN collective reduces over. With `mesh_axes` (the program's
+  device mesh, name -> size, major first), each collective within a slice also names the mesh `axes` it runs
+  over (mesh_axes_of: e.g. ('region',) for a region model's gather of partial sums)."""
 
-  def __init__(self, hlo_text: str, chip: Chip, num_devices: int, num_slices: int = 1):
+  def __init__(self, hlo_text: str, chip: Chip, num_devices: int, num_slices: int = 1,
+               mesh_axes: dict | None = None):
     self.computations, self.entry = parse_module(hlo_text)
     self.chip, self.num_devices, self.num_slices = chip, num_devices, num_slices
+    self.mesh_axes = dict(mesh_axes) if mesh_axes else None
     self._shapes = {c: {i.name: i for i in instrs} for c, instrs in self.computations.items()}
 
   def cost(self) -> Cost:
@@ -247,8 +285,10 @@ class HloProgram:
     # A ring all-reduce sends and receives 2 (n - 1) / n of the data per chip; the others (n - 1) / n.
     factor = (2.0 if base == "all-reduce" else 1.0) * (group - 1) / max(group, 1)
     seconds = factor * size / self.chip.allreduce_bytes_per_s
-    return Cost(seconds=seconds, collective_seconds=seconds,
-                collectives=[{"op": base, "bytes": size, "group": group, "network": "ici", "count": 1}])
+    collective = {"op": base, "bytes": size, "group": group, "network": "ici", "count": 1}
+    if self.mesh_axes:
+      collective["axes"] = mesh_axes_of(first_group(instr.attributes), self.mesh_axes)
+    return Cost(seconds=seconds, collective_seconds=seconds, collectives=[collective])
 
   def _dcn_collective(self, computation: str, instr: Instruction, transfer: str) -> Cost:
     """The cross-slice part of a collective: each chip's share (the send's operand) over the slices."""

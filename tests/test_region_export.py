@@ -1,0 +1,192 @@
+"""Exports that query a region model's field at points (model.regions, NeRF-XL): each point takes the field of the
+region it lies in, checked against a loop over the points; the mesh and point cloud of a region model; and a
+region model whose every region holds one field's parameters exporting that field's very mesh.
+
+No training: the models' initial parameters (a random hash grid: a density that varies everywhere) are
+restored as the exports restore a workdir's (nerfpod.run.trained.Trained, on a mesh of the 8 devices without a
+region axis, as `nerfpod export` makes it)."""
+import dataclasses
+import types
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import smoke_config
+from nerfpod import distributed
+from nerfpod.export import mesh as mesh_export
+from nerfpod.export import pointcloud, trained as trained_lib
+from nerfpod.nerf import fields, regions
+from nerfpod.run import components
+from nerfpod.run.trained import Trained
+
+BOUND = 1.5  # the hash grid's box: exports keep [-1.5, 1.5]^3
+
+
+def _config(count: int, cut: str = "grid"):
+  tiny = {"model.regions": count, "model.region_cut": cut, "model.hashgrid.num_levels": 2,
+          "model.hashgrid.log2_table_size": 6, "model.hashgrid.max_resolution": 32, "model.hashgrid.hidden_width": 8,
+          "model.proposal.num_levels": 2, "model.proposal.log2_table_size": 6, "model.proposal.max_resolution": 32,
+          "model.proposal.hidden_width": 8, "render.proposal_samples": (8,), "render.num_samples": 6,
+          "model.hashgrid.bound": BOUND, "eval.chunk": 256}
+  return smoke_config(**tiny)
+
+
+def _trained(config, workdir) -> Trained:
+  """What nerfpod.run.trained.restore gives for `config` (its components on every device, no region axis),
+  holding random parameters (_scrambled) as step 0."""
+  comps = components.build(config, distributed.make_mesh())
+  return Trained(str(workdir), config, comps, _scrambled(comps.init_state().params), 0, np.eye(4))
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+  """{name: Trained}, built once for the module: 'one' (model.regions=1), 'grid' (4 regions, a 2 x 2 grid)
+  and 'cameras' (4 regions cut around the training cameras)."""
+  folder = tmp_path_factory.mktemp("models")
+  return {name: _trained(_config(*args), folder / name)
+          for name, args in (("one", (1,)), ("grid", (4, "grid")), ("cameras", (4, "cameras")))}
+
+
+def _scrambled(params, seed=0):
+  """Every parameter drawn from N(0, 0.5^2): fields whose density and colour vary across the box and from
+  region to region (the initial hash grid's entries are near zero: an almost even density)."""
+  leaves, treedef = jax.tree.flatten(params)
+  rng = np.random.default_rng(seed)
+  return jax.tree.unflatten(treedef, [jnp.asarray(0.5 * rng.normal(size=leaf.shape), leaf.dtype) for leaf in leaves])
+
+
+def _points(partition, seed=0):
+  """Points in every region, on their boundaries and just either side of them: random points of the box;
+  points exactly on each boundary plane (a grid's cuts are exact in float32); and each of those moved 1e-4
+  along the plane's normal either way."""
+  rng = np.random.default_rng(seed)
+  inner = rng.uniform(-BOUND, BOUND, (96, 3))
+  planes = [(n, b) for ns, bs in zip(partition.normals_KxPx3, partition.offsets_KxP) for n, b in zip(ns, bs)
+            if np.any(n)]
+  on = []
+  for normal, offset in planes:  # random points of the box projected onto the plane n . x = b
+    unit = normal / np.linalg.norm(normal)
+    p = rng.uniform(-BOUND, BOUND, (4, 3))
+    on.append(p + ((offset - p @ normal) / np.dot(normal, normal))[:, None] * normal)
+    on.append(on[-1] + 1e-4 * unit)
+    on.append(on[-2] - 1e-4 * unit)
+  return np.concatenate([inner] + on).astype(np.float32)
+
+
+def _one_point(config):
+  """(field params, point (3,), viewdir (3,)) -> (rgb (3,), sigma, outward unit normal (3,)) of one field at
+  one point: the brute-force reference."""
+  field = fields.make_field(config.model, jnp.float32)
+
+  def sigma(params, point, viewdir):
+    return field.apply({"params": params}, point[None], viewdir[None])[1][0]
+
+  def at(params, point, viewdir):
+    gradient = jax.grad(sigma, argnums=1)(params, point, viewdir)
+    rgb = field.apply({"params": params}, point[None], viewdir[None])[0][0]
+    return rgb, sigma(params, point, viewdir), -gradient / jnp.maximum(jnp.linalg.norm(gradient), 1e-12)
+  return jax.jit(at)
+
+
+@pytest.mark.parametrize("cut", ["grid", "cameras"])
+def test_each_point_takes_the_field_of_its_own_region(cut, models):
+  """The query of a 4-region model equals a loop over the points that applies, to each point alone, the field
+  of the region nerf_regions.region_of puts it in: density, colour and normal, on both sides of every
+  boundary and on it."""
+  trained = models[cut]
+  config = trained.config
+  partition = trained.comps.model.partition
+  points = _points(partition)
+  rng = np.random.default_rng(1)
+  viewdirs = rng.normal(size=points.shape).astype(np.float32)
+  viewdirs /= np.linalg.norm(viewdirs, axis=1, keepdims=True)
+  ids = np.asarray(regions.region_of(jnp.asarray(points), partition))
+  assert sorted(set(ids.tolist())) == [0, 1, 2, 3]
+  query = trained_lib.FieldQuery(trained, 64)  # several chunks, each device's share meeting several regions
+  rgb, sigma, normals = query.query(points, viewdirs)
+  np.testing.assert_allclose(query.density(points), sigma, rtol=1e-6)
+  stacked = trained.params["params"]["regions"]["coarse"]
+  at = _one_point(config)
+  want = [at(jax.tree.map(lambda p: p[k], stacked), p, d) for k, p, d in zip(ids, points, viewdirs)]
+  np.testing.assert_allclose(sigma, [float(w[1]) for w in want], rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(rgb, np.stack([w[0] for w in want]), rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(normals, np.stack([w[2] for w in want]), atol=1e-4)
+  # The fields differ: a point near a boundary takes another density on its other side.
+  other = np.array([float(at(jax.tree.map(lambda p: p[(k + 1) % 4], stacked), p, d)[1])
+                    for k, p, d in zip(ids[:16], points[:16], viewdirs[:16])])
+  assert np.abs(other - sigma[:16]).max() > 1e-3
+  # The order the points are queried in changes nothing: reversed, each comes back with its own values.
+  np.testing.assert_allclose(query.density(points[::-1])[::-1], sigma, rtol=1e-6)
+
+
+def test_the_ground_order_puts_neighbours_together():
+  """Blocks of 256 points in ground order (a device's share of a chunk) each meet 1 or 2 of a 4 x 4 grid's
+  regions on average, where blocks of points in no order meet nearly all 16."""
+  points = np.random.default_rng(3).uniform(-BOUND, BOUND, (32768, 3))
+  order = trained_lib.ground_order(points)
+  assert sorted(order.tolist()) == list(range(len(points)))
+  ids = np.asarray(regions.region_of(jnp.asarray(points, jnp.float32), regions.grid(16, BOUND)))
+  met = lambda ids: np.mean([len(set(block.tolist())) for block in ids.reshape(-1, 256)])  # noqa: E731
+  assert met(ids[order]) < 2 and met(ids) > 15
+
+
+def _stacked_copies(one_params, region_params, count):
+  """The region model's parameters with each region's NeRF field the one-field model's (its proposal fields
+  as they are)."""
+  out = jax.tree.map(lambda x: x, region_params)
+  out["params"]["regions"]["coarse"] = jax.tree.map(lambda p: jnp.stack([p] * count),
+                                                    one_params["params"]["coarse"])
+  return out
+
+
+def _mesh_args(out, level, resolution=20):
+  return types.SimpleNamespace(resolution=resolution, level=level, bound=0.0, normalized=True, out=str(out))
+
+
+def test_a_region_models_mesh_and_point_cloud_are_valid_and_one_fields_copies_give_its_very_mesh(models, tmp_path):
+  trimesh = pytest.importorskip("trimesh")
+  pytest.importorskip("skimage")
+  one, split = models["one"], models["grid"]
+  assert one.comps.model.regions == 1
+  copies = dataclasses.replace(split, params=_stacked_copies(one.params, split.params, 4))
+  probe = np.random.default_rng(0).uniform(-BOUND, BOUND, (4096, 3))
+  level = float(np.median(trained_lib.FieldQuery(split, 1024).density(probe)))
+  meshes = {}
+  for name, trained in (("one", one), ("four", split), ("copies", copies)):
+    path = tmp_path / f"{name}.ply"
+    summary = mesh_export.export(_mesh_args(path, level), trained, str(path))
+    mesh = trimesh.load(path, process=False)
+    assert len(mesh.faces) == summary["faces"] > 0 and len(mesh.vertices) == summary["vertices"]
+    assert (np.abs(mesh.vertices) <= BOUND + 1e-5).all()
+    assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
+    meshes[name] = mesh
+  # Every region holding the one field: the region query is that field everywhere, so the same surface.
+  np.testing.assert_array_equal(meshes["copies"].faces, meshes["one"].faces)
+  np.testing.assert_allclose(meshes["copies"].vertices, meshes["one"].vertices, atol=1e-5)
+  np.testing.assert_allclose(meshes["copies"].visual.vertex_colors, meshes["one"].visual.vertex_colors, atol=1)
+  # A region model's own mesh crosses its regions' boundaries (x = 0 and y = 0 for a 2 x 2 grid).
+  vertices = meshes["four"].vertices
+  for axis in (0, 1):
+    assert (vertices[:, axis] < 0).any() and (vertices[:, axis] > 0).any()
+  # The point cloud: rendered by the region renderer, its normals by the region query.
+  cloud = tmp_path / "cloud.ply"
+  args = types.SimpleNamespace(num_points=200, min_opacity=0.01, split="train", bound=0.0, seed=0, normalized=True)
+  summary = pointcloud.export(args, split, str(cloud))
+  points = trimesh.load(cloud)
+  assert len(points.vertices) == summary["points"] > 0
+  assert (np.abs(points.vertices) <= BOUND + 1e-5).all()
+
+
+def test_the_one_field_query_is_the_fields_own(models):
+  """model.regions=1 queries the one field as before: the field applied to the points directly."""
+  trained = models["one"]
+  config = trained.config
+  points = np.random.default_rng(2).uniform(-BOUND, BOUND, (500, 3)).astype(np.float32)
+  field = fields.make_field(config.model, jnp.float32)
+  rgb, sigma = jax.jit(lambda p, x, d: field.apply({"params": p}, x, d))(
+      trained.params["params"]["coarse"], points, np.broadcast_to(np.float32([0, 0, -1]), points.shape))
+  got_rgb, got_sigma, _ = trained_lib.FieldQuery(trained, 128).query(points)
+  np.testing.assert_allclose(got_sigma, sigma, rtol=1e-6, atol=1e-7)
+  np.testing.assert_allclose(got_rgb, rgb, rtol=1e-6, atol=1e-7)
