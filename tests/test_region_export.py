@@ -1,11 +1,10 @@
 """Exports that query a region model's field at points (model.regions, NeRF-XL): each point takes the field of the
-region it lies in, checked against a loop over the points; the mesh and point cloud of a region model; and a
-region model whose every region holds one field's parameters exporting that field's very mesh.
+region it lies in (its field over the region's own box), checked against a loop over the points; the regions'
+boxes; the mesh and point cloud of a region model.
 
 No training: the models' initial parameters (a random hash grid: a density that varies everywhere) are
 restored as the exports restore a workdir's (nerfpod.run.trained.Trained, on a mesh of the 8 devices without a
 region axis, as `nerfpod export` makes it)."""
-import dataclasses
 import types
 
 import jax
@@ -76,18 +75,42 @@ def _points(partition, seed=0):
 
 
 def _one_point(config):
-  """(field params, point (3,), viewdir (3,)) -> (rgb (3,), sigma, outward unit normal (3,)) of one field at
-  one point: the brute-force reference."""
+  """(field params, box (centre (3,), half extents (3,)), point (3,), viewdir (3,)) -> (rgb (3,), sigma, outward
+  unit normal (3,)) of one region's field at one world point, its box mapped onto the field's [-B, B]^3 axis
+  by axis: the brute-force reference."""
   field = fields.make_field(config.model, jnp.float32)
 
-  def sigma(params, point, viewdir):
-    return field.apply({"params": params}, point[None], viewdir[None])[1][0]
+  def apply(params, box, point, viewdir):
+    centre, half = box
+    return field.apply({"params": params}, ((point - centre) * (BOUND / half))[None], viewdir[None])
 
-  def at(params, point, viewdir):
-    gradient = jax.grad(sigma, argnums=1)(params, point, viewdir)
-    rgb = field.apply({"params": params}, point[None], viewdir[None])[0][0]
-    return rgb, sigma(params, point, viewdir), -gradient / jnp.maximum(jnp.linalg.norm(gradient), 1e-12)
+  def sigma(params, box, point, viewdir):
+    return apply(params, box, point, viewdir)[1][0]
+
+  def at(params, box, point, viewdir):
+    gradient = jax.grad(sigma, argnums=2)(params, box, point, viewdir)
+    rgb = apply(params, box, point, viewdir)[0][0]
+    return rgb, sigma(params, box, point, viewdir), -gradient / jnp.maximum(jnp.linalg.norm(gradient), 1e-12)
   return jax.jit(at)
+
+
+def test_each_region_has_its_own_box_around_its_cell():
+  """A 2 x 2 grid's regions: boxes around their quarter of the ground square, the whole height, grown by 1% of
+  the bound; the Voronoi cells of camera centres: every point of a cell maps into the field's box."""
+  centres, halves = regions.boxes(regions.grid(4, BOUND), BOUND)
+  np.testing.assert_allclose(np.abs(centres), [[BOUND / 2, BOUND / 2, 0]] * 4, atol=1e-6)
+  assert sorted(map(tuple, np.sign(centres[:, :2]).tolist())) == [(-1, -1), (-1, 1), (1, -1), (1, 1)]
+  np.testing.assert_allclose(halves, [[0.51 * BOUND, 0.51 * BOUND, 1.01 * BOUND]] * 4, rtol=1e-6)
+  cut = regions.voronoi(np.float32([[0.3, 0.2], [-0.9, 0.4], [0.1, -1.1]]))
+  centres, halves = regions.boxes(cut, BOUND)
+  points = np.random.default_rng(4).uniform(-BOUND, BOUND, (4000, 3)).astype(np.float32)
+  ids = np.asarray(regions.region_of(jnp.asarray(points), cut))
+  local = (points - centres[ids]) * (BOUND / halves[ids])
+  assert np.abs(local).max() <= BOUND and np.ptp(local[:, 0]) > BOUND  # inside, and spread over the box
+  for k in range(3):  # each box is no larger than its cell's bounds (plus the margin)
+    mine = points[ids == k, :2]
+    np.testing.assert_allclose(centres[k, :2] - halves[k, :2], mine.min(0) - 0.01 * BOUND, atol=0.05)
+    np.testing.assert_allclose(centres[k, :2] + halves[k, :2], mine.max(0) + 0.01 * BOUND, atol=0.05)
 
 
 @pytest.mark.parametrize("cut", ["grid", "cameras"])
@@ -108,13 +131,15 @@ def test_each_point_takes_the_field_of_its_own_region(cut, models):
   rgb, sigma, normals = query.query(points, viewdirs)
   np.testing.assert_allclose(query.density(points), sigma, rtol=1e-6)
   stacked = trained.params["params"]["regions"]["coarse"]
+  centres, halves = trained.comps.model.region_boxes
   at = _one_point(config)
-  want = [at(jax.tree.map(lambda p: p[k], stacked), p, d) for k, p, d in zip(ids, points, viewdirs)]
+  want = [at(jax.tree.map(lambda p: p[k], stacked), (centres[k], halves[k]), p, d)
+          for k, p, d in zip(ids, points, viewdirs)]
   np.testing.assert_allclose(sigma, [float(w[1]) for w in want], rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(rgb, np.stack([w[0] for w in want]), rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(normals, np.stack([w[2] for w in want]), atol=1e-4)
   # The fields differ: a point near a boundary takes another density on its other side.
-  other = np.array([float(at(jax.tree.map(lambda p: p[(k + 1) % 4], stacked), p, d)[1])
+  other = np.array([float(at(jax.tree.map(lambda p: p[(k + 1) % 4], stacked), (centres[k], halves[k]), p, d)[1])
                     for k, p, d in zip(ids[:16], points[:16], viewdirs[:16])])
   assert np.abs(other - sigma[:16]).max() > 1e-3
   # The order the points are queried in changes nothing: reversed, each comes back with its own values.
@@ -132,29 +157,19 @@ def test_the_ground_order_puts_neighbours_together():
   assert met(ids[order]) < 2 and met(ids) > 15
 
 
-def _stacked_copies(one_params, region_params, count):
-  """The region model's parameters with each region's NeRF field the one-field model's (its proposal fields
-  as they are)."""
-  out = jax.tree.map(lambda x: x, region_params)
-  out["params"]["regions"]["coarse"] = jax.tree.map(lambda p: jnp.stack([p] * count),
-                                                    one_params["params"]["coarse"])
-  return out
-
-
 def _mesh_args(out, level, resolution=20):
   return types.SimpleNamespace(resolution=resolution, level=level, bound=0.0, normalized=True, out=str(out))
 
 
-def test_a_region_models_mesh_and_point_cloud_are_valid_and_one_fields_copies_give_its_very_mesh(models, tmp_path):
+def test_a_region_models_mesh_and_point_cloud_are_valid(models, tmp_path):
   trimesh = pytest.importorskip("trimesh")
   pytest.importorskip("skimage")
   one, split = models["one"], models["grid"]
   assert one.comps.model.regions == 1
-  copies = dataclasses.replace(split, params=_stacked_copies(one.params, split.params, 4))
   probe = np.random.default_rng(0).uniform(-BOUND, BOUND, (4096, 3))
   level = float(np.median(trained_lib.FieldQuery(split, 1024).density(probe)))
   meshes = {}
-  for name, trained in (("one", one), ("four", split), ("copies", copies)):
+  for name, trained in (("one", one), ("four", split)):
     path = tmp_path / f"{name}.ply"
     summary = mesh_export.export(_mesh_args(path, level), trained, str(path))
     mesh = trimesh.load(path, process=False)
@@ -162,10 +177,6 @@ def test_a_region_models_mesh_and_point_cloud_are_valid_and_one_fields_copies_gi
     assert (np.abs(mesh.vertices) <= BOUND + 1e-5).all()
     assert mesh.visual.vertex_colors.shape == (len(mesh.vertices), 4)
     meshes[name] = mesh
-  # Every region holding the one field: the region query is that field everywhere, so the same surface.
-  np.testing.assert_array_equal(meshes["copies"].faces, meshes["one"].faces)
-  np.testing.assert_allclose(meshes["copies"].vertices, meshes["one"].vertices, atol=1e-5)
-  np.testing.assert_allclose(meshes["copies"].visual.vertex_colors, meshes["one"].visual.vertex_colors, atol=1)
   # A region model's own mesh crosses its regions' boundaries (x = 0 and y = 0 for a 2 x 2 grid).
   vertices = meshes["four"].vertices
   for axis in (0, 1):

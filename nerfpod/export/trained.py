@@ -122,19 +122,25 @@ class FieldQuery:
     field = fields.make_field(trained.config.model, model.dtype, matmul_max_rows=model.grid_matmul_max_rows)
     name, contracted = trained.field_name(), trained.config.render.space == "contract"
     self.partition = model.partition if model.regions > 1 else None
+    self.boxes = model.region_boxes if model.regions > 1 else None
 
-    def apply(field_params, points, viewdirs, codes):
+    bound = trained.config.model.hashgrid.bound
+
+    def apply(field_params, points, viewdirs, codes, box):
+      # A region's field sees its own box mapped onto the field's (nerf_regions.to_box), as in rendering.
+      points = points if box is None else nerf_regions.to_box(points, *box, bound)
       return field.apply({"params": field_params}, coord.contract(points) if contracted else points, viewdirs,
                          *codes)
 
-    def density(field_params, points, viewdirs, codes):
-      return (apply(field_params, points, viewdirs, codes)[1],)
+    def density(field_params, points, viewdirs, codes, box=None):
+      return (apply(field_params, points, viewdirs, codes, box)[1],)
 
-    def full(field_params, points, viewdirs, codes):
-      sigma, pullback = jax.vjp(lambda p: apply(field_params, p, viewdirs, codes)[1], points)
+    def full(field_params, points, viewdirs, codes, box=None):
+      # The normals are the world density's: the box map is inside what is differentiated.
+      sigma, pullback = jax.vjp(lambda p: apply(field_params, p, viewdirs, codes, box)[1], points)
       (gradient,) = pullback(jnp.ones_like(sigma))
       normals = -gradient / jnp.maximum(jnp.linalg.norm(gradient, axis=-1, keepdims=True), 1e-12)
-      return apply(field_params, points, viewdirs, codes)[0], sigma, normals
+      return apply(field_params, points, viewdirs, codes, box)[0], sigma, normals
 
     def local(fn):
       def run(params, points, viewdirs):
@@ -143,7 +149,8 @@ class FieldQuery:
         codes = () if codes is None else (jnp.broadcast_to(codes.mean(0), points.shape[:-1] + codes.shape[1:]),)
         if self.partition is None:
           return fn(params["params"][name], points, viewdirs, codes)
-        return by_region(fn, params["params"][nerf_model.REGIONS][name], self.partition, points, viewdirs, codes)
+        return by_region(fn, params["params"][nerf_model.REGIONS][name], self.partition, points, viewdirs, codes,
+                         self.boxes)
       return run
 
     axis = distributed.batch_axes(self.mesh)  # every axis of the mesh (slices too)
@@ -185,10 +192,11 @@ class FieldQuery:
     return tuple(np.concatenate([p[i] for p in pieces])[:n] for i in range(len(pieces[0])))
 
 
-def by_region(fn, stacked, partition: nerf_regions.Partition, points_Nx3, viewdirs_Nx3, codes):
-  """fn(field_params, points, viewdirs, codes) -> a tuple of (N, ...) arrays, of the stitched field: each
+def by_region(fn, stacked, partition: nerf_regions.Partition, points_Nx3, viewdirs_Nx3, codes, boxes=None):
+  """fn(field_params, points, viewdirs, codes, box) -> a tuple of (N, ...) arrays, of the stitched field: each
   point's entries are those of the field of the region it lies in (nerf_regions.region_of), `stacked` the
-  fields' parameters on a leading axis of K. The regions present among the points are evaluated one after
+  fields' parameters on a leading axis of K, `boxes` the regions' own boxes (centres (K, 3), half extents
+  (K, 3): nerf_regions.boxes; None: every field over the whole box), region k's box handed to fn as box. The regions present among the points are evaluated one after
   the other, each at every point, and kept where the points are its own: as many field evaluations as
   regions present, not K. (A loop inside one device's program: fn's own derivatives, the normals, are taken
   inside each pass; nothing is differentiated through the loop.)"""
@@ -198,11 +206,12 @@ def by_region(fn, stacked, partition: nerf_regions.Partition, points_Nx3, viewdi
   # Zeros made from the points: inside shard_map the loop's carry must vary over the devices as they do.
   zeros = lambda s: jnp.broadcast_to(jnp.zeros_like(points_Nx3[:, 0], s.dtype).reshape(  # noqa: E731
       (-1,) + (1,) * (len(s.shape) - 1)), s.shape)
-  init = tuple(zeros(s) for s in jax.eval_shape(fn, first, points_Nx3, viewdirs_Nx3, codes))
+  box_of = lambda k: None if boxes is None else tuple(jnp.asarray(b)[k] for b in boxes)  # noqa: E731
+  init = tuple(zeros(s) for s in jax.eval_shape(fn, first, points_Nx3, viewdirs_Nx3, codes, box_of(0)))
 
   def one_region(carry):
     k, outs = carry
-    own = fn(jax.tree.map(lambda p: p[k], stacked), points_Nx3, viewdirs_Nx3, codes)
+    own = fn(jax.tree.map(lambda p: p[k], stacked), points_Nx3, viewdirs_Nx3, codes, box_of(k))
     mine = ids == k
     outs = tuple(jnp.where(mine.reshape(mine.shape + (1,) * (o.ndim - 1)), o_k, o) for o, o_k in zip(outs, own))
     return jnp.min(jnp.where(ids > k, ids, count)), outs  # the next region present (K: none)

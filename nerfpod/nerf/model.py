@@ -182,6 +182,11 @@ renders every region and composites: one device holding the whole model. K = 1 i
     normals, offsets, closed = self.region_planes
     return nerf_regions.Partition(np.array(normals, np.float32), np.array(offsets, np.float32), np.array(closed, bool))
 
+  @property
+  def region_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+    """Each region's own box (centres (K, 3), half extents (K, 3)), which its fields' box is mapped onto."""
+    return nerf_regions.boxes(self.partition, self.model_config.hashgrid.bound)
+
   def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None):
     """(partials, local) of the L regions `region_ids_L` (L,) int32 (with parameters for those L only, the
     first axis of params['regions'], e.g. one device's share): `partials`, what crosses devices, a dict of
@@ -201,14 +206,15 @@ renders every region and composites: one device holding the whole model. K = 1 i
     near = jnp.broadcast_to(jnp.asarray(near, jnp.float32), rays + (1,))
     far = jnp.broadcast_to(jnp.asarray(far, jnp.float32), rays + (1,))
     planes = tuple(jnp.asarray(a)[region_ids_L] for a in self.partition)
+    boxes = tuple(jnp.asarray(a)[region_ids_L] for a in self.region_boxes)
     if uniforms is None:
       uniforms = (None,) * len(self.sample_counts())
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                       in_axes=(0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
+                       in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
         proposal_samples=tuple(self.proposal_samples), grid_matmul_max_rows=self.grid_matmul_max_rows,
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
-    return renderer(*planes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
+    return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
 
   def _points(self, origins, directions, t_RxS):
     """The sample points at distances t, in the field's space (contracted where space='contract')."""
@@ -256,7 +262,8 @@ class RegionRenderer(nn.Module):
   drawn there as the one-field model draws them over [0, 1]: proposal rounds, the first from the whole
   segment, or (no proposals) stratified points over `num_samples` even intervals, each holding over its
   interval. Every sample holds over an interval inside its segment: the regions' intervals never overlap, and
-  composited in ray order they are one rendering of the stitched field (nerf/regions.py)."""
+  composited in ray order they are one rendering of the stitched field (nerf/regions.py). The fields see the
+  region's own box (`box`: nerf_regions.boxes) mapped onto theirs, so each spends its resolution there."""
   model_config: Any
   num_samples: int
   dtype: Any
@@ -266,8 +273,11 @@ class RegionRenderer(nn.Module):
   near_gradient_distance: float
 
   @nn.compact
-  def __call__(self, normals_Px3, offsets_P, closed_P, uniforms, origins, directions, viewdirs, codes, near, far):
+  def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
+               far):
     partition = nerf_regions.Partition(normals_Px3[None], offsets_P[None], closed_P[None])
+    bound = self.model_config.hashgrid.bound
+    local = lambda points: nerf_regions.to_box(points, *box, bound)  # noqa: E731  (the region's own box)
     t_in, t_out = (t[0][:, None] for t in nerf_regions.segments(origins, directions, near, far, partition))
     to_s = lambda t: jnp.clip(coord.t_to_s(t, near, far, self.spacing), 0.0, 1.0)  # noqa: E731
     warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731
@@ -283,7 +293,7 @@ class RegionRenderer(nn.Module):
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                            matmul_max_rows=self.grid_matmul_max_rows)
-        sigma = field(points_of(t_mids).reshape(-1, 3)).reshape(t_mids.shape)
+        sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
       s_edges = stepfun.sample_intervals(s_edges, weights, self.num_samples, uniforms[-1], domain=(s_in, s_out))
@@ -297,7 +307,7 @@ class RegionRenderer(nn.Module):
     points = points_of(t_points)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows)
-    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
+    rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
                                 self.near_gradient_distance)
     sums = nerf_regions.partial_sums(rgb, sigma, t_points, jnp.diff(t_edges, axis=-1), directions, s_edges)

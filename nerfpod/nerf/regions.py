@@ -19,6 +19,7 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     voronoi, kmeans   the Voronoi cells of points of the ground plane (k-means centres of the camera positions)
     region_of         which region each point lies in (the stitched field's choice: exports' queries too)
     cells             each region's cell in the ground plane within a square, a convex polygon (the viewer's)
+    boxes, to_box     each region's own box (its cell's bounds, the whole height) and the map of it onto a field's
     segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised)
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
     composite_regions the regions' partial sums of a ray composited in the ray's order
@@ -164,6 +165,26 @@ def cells(partition: Partition, bound: float) -> list[np.ndarray]:
       polygon = np.zeros((0, 2))
     out.append(polygon)
   return out
+
+
+def boxes(partition: Partition, bound: float, margin: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+  """(centres (K, 3), half_extents (K, 3)) float32: each region's own box, where its field lives: its cell's
+  bounds in the ground plane within [-bound, bound]^2 (cells) and the whole height [-bound, bound], grown by
+  `margin` x bound on every side, so that samples on a cell's boundary stay inside its box whatever the
+  rounding. (A region that misses the square keeps the whole box.)"""
+  centres, halves = [], []
+  for polygon in cells(partition, bound):
+    low, high = (polygon.min(0), polygon.max(0)) if len(polygon) else (np.full(2, -bound), np.full(2, bound))
+    centres.append([*(0.5 * (low + high)), 0.0])
+    halves.append([*(0.5 * (high - low) + margin * bound), (1.0 + margin) * bound])
+  return np.float32(centres), np.float32(halves)
+
+
+def to_box(points_Nx3, centre_3, half_3, bound: float):
+  """Points of a region's box (centre, half extents) mapped onto the field's box [-bound, bound]^3, axis by
+  axis: each region's field spends all its resolution on its own box (NeRF-XL: each region a field over its
+  own bounds), not on the whole scene's."""
+  return (points_Nx3 - centre_3) * (bound / half_3)
 
 
 def segments(origins_Rx3, directions_Rx3, near, far, partition: Partition):
