@@ -11,7 +11,20 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 python_version="${1:-3.12}"
 data="${2:-../shared/data}"
-pin() { grep -i "^$1==" constraints.txt | head -1; }
+pin() {  # NAME==VERSION from constraints.txt for the target Python (of two marked lines, the one that applies)
+  python3 - "$python_version" "$1" <<'PY'
+import sys
+from packaging.requirements import Requirement
+version, name = sys.argv[1], sys.argv[2].lower().replace("_", "-")
+for line in open("constraints.txt"):
+  line = line.strip()
+  if line and not line.startswith("#"):
+    req = Requirement(line)
+    if req.name.lower().replace("_", "-") == name and (req.marker is None or req.marker.evaluate(
+        {"python_version": version, "python_full_version": f"{version}.0"})):
+      print(f"{req.name}{req.specifier}")
+PY
+}
 rm -rf .whl && mkdir -p .whl
 python3 -m pip download -q --no-deps --only-binary=:all: --python-version "$python_version" --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_24_x86_64 --platform manylinux_2_17_x86_64 \
