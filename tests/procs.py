@@ -342,10 +342,11 @@ def _cache_every_process() -> None:
   from jax._src import compilation_cache, compiler, config
   original = compiler._cache_write
 
-  def write(cache_key, compile_time_secs, module_name, backend, executable, host_callbacks):
-    if (compiler.distributed.global_state.process_id in (None, 0) or host_callbacks
+  def write(cache_key, compile_time_secs, module_name, backend, executable, *rest):
+    # (JAX 0.10 passes the program's host callbacks last, which it does not cache; JAX 0.12 no longer does.)
+    if (compiler.distributed.global_state.process_id in (None, 0) or any(rest)
         or compile_time_secs < config.persistent_cache_min_compile_time_secs.value):
-      return original(cache_key, compile_time_secs, module_name, backend, executable, host_callbacks)
+      return original(cache_key, compile_time_secs, module_name, backend, executable, *rest)
     compilation_cache.put_executable_and_time(cache_key, module_name, executable, backend, int(compile_time_secs))
 
   compiler._cache_write = write
