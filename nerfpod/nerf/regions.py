@@ -19,6 +19,7 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     voronoi, kmeans   the Voronoi cells of points of the ground plane (k-means centres of the camera positions)
     region_of         which region each point lies in (the stitched field's choice: exports' queries too)
     cells             each region's cell in the ground plane within a square, a convex polygon (the viewer's)
+    unseen            the regions that no ray of a set (the training cameras') crosses
     boxes, to_box     each region's own box (its cell's bounds, the whole height) and the map of it onto a field's
     segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised)
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
@@ -185,6 +186,15 @@ def to_box(points_Nx3, centre_3, half_3, bound: float):
   axis: each region's field spends all its resolution on its own box (NeRF-XL: each region a field over its
   own bounds), not on the whole scene's."""
   return (points_Nx3 - centre_3) * (bound / half_3)
+
+
+def unseen(partition: Partition, origins_Rx3, directions_Rx3, near, far) -> list[int]:
+  """The regions that none of the rays crosses over a positive length of its [near, far] (near/far: floats or
+  (R, 1)): regions whose fields no training pixel could ever teach."""
+  t_in, t_out = segments(jnp.asarray(origins_Rx3, jnp.float32), jnp.asarray(directions_Rx3, jnp.float32),
+                         near, far, partition)
+  crossed = np.asarray(jnp.any(t_out > t_in, axis=-1))
+  return [int(k) for k in np.flatnonzero(~crossed)]
 
 
 def segments(origins_Rx3, directions_Rx3, near, far, partition: Partition):

@@ -23,7 +23,7 @@ from nerfpod.render import camera_path, renderer
 from nerfpod.run import compilation, train_state
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
-from nerfpod.nerf import model as nerf_model
+from nerfpod.nerf import cameras as nerf_cameras, model as nerf_model, regions as nerf_regions, sampling
 
 def uses_frames(config) -> bool:
   """Whether the training batches carry each ray's training-frame index (per-frame appearance or poses)."""
@@ -164,6 +164,47 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
                     train_state.state_shapes(model, optimizer, mesh),
                     batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),
                     compilation.compiler_options(config, backend), scene=scene)
+
+
+def check_regions_seen(comps: Components, per_side: int = 8) -> None:
+  """model.regions > 1: refuses, in one sentence, a partition with a region that no training ray crosses (a
+  grid cell beyond every camera's view, a camera cut's centre that lost its cameras): its fields could learn
+  nothing. The rays: a per_side x per_side grid of pixels of every training frame, corners included, over
+  the run's [near, far], clipped to the hash grid's box as the model clips them."""
+  config = comps.config
+  if config.model.regions == 1 or comps.scene is None:
+    return
+  split = comps.scene.split("train")
+  cams, frames = split.cameras, np.arange(len(split))
+  grid = np.linspace(0.0, 1.0, per_side)
+  fr, fc = (a.ravel() for a in np.meshgrid(grid, grid, indexing="ij"))
+  frames_F = np.repeat(frames, fr.size)
+  rows = np.minimum(np.tile(fr, len(frames)) * cams.height[frames_F], cams.height[frames_F] - 1)
+  cols = np.minimum(np.tile(fc, len(frames)) * cams.width[frames_F], cams.width[frames_F] - 1)
+  origins, directions = nerf_cameras.frame_rays(np.asarray(split.poses)[frames_F], cams, frames_F, rows, cols,
+                                                config.data.pixel_center)
+  near, far = comps.near, comps.far
+  if config.model.field == "hashgrid":
+    near, far = sampling.clip_to_box(origins, directions, near, far, config.model.hashgrid.bound)
+  partition = comps.model.partition
+  missing = nerf_regions.unseen(partition, origins, directions, near, far)
+  if not missing:
+    return
+  bound = config.model.hashgrid.bound
+  cells = nerf_regions.cells(partition, bound)
+  outside = [k for k in missing if len(cells[k]) == 0]
+  where = ([f"region{'s' if len(outside) > 1 else ''} {', '.join(map(str, outside))}: "
+            f"{'their cells miss' if len(outside) > 1 else 'its cell misses'} the field's box (x and y within "
+            f"+-{bound:.2f})"] if outside else [])
+  for k in missing:
+    if len(cells[k]):
+      low, high = cells[k].min(0), cells[k].max(0)
+      where.append(f"region {k}: x {low[0]:.2f}..{high[0]:.2f}, y {low[1]:.2f}..{high[1]:.2f}")
+  other = "grid" if config.model.region_cut == "cameras" else "cameras"
+  raise UserError(f"model.regions={config.model.regions} ({config.model.region_cut} cut) makes "
+                  f"{len(missing)} region(s) that no training camera sees ({'; '.join(where)}), whose fields could "
+                  f"learn nothing; use fewer regions (--config.model.regions) or the other cut "
+                  f"(--config.model.region_cut={other}).")
 
 
 # The share of a host's physical memory its images may take where data.host_memory_gib is 0: the rest is for

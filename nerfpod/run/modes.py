@@ -46,6 +46,7 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
   lock = _hold(workdir)
   try:
     comps = _build(config, workdir)
+    components.check_regions_seen(comps)  # a region no training camera sees, before anything is written
   except UserError:
     lock.release()
     if new_workdir and jax.process_index() == 0:
