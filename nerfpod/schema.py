@@ -180,6 +180,10 @@ FIELDS: dict[str, Field] = _declare({
     "model.region_cut": ("grid", choice("grid", "cameras"),
         "how model.regions > 1 cuts space: 'grid' (cells of the ground plane over the hash grid's box) or "
         "'cameras' (Voronoi cells of the k-means centres of the training cameras' ground positions)"),
+    "model.region_box": ("scene", choice("scene", "own"),
+        "the box each region's fields span with model.regions > 1: 'scene' (the hash grid's whole box: a hash "
+        "grid stores only what its region's points touch) or 'own' (the region's cell, mapped onto the field's "
+        "box axis by axis: finer along the cell's short sides; 1.2 dB lower on the street, docs/results.md)"),
     # model.mlp: NeRF's MLP: the Tiny NeRF tutorial's by default
     "model.mlp.num_frequencies": (6, integer(0, 30, example=10),
         "positional-encoding frequencies L of points; 0 switches it off"),

@@ -23,8 +23,8 @@ from nerfpod.run.trained import Trained
 BOUND = 1.5  # the hash grid's box: exports keep [-1.5, 1.5]^3
 
 
-def _config(count: int, cut: str = "grid"):
-  tiny = {"model.regions": count, "model.region_cut": cut, "model.hashgrid.num_levels": 2,
+def _config(count: int, cut: str = "grid", box: str = "scene"):
+  tiny = {"model.regions": count, "model.region_cut": cut, "model.region_box": box, "model.hashgrid.num_levels": 2,
           "model.hashgrid.log2_table_size": 6, "model.hashgrid.max_resolution": 32, "model.hashgrid.hidden_width": 8,
           "model.proposal.num_levels": 2, "model.proposal.log2_table_size": 6, "model.proposal.max_resolution": 32,
           "model.proposal.hidden_width": 8, "render.proposal_samples": (8,), "render.num_samples": 6,
@@ -41,11 +41,12 @@ def _trained(config, workdir) -> Trained:
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):
-  """{name: Trained}, built once for the module: 'one' (model.regions=1), 'grid' (4 regions, a 2 x 2 grid)
-  and 'cameras' (4 regions cut around the training cameras)."""
+  """{name: Trained}, built once for the module: 'one' (model.regions=1), 'grid' (4 regions, a 2 x 2 grid),
+  'cameras' (4 regions cut around the training cameras) and 'own' (those, each field over its own box)."""
   folder = tmp_path_factory.mktemp("models")
   return {name: _trained(_config(*args), folder / name)
-          for name, args in (("one", (1,)), ("grid", (4, "grid")), ("cameras", (4, "cameras")))}
+          for name, args in (("one", (1,)), ("grid", (4, "grid")), ("cameras", (4, "cameras")),
+                             ("own", (4, "cameras", "own")))}
 
 
 def _scrambled(params, seed=0):
@@ -113,7 +114,7 @@ def test_each_region_has_its_own_box_around_its_cell():
     np.testing.assert_allclose(centres[k, :2] + halves[k, :2], mine.max(0) + 0.01 * BOUND, atol=0.05)
 
 
-@pytest.mark.parametrize("cut", ["grid", "cameras"])
+@pytest.mark.parametrize("cut", ["grid", "cameras", "own"])
 def test_each_point_takes_the_field_of_its_own_region(cut, models):
   """The query of a 4-region model equals a loop over the points that applies, to each point alone, the field
   of the region nerf_regions.region_of puts it in: density, colour and normal, on both sides of every
@@ -132,6 +133,7 @@ def test_each_point_takes_the_field_of_its_own_region(cut, models):
   np.testing.assert_allclose(query.density(points), sigma, rtol=1e-6)
   stacked = trained.params["params"]["regions"]["coarse"]
   centres, halves = trained.comps.model.region_boxes
+  assert np.allclose(halves, BOUND) == (cut != "own")  # 'own': the cells' boxes, smaller than the field's
   at = _one_point(config)
   want = [at(jax.tree.map(lambda p: p[k], stacked), (centres[k], halves[k]), p, d)
           for k, p, d in zip(ids, points, viewdirs)]

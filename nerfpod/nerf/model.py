@@ -184,8 +184,14 @@ renders every region and composites: one device holding the whole model. K = 1 i
 
   @property
   def region_boxes(self) -> tuple[np.ndarray, np.ndarray]:
-    """Each region's own box (centres (K, 3), half extents (K, 3)), which its fields' box is mapped onto."""
-    return nerf_regions.boxes(self.partition, self.model_config.hashgrid.bound)
+    """The box each region's fields span (centres (K, 3), half extents (K, 3)), mapped onto the fields' box:
+    model.region_box 'own', the region's own (nerf_regions.boxes); 'scene', the fields' box itself (the map
+    is then x * 1.0: the same bits as no map)."""
+    bound = self.model_config.hashgrid.bound
+    if self.model_config.region_box == "own":
+      return nerf_regions.boxes(self.partition, bound)
+    count = len(self.region_planes[0])
+    return np.zeros((count, 3), np.float32), np.full((count, 3), bound, np.float32)
 
   def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None):
     """(partials, local) of the L regions `region_ids_L` (L,) int32 (with parameters for those L only, the
