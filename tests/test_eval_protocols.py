@@ -170,3 +170,17 @@ def test_evaluate_adds_each_protocols_numbers_and_leaves_the_plain_ones_as_they_
   assert half["protocol"] == protocols.APPEARANCE_HALF and half["cameras"] == "aligned" and half["steps"] == 2
   assert len(half["views"]) == 1 and set(half["views"][0]["mean_code"]) == {"psnr", "ssim", "lpips"}
   assert np.isfinite(half["mean"]["psnr"]) and np.isfinite(half["mean_code"]["psnr"])
+
+
+def test_a_workdir_written_before_train_pose_pin_mean_resumes_with_it_at_its_default():
+  """config.json of a run from before the field: absent counts as the default (what that run did), so the
+  run resumes and evaluates; asking for the field's other value is refused as any other change would be."""
+  import json
+
+  from nerfpod.workdir import files as workdir_files
+  saved = json.loads(smoke_config(**{"train.pose_refine": True}).to_json_best_effort())
+  del saved["train"]["pose_pin_mean"]
+  same = smoke_config(**{"train.pose_refine": True})
+  assert workdir_files.incompatible_fields(saved, json.loads(same.to_json_best_effort())) == []
+  pinned = smoke_config(**{"train.pose_refine": True, "train.pose_pin_mean": True})
+  assert workdir_files.incompatible_fields(saved, json.loads(pinned.to_json_best_effort())) == ["train.pose_pin_mean"]
