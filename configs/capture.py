@@ -33,7 +33,7 @@ def get_config(arg: str | None = None):
   # view's code fitted on its left half, scored on its right half) they raised held-out PSNR and lowered LPIPS
   # on the cup (+0.89 dB, 28.26 against 27.37) and the fox (+0.12 dB); the plain numbers, with the mean code,
   # are lower (docs/results.md, "under their protocols"). Pose refinement stays off: it lowered held-out PSNR
-  # on the cup even with the held-out cameras aligned (eval/metrics.json's poses_aligned).
+  # on both even with the held-out cameras aligned (eval/metrics.json's poses_aligned).
   c.model.appearance_dim = 16
   c.train.pose_refine = False
   if args["big"]:
