@@ -110,7 +110,8 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
   held-out cameras mapped into the refined cameras' frame: its similarity, views and means); one with
   appearance codes and eval.appearance_steps > 0 adds "appearance_half" (NeRF-W's: each view's code fitted
   on its left half, metrics on its right half, beside the mean code's on that same half under "mean_code";
-  through the aligned cameras where there are)."""
+  through the aligned cameras where there are; not for a model of several regions, whose fields the fit's
+  program does not shard)."""
   config = comps.config
   split = comps.scene.split(config.eval.split)
   evaluator, why_not = _lpips_evaluator(comps)
