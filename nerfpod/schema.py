@@ -272,6 +272,9 @@ FIELDS: dict[str, Field] = _declare({
         "the corrections' own learning rate at the last step (log-linear decay, as train.lr_*)"),
     "train.pose_weight_decay": (0.0, number(0.0, example=0.01),
         "decoupled weight decay of the corrections (AdamW), pulls them to zero"),
+    "train.pose_pin_mean": (False, boolean(),
+        "keep the corrections' mean (over the training frames) at zero: a common shift or turn of every camera, "
+        "which no training pixel sees, is taken out of each update (held-out cameras keep their given poses)"),
     "train.seed": (0, integer(0), "seeds the parameters, the ray batches and the stratified jitter"),
     "train.log_every": (100, integer(1, example=100), "steps between TensorBoard scalars and console lines"),
     "train.image_every": (500, integer(0, example=500),
@@ -321,6 +324,12 @@ FIELDS: dict[str, Field] = _declare({
         "rays rendered per device call, over all devices (bounds memory)"),
     "eval.lpips_net": ("alex", choice("alex", "vgg", "none"),
         "LPIPS network: 'alex' (the papers'), 'vgg', or 'none'; needs nerfpod[lpips]"),
+    "eval.appearance_steps": (100, integer(0, example=100),
+        "with appearance codes, NeRF-W's protocol: Adam steps fitting each held-out view's code on its left half "
+        "(metrics on its right half, eval/metrics.json's appearance_half); 0: not fitted"),
+    "eval.appearance_lr": (0.01, number(above=0.0, example=0.01), "learning rate of that fit (Adam)"),
+    "eval.appearance_rays": (1024, integer(1, example=1024),
+        "random rays of the left half per step of that fit (rounded up to a multiple of the device count)"),
 
     "orbit.render_after_training": (True, boolean(), "render the orbit (archive + videos) when training ends"),
     "orbit.path": ("orbit", choice("orbit", "spiral", "ellipse", "file"),

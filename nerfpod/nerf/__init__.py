@@ -11,6 +11,7 @@
     model            the NeRF model: sample, query the field(s), composite; coarse-to-fine or proposal sampling
     poses            similarity transforms that bring a capture's cameras into the field's frame
     pose_correction  per-frame SE(3) pose corrections (pose refinement)
+    alignment        the similarity (Umeyama) of two camera sets: held-out cameras into the refined frame
     paths            camera paths from a capture's own cameras (spiral, ellipse)
     keyframes        camera paths through keyframes a user placed
 

@@ -10,6 +10,8 @@
     train        the loop: resume, steps, checkpoints, preemption, previews, one log line
     step         the train step: jax.shard_map over the mesh, gradient means, skip of non-finite updates
     evaluate     held-out views -> eval/metrics.json (PSNR, SSIM, LPIPS)
+    protocols    what a held-out view is rendered with where training learned per-frame parameters: the
+                 aligned cameras (pose refinement), NeRF-W's half-image code fit (appearance codes)
     orbit        the camera path's frames, split over hosts and devices, into the render archive and videos
     preemption   the step all processes agree to stop at after SIGTERM or a first Ctrl-C
     profiling    jax.profiler traces of chosen steps

@@ -57,17 +57,29 @@ def _pose_labels(params):
   return jax.tree_util.tree_map_with_path(label, params)
 
 
+def pinned_mean() -> optax.GradientTransformation:
+  """Updates of the pose corrections (N frames, 6) less their mean over the frames: corrections that start
+  at zero keep a zero mean, so the cameras cannot drift together by a common shift or turn (a motion of
+  every camera with the scene that no training pixel sees, but that held-out cameras, at their given poses,
+  pay for). What each camera moves relative to the others is left as the optimiser made it."""
+  return optax.stateless(lambda updates, params=None: jax.tree.map(
+      lambda u: u - jnp.mean(u, axis=0, keepdims=True), updates))
+
+
 def make_optimizer(train_config, clip: bool = True) -> optax.GradientTransformation:
   """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0 and
   `clip`: a model of several regions clips in its step instead, where the norm of every region's gradients is
   known; each device's optimiser sees its own regions' only). With train.pose_refine, the pose corrections
   have their own: AdamW on the same schedule's shape from train.pose_lr_init to train.pose_lr_final, with
-  train.pose_weight_decay (nerfacto's camera optimiser)."""
+  train.pose_weight_decay (nerfacto's camera optimiser); with train.pose_pin_mean, each of its updates less
+  its mean over the frames (pinned_mean)."""
   tc = train_config
   adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
   if tc.pose_refine:
     pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
                        weight_decay=tc.pose_weight_decay)
+    if tc.pose_pin_mean:
+      pose = optax.chain(pose, pinned_mean())
     adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
   return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if clip and tc.grad_clip > 0 else adam
 

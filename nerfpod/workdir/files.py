@@ -24,8 +24,13 @@ RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", 
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
-  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed."""
+  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
+  A field the saved config lacks counts as its schema default: a field added after the workdir was written
+  (train.pose_pin_mean, say) is one whose default is what that run did."""
   a, b = schema.flatten(saved), schema.flatten(current)
+  for name in set(b) - set(a):
+    if name in schema.FIELDS and json.dumps(schema.FIELDS[name].default) == json.dumps(b[name]):
+      a[name] = b[name]  # (compared as JSON: a tuple is the list config.json holds)
   differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
   return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
                                           for p in RESUMABLE_CHANGES)]
