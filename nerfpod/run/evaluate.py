@@ -7,7 +7,7 @@ import numpy as np
 from nerfpod import storage
 from nerfpod.nerf import alignment, cameras
 from nerfpod.render import lpips, metrics, renderer, video
-from nerfpod.run import protocols
+from nerfpod.run import compilation, protocols
 from nerfpod.workdir import files as workdir_files
 
 METRICS = ("psnr", "ssim", "lpips")  # per view and their means, in eval/metrics.json and TensorBoard
@@ -121,7 +121,7 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
   fit = protocols.has_codes(params) and config.eval.appearance_steps > 0 and comps.model.regions == 1
   if fit:
     fitter = protocols.make_code_fitter(comps.render_model, comps.mesh, comps.near, comps.far, comps.background,
-                                        config.eval.appearance_lr)
+                                        config.eval.appearance_lr, compilation.gradient_mean_is_ordered(config))
     half, half_mean = _Scores(evaluator, comps.mesh.size), _Scores(evaluator, comps.mesh.size)
   for index, out in render_views(comps, params):
     rgb = np.clip(out["rgb"], 0.0, 1.0)
