@@ -91,7 +91,14 @@ def test_two_processes_as_two_slices_and_one_device_follow_the_same_trajectory(r
   # rays) give exactly 1 process's eval/metrics.json: every view's PSNR and SSIM, and their means.
   pod_metrics = json.loads((tmp_path / "pod" / "eval" / "metrics.json").read_text())
   assert len(pod_metrics["views"]) == 2
-  assert pod_metrics == json.loads((reference["workdir"] / "eval" / "metrics.json").read_text())
+  one_metrics = json.loads((reference["workdir"] / "eval" / "metrics.json").read_text())
+  # NeRF-W's half-image code fit (the run has appearance codes): each process fits on its share of the rays,
+  # the gradient averaged in the step's order; the fitted views agree to round-off (1e-8 relative seen).
+  pod_half, one_half = pod_metrics.pop("appearance_half"), one_metrics.pop("appearance_half")
+  assert pod_metrics == one_metrics
+  for got, want in zip(pod_half["views"] + [pod_half["mean"]], one_half["views"] + [one_half["mean"]]):
+    for name in ("psnr", "ssim"):
+      assert got[name] == pytest.approx(want[name], rel=1e-6), (name, got, want)
 
   # Each process loaded its own half of every global batch, and the halves make up the whole batch.
   config = smoke_config(**OVERRIDES)
