@@ -35,9 +35,12 @@ def _matmul_flops_per_step(config) -> float:
 def test_throughput_report_and_flops_that_count_every_micro_batch():
   config = smoke_config(**MLP)
   one = benchmark.throughput(config, steps=2)
-  for key in ("rays_per_s", "samples_per_s", "step_ms", "data_ms", "achieved_flops", "matmul_peak_flops"):
+  for key in ("rays_per_s", "samples_per_s", "step_ms", "data_ms", "achieved_flops", "matmul_peak_flops",
+              "pipelined_rays_per_s", "pipelined_step_ms"):
     assert one[key] > 0, key
   assert 0 <= one["data_fraction"] < 1 and one["host_peak_rss_mib"] > 0
+  assert one["pipelined_rays_per_s"] == pytest.approx(
+      config.train.batch_size / (one["pipelined_step_ms"] / 1e3))
   assert one["fraction_of_peak"] == pytest.approx(one["achieved_flops"] / one["matmul_peak_flops"])
   assert "matmul_peak_flops_bfloat16" not in one  # float32 matmuls: no bfloat16 peak (next test: with them)
   # The hand count of the matmuls, plus the encoding, activations and compositing that XLA counts too,
