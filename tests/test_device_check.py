@@ -20,7 +20,8 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
   assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:] + log[-3000:]
   report = json.loads((out / "device_check.json").read_text())
   stages = report["stages"]
-  assert list(stages) == ["env", "bench_64", "bench_128", "default", "quality", "pod"]
+  assert list(stages) == ["env", "bench_64", "bench_128", "default", "capture_as_is", "capture_lr_3e-3",
+                          "quality", "pod"]
   assert all(stage["status"] == "ok" for stage in stages.values()), stages
   env_stage = stages["env"]
   assert env_stage["backend"] == "cpu" and env_stage["device_count"] >= 1 and env_stage["jax"]
@@ -35,6 +36,12 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
   assert default["step"] == 20 and default["views"] == 2 and math.isfinite(default["psnr"])
   assert default["first_line"].startswith("nerfpod: JAX ") and " on cpu: " in default["first_line"]
   assert "orbit.zarr" in default["renders"] and "orbit_sheet.png" in default["renders"]
+  plain, lower = stages["capture_as_is"], stages["capture_lr_3e-3"]
+  assert plain["overrides"] == ["--config.train.num_steps=20"] and plain["step"] == lower["step"] == 20
+  assert lower["overrides"][1:] == ["--config.train.lr_init=3e-3"]
+  assert sorted(map(int, plain["losses"])) == [1, 5, 10, 15, 20] and plain["views"] == 2  # log_every 5
+  assert math.isfinite(plain["psnr"]) and plain["psnr"] != lower["psnr"]  # the override reached the run
+  assert math.isfinite(plain["train_psnr"]) and plain["loss_spikes"] == []
   quality = stages["quality"]
   best = max(h["psnr"] for h in quality["history"])
   for target in (8.0, 9.0, 20.0):  # reached exactly where the held-out PSNR got there
@@ -46,3 +53,18 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
   for name in stages:
     assert f"| {name} | ok |" in table
   assert f"PSNR {default['psnr']:.2f} dB" in table
+
+
+def test_loss_spikes_are_the_steps_whose_loss_jumps_over_the_recent_median():
+  import importlib.util
+  spec = importlib.util.spec_from_file_location("device_check", REPO / "tools" / "device_check.py")
+  device_check = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(device_check)
+  steps = list(range(100, 1300, 100))
+  # the H200's cup at big: a steady ~0.01, one jump to 0.117, then the proposal losses gone (~0.001)
+  losses = [0.011, 0.010, 0.011, 0.0098, 0.0105, 0.0113, 0.117, 0.003, 0.0021, 0.0017, 0.0014, 0.0013]
+  assert device_check.loss_spikes(steps, losses) == [700]
+  assert device_check.loss_spikes(steps, losses, factor=20.0) == []
+  assert device_check.loss_spikes(steps[:5], losses[:5]) == []  # fewer than the window: nothing to compare
+  match = device_check.STEP_LINE.match("step   2900/8000 | loss 0.11738 | psnr  18.95 dB | lr 2.85e-03 | 691,9")
+  assert match and (int(match[1]), float(match[2]), float(match[3])) == (2900, 0.11738, 18.95)

@@ -11,6 +11,10 @@ each a process of its own with a time limit, so that one that fails or overruns 
   default    the default job end to end (train, evaluate, orbit, archive, videos): wall time and metrics
   quality    time to 30 / 32 / 33 dB held-out PSNR on lego_400's val split at 400x400 (`nerfpod bench
              --quality`), with whatever budget is left after the other stages' reserve
+  capture    a real capture at the accelerator size (configs/capture.py:path=DIR,big; the cup, exported by
+             tools/device_wheels.sh as a transforms.json) for 8,000 steps, as it is and with each change that
+             could explain what an H200 showed on it (docs/results.md: a loss spike, then held-out PSNR 18.5 dB
+             against 29.2 dB on a CPU): held-out PSNR, the training PSNR and the loss spikes of each
   pod        a pod-shaped run: launch/local.py's 2 processes, each on one GPU where there are two, else on
              simulated CPU devices (a one-GPU machine cannot give two processes a GPU each)
 
@@ -25,7 +29,9 @@ import datetime
 import json
 import math
 import os
+import re
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -214,6 +220,54 @@ def stage_quality(check: Check, config: list[str], max_seconds: float, eval_ever
               "rays_per_s", "final_psnr", "final_step", "history", "device_peak_mib")}}
 
 
+# The capture stage's variants: (name, overrides, environment). On an H200 the cup at `big` spiked (loss x10 at
+# step 2,000-2,900), after which its proposal and distortion losses were gone and held-out PSNR fell to 18.5 dB
+# (the same grid on a CPU, 512 rays a step: 29.2 dB). Candidates: TF32 matmuls (a GPU's float32 default),
+# Adam's b2 = 0.99 on a 2^19-row table (nerfacto keeps 0.999), the peak learning rate.
+CAPTURE_VARIANTS = (
+    ("as_is", (), {}),
+    ("matmul_highest", (), {"JAX_DEFAULT_MATMUL_PRECISION": "highest"}),
+    ("adam_b2_0.999", ("--config.train.adam_b2=0.999",), {}),
+    ("lr_3e-3", ("--config.train.lr_init=3e-3",), {}),
+)
+STEP_LINE = re.compile(r"^step\s+(\d+)/\d+ \| loss ([-+.\deE]+) \| psnr\s+([-+.\deE]+) dB")
+
+
+def loss_spikes(steps: list[int], losses: list[float], factor: float = 4.0, window: int = 5) -> list[int]:
+  """The logged steps whose loss is over `factor` times the median of the `window` logged before it."""
+  return [steps[i] for i in range(window, len(losses))
+          if losses[i] > factor * statistics.median(losses[i - window:i])]
+
+
+def stage_capture(check: Check, config: str, overrides: tuple, env: dict, workdir: str, timeout: float,
+                  backend: str | None) -> dict:
+  shutil.rmtree(workdir, ignore_errors=True)
+  args = [PYTHON, "-m", "nerfpod.main", f"--config={config}", f"--workdir={workdir}",
+          "--config.orbit.render_after_training=False", "--config.eval.lpips_net=none", *overrides]
+  code, output, seconds = check.run(args, timeout, env=env)
+  result = {"status": "ok" if code == 0 else ("timeout" if code == 124 else "failed"), "seconds": seconds,
+            "overrides": list(overrides), "env": env}
+  first = [line for line in output.splitlines() if line.startswith("nerfpod: JAX ")]
+  if backend and first and f" on {backend}:" not in first[0] and result["status"] == "ok":
+    result["status"] = f"not on {backend}"
+  logged = [STEP_LINE.match(line) for line in output.splitlines()]
+  logged = [(int(m[1]), float(m[2]), float(m[3])) for m in logged if m]
+  if logged:
+    steps, losses, psnrs = zip(*logged)
+    result.update(train_psnr=psnrs[-1], loss_spikes=loss_spikes(list(steps), list(losses)),
+                  losses={str(k): v for k, v in zip(steps, losses)})
+  try:
+    with open(os.path.join(workdir, "eval", "metrics.json")) as f:
+      metrics = json.load(f)
+    result.update(step=metrics["step"], views=len(metrics["views"]), psnr=metrics["mean"]["psnr"],
+                  ssim=metrics["mean"]["ssim"])
+  except (OSError, KeyError, ValueError):
+    result["status"] = "failed" if result["status"] == "ok" else result["status"]
+  if result["status"] != "ok":
+    result["tail"] = _tail(output)
+  return result
+
+
 def stage_pod(check: Check, gpus: int, workdir: str, timeout: float, tiny: bool) -> dict:
   shutil.rmtree(workdir, ignore_errors=True)
   forwarded = ["--", f"--config={TINY_CONFIG}", f"--workdir={workdir}"]
@@ -280,6 +334,11 @@ def markdown(report: dict) -> str:
                           if k.startswith("seconds_to_"))
       figures = (f"{reached}; {_fmt(r.get('final_psnr'), 2)} dB at step {r.get('final_step')} (within "
                  f"{_fmt(r.get('max_seconds'))} s); {_fmt(r.get('rays_per_s'))} rays/s")
+    elif name.startswith("capture_") and "psnr" in r:
+      figures = (f"{' '.join(r['overrides'] + [f'{k}={v}' for k, v in r['env'].items()]) or 'as it is'}: "
+                 f"held-out PSNR {_fmt(r['psnr'], 2)} dB, SSIM {_fmt(r.get('ssim'), 4)} at step {r.get('step')}; "
+                 f"training PSNR {_fmt(r.get('train_psnr'), 2)} dB; loss spikes at steps "
+                 f"{', '.join(map(str, r.get('loss_spikes', []))) or 'none'}; {_fmt(r['seconds'], 1)} s")
     elif name == "pod" and r.get("status") == "ok":
       figures = f"{r['how']}: {_fmt(r['seconds'], 1)} s, PSNR {_fmt(r.get('psnr'), 2)} dB"
     else:
@@ -294,7 +353,9 @@ def main(argv=None) -> int:
   parser.add_argument("--out", default=os.environ.get("OUT") or "device_check", help="folder of the report")
   parser.add_argument("--data", default="", help="folder holding lego_400/ (default: .devdata, ../shared/data)")
   parser.add_argument("--budget_s", type=float, default=540.0, help="wall time all stages together may take")
-  parser.add_argument("--stages", default="env,bench,default,quality,pod", help="which stages, in order")
+  parser.add_argument("--capture", default="", help="a capture folder for the capture stage (default: "
+                      ".devdata/cup, which tools/device_wheels.sh writes)")
+  parser.add_argument("--stages", default="env,bench,default,capture,quality,pod", help="which stages, in order")
   args = parser.parse_args(argv)
   started = time.perf_counter()
   out = os.path.abspath(args.out)
@@ -310,19 +371,28 @@ def main(argv=None) -> int:
     if candidate and os.path.exists(os.path.join(candidate, "lego_400", "transforms_train.json")):
       lego = os.path.abspath(os.path.join(candidate, "lego_400"))
       break
+  capture = None
+  for candidate in (args.capture, os.path.join(REPO, ".devdata", "cup")):
+    if candidate and os.path.isdir(candidate):
+      capture = os.path.abspath(candidate)
+      break
   if args.tiny:
     bench_config = [f"--config={TINY_CONFIG}"]
     batch_sizes, steps = (64, 128), 3
     quality_config, quality_targets, eval_every = [f"--config={TINY_CONFIG}", "--config.train.num_steps=40"], "8,9", 10
     default_config = TINY_CONFIG
     # seconds each stage may take at most, and what later stages keep in reserve
-    limits = {"env": 120, "bench": 120, "default": 180, "quality": 120, "pod": 240}
+    # the capture stage's mechanics on the procedural scene, two variants
+    capture_config, capture_steps, variants = TINY_CONFIG, 20, CAPTURE_VARIANTS[::3]
+    limits = {"env": 120, "bench": 120, "default": 180, "capture": 120, "quality": 120, "pod": 240}
   else:
     bench_config = ([f"--config={LEGO_CONFIG}", f"--config.data.path={lego}", *LEGO_OVERRIDES] if lego else None)
     batch_sizes, steps = (4096, 16384), 30
     quality_config, quality_targets, eval_every = bench_config, "32,33", 2000
     default_config = "configs/default.py"
-    limits = {"env": 120, "bench": 120, "default": 200, "quality": 300, "pod": 60}
+    capture_config = f"configs/capture.py:path={capture},big" if capture else None
+    capture_steps, variants = 8000, CAPTURE_VARIANTS
+    limits = {"env": 120, "bench": 120, "default": 200, "capture": 120, "quality": 300, "pod": 60}
 
   env = {}
   if "env" in stages:
@@ -340,6 +410,16 @@ def main(argv=None) -> int:
     check.record("default", stage_default(check, default_config, os.path.join(work, "default"),
                                           min(limits["default"], left()), bool(env.get("lpips_weights")),
                                           env.get("backend")))
+  if "capture" in stages:
+    for name, overrides, variant_env in variants:
+      stage = f"capture_{name}"
+      if capture_config is None:
+        check.record(stage, {"status": "skipped", "seconds": 0, "reason": "no capture (--capture, .devdata/cup)"})
+        continue
+      check.record(stage, stage_capture(check, capture_config, (f"--config.train.num_steps={capture_steps}",
+                                                                *overrides), variant_env,
+                                        os.path.join(work, stage), min(limits["capture"], left()),
+                                        env.get("backend")))
   if "quality" in stages:
     if quality_config is None:
       check.record("quality", {"status": "skipped", "seconds": 0, "reason": "lego_400 not found (--data)"})

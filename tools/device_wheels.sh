@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Fills .whl/ with the wheels an accelerator machine without a network lacks, and .devdata/ with the lego scene,
-# for tools/device_check.sh (both folders are git-ignored; carry them with the call). The machine this was
+# Fills .whl/ with the wheels an accelerator machine without a network lacks, and .devdata/ with the lego scene
+# and the cup, for tools/device_check.sh (both folders are git-ignored; carry them with the call). The machine this was
 # written for (an NVIDIA image with CUDA, Python 3.12, JAX 0.11.2, flax, optax, orbax-checkpoint, tensorstore)
 # lacks grain, ml-collections and tensorboardX; flax, optax and orbax-checkpoint travel too, at this project's
 # pinned versions, so that the check runs the versions the tests passed with. imageio-ffmpeg's wheel (68 MB)
@@ -35,5 +35,16 @@ if [ -d "$data/lego_400" ]; then
   rm -rf .devdata && mkdir -p .devdata && cp -r "$data/lego_400" .devdata/
 else
   echo "device_wheels: $data/lego_400 not found: the check's lego stages will be skipped" >&2
+fi
+# The cup for the check's capture stage, as a transforms.json of its images at 200 x 150 (2.5 MB; no pycolmap
+# needed there): one step of the smoke config loads it here, `nerfpod export cameras` writes it out.
+if [ -d "$data/colmap_cup" ]; then
+  work=$(mktemp -d)
+  python3 -m nerfpod.main --config="configs/capture.py:path=$data/colmap_cup,smoke" --workdir="$work/run" \
+    --config.train.num_steps=1 --config.orbit.render_after_training=False --config.eval.lpips_net=none >/dev/null
+  rm -rf .devdata/cup && python3 -m nerfpod.export cameras --workdir="$work/run" --out=.devdata/cup/transforms.json
+  rm -rf "$work"
+else
+  echo "device_wheels: $data/colmap_cup not found: the check's capture stage will be skipped" >&2
 fi
 du -sh .whl .devdata 2>/dev/null || true
