@@ -68,3 +68,16 @@ def test_loss_spikes_are_the_steps_whose_loss_jumps_over_the_recent_median():
   assert device_check.loss_spikes(steps[:5], losses[:5]) == []  # fewer than the window: nothing to compare
   match = device_check.STEP_LINE.match("step   2900/8000 | loss 0.11738 | psnr  18.95 dB | lr 2.85e-03 | 691,9")
   assert match and (int(match[1]), float(match[2]), float(match[3])) == (2900, 0.11738, 18.95)
+
+
+def test_stages_the_budget_leaves_no_room_for_are_skipped_not_started(tmp_path):
+  out = tmp_path / "report"
+  env = {k: v for k, v in os.environ.items() if k != "OUT"}
+  done = subprocess.run(["bash", str(REPO / "tools" / "device_check.sh"), "--tiny", f"--out={out}",
+                         "--stages=capture,quality,pod", "--budget_s=20"], cwd=tmp_path, env=env,
+                        capture_output=True, text=True, timeout=120)
+  assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+  stages = json.loads((out / "device_check.json").read_text())["stages"]
+  assert list(stages) == ["capture_as_is", "capture_lr_3e-3", "quality", "pod"]
+  for stage in stages.values():
+    assert stage["status"] == "skipped" and "--budget_s=20" in stage["reason"], stage

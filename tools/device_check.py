@@ -347,6 +347,14 @@ def markdown(report: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
+MIN_STAGE_S = 30  # a stage with less time than this left is skipped, not started to be stopped
+
+
+def spent(budget_s: float) -> dict:
+  return {"status": "skipped", "seconds": 0,
+          "reason": f"the budget (--budget_s={budget_s:g}) was spent by the stages before it"}
+
+
 def main(argv=None) -> int:
   parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
   parser.add_argument("--tiny", action="store_true", help="the same stages on the CPU in about a minute")
@@ -416,6 +424,9 @@ def main(argv=None) -> int:
       if capture_config is None:
         check.record(stage, {"status": "skipped", "seconds": 0, "reason": "no capture (--capture, .devdata/cup)"})
         continue
+      if left() < MIN_STAGE_S:
+        check.record(stage, spent(args.budget_s))
+        continue
       check.record(stage, stage_capture(check, capture_config, (f"--config.train.num_steps={capture_steps}",
                                                                 *overrides), variant_env,
                                         os.path.join(work, stage), min(limits["capture"], left()),
@@ -428,11 +439,12 @@ def main(argv=None) -> int:
       timeout = min(limits["quality"], left() - reserve)
       # its held-out evaluations, the process's start and the final report come on top of max_seconds
       max_seconds = max(timeout - 15 if args.tiny else 0.65 * timeout, 5)
-      check.record("quality", stage_quality(check, quality_config, max_seconds, eval_every, quality_targets,
-                                            timeout))
+      check.record("quality", spent(args.budget_s) if timeout < MIN_STAGE_S else
+                   stage_quality(check, quality_config, max_seconds, eval_every, quality_targets, timeout))
   if "pod" in stages:
-    check.record("pod", stage_pod(check, int(env.get("gpus", 0) or 0), os.path.join(work, "pod"),
-                                  min(limits["pod"], left()), args.tiny))
+    check.record("pod", spent(args.budget_s) if left() < MIN_STAGE_S else
+                 stage_pod(check, int(env.get("gpus", 0) or 0), os.path.join(work, "pod"),
+                           min(limits["pod"], left()), args.tiny))
   failed = [name for name, r in check.report["stages"].items() if r["status"] not in ("ok", "skipped")]
   print(markdown(check.report))
   return 1 if failed else 0
