@@ -168,16 +168,17 @@ def stage_bench(check: Check, config: list[str], batch_size: int, steps: int, ti
           "machine": result.get("machine")}
 
 
-def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips: bool,
-                  backend: str | None) -> dict:
+def _job(check: Check, config: str, workdir: str, timeout: float, backend: str | None, extra: tuple = (),
+         env: dict | None = None) -> tuple[dict, str]:
+  """(result, output) of `nerfpod train` of `config` into a fresh `workdir`: status, seconds, exit code, the
+  first line (which names the backend: a run on another than `backend` is marked) and eval/metrics.json's
+  step, view count and means; the output's tail where it did not end well. The stages add their own."""
   shutil.rmtree(workdir, ignore_errors=True)
-  args = [PYTHON, "-m", "nerfpod.main", f"--config={config}", f"--workdir={workdir}"]
-  if not lpips:
-    args.append("--config.eval.lpips_net=none")
-  code, output, seconds = check.run(args, timeout)
+  args = [PYTHON, "-m", "nerfpod.main", f"--config={config}", f"--workdir={workdir}", *extra]
+  code, output, seconds = check.run(args, timeout, env=env)
   result = {"status": "ok" if code == 0 else ("timeout" if code == 124 else "failed"), "seconds": seconds,
-            "exit_code": code, "lpips": lpips}
-  first = [line for line in output.splitlines() if line.startswith("nerfpod: ")]
+            "exit_code": code}
+  first = [line for line in output.splitlines() if line.startswith("nerfpod: JAX ")]
   if first:
     result["first_line"] = first[0]
     if backend and f" on {backend}:" not in first[0] and result["status"] == "ok":
@@ -188,13 +189,21 @@ def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips
     result.update(step=metrics["step"], views=len(metrics["views"]), **{k: v for k, v in metrics["mean"].items()})
   except (OSError, KeyError, ValueError):
     result["status"] = "failed" if result["status"] == "ok" else result["status"]
+  if result["status"] != "ok":
+    result["tail"] = _tail(output)
+  return result, output
+
+
+def stage_default(check: Check, config: str, workdir: str, timeout: float, lpips: bool,
+                  backend: str | None) -> dict:
+  result, output = _job(check, config, workdir, timeout, backend,
+                        () if lpips else ("--config.eval.lpips_net=none",))
+  result["lpips"] = lpips
   renders = os.path.join(workdir, "renders")
   result["renders"] = sorted(os.listdir(renders)) if os.path.isdir(renders) else []
   for line in output.splitlines():
     if "rendered" in line and "s/frame" in line:
       result["orbit_line"] = line.strip()
-  if result["status"] != "ok":
-    result["tail"] = _tail(output)
   return result
 
 
@@ -241,30 +250,15 @@ def loss_spikes(steps: list[int], losses: list[float], factor: float = 4.0, wind
 
 def stage_capture(check: Check, config: str, overrides: tuple, env: dict, workdir: str, timeout: float,
                   backend: str | None) -> dict:
-  shutil.rmtree(workdir, ignore_errors=True)
-  args = [PYTHON, "-m", "nerfpod.main", f"--config={config}", f"--workdir={workdir}",
-          "--config.orbit.render_after_training=False", "--config.eval.lpips_net=none", *overrides]
-  code, output, seconds = check.run(args, timeout, env=env)
-  result = {"status": "ok" if code == 0 else ("timeout" if code == 124 else "failed"), "seconds": seconds,
-            "overrides": list(overrides), "env": env}
-  first = [line for line in output.splitlines() if line.startswith("nerfpod: JAX ")]
-  if backend and first and f" on {backend}:" not in first[0] and result["status"] == "ok":
-    result["status"] = f"not on {backend}"
+  result, output = _job(check, config, workdir, timeout, backend, ("--config.orbit.render_after_training=False",
+                                                                    "--config.eval.lpips_net=none", *overrides), env)
+  result.update(overrides=list(overrides), env=env)
   logged = [STEP_LINE.match(line) for line in output.splitlines()]
   logged = [(int(m[1]), float(m[2]), float(m[3])) for m in logged if m]
   if logged:
     steps, losses, psnrs = zip(*logged)
     result.update(train_psnr=psnrs[-1], loss_spikes=loss_spikes(list(steps), list(losses)),
                   losses={str(k): v for k, v in zip(steps, losses)})
-  try:
-    with open(os.path.join(workdir, "eval", "metrics.json")) as f:
-      metrics = json.load(f)
-    result.update(step=metrics["step"], views=len(metrics["views"]), psnr=metrics["mean"]["psnr"],
-                  ssim=metrics["mean"]["ssim"])
-  except (OSError, KeyError, ValueError):
-    result["status"] = "failed" if result["status"] == "ok" else result["status"]
-  if result["status"] != "ok":
-    result["tail"] = _tail(output)
   return result
 
 
@@ -389,9 +383,9 @@ def main(argv=None) -> int:
     batch_sizes, steps = (64, 128), 3
     quality_config, quality_targets, eval_every = [f"--config={TINY_CONFIG}", "--config.train.num_steps=40"], "8,9", 10
     default_config = TINY_CONFIG
-    # seconds each stage may take at most, and what later stages keep in reserve
     # the capture stage's mechanics on the procedural scene, two variants
     capture_config, capture_steps, variants = TINY_CONFIG, 20, CAPTURE_VARIANTS[::3]
+    # seconds each stage may take at most, and what later stages keep in reserve
     limits = {"env": 120, "bench": 120, "default": 180, "capture": 120, "quality": 120, "pod": 240}
   else:
     bench_config = ([f"--config={LEGO_CONFIG}", f"--config.data.path={lego}", *LEGO_OVERRIDES] if lego else None)
