@@ -102,6 +102,22 @@ def smoke_run(tmp_path_factory):
   return types.SimpleNamespace(workdir=workdir, losses=losses, metrics=metrics)
 
 
+@pytest.fixture(scope="session")
+def default_run(tmp_path_factory):
+  """The main job as the README's first command runs it (`configs/default.py`, one CPU device, XLA's default
+  flags: no XLA_FLAGS), without its orbit (which computes nothing that training or evaluation do), trained
+  once per session in a process of its own: a namespace of `workdir` and `result` (the CompletedProcess).
+  Its readers (the README's headline metrics, the exports' surfaces) check result.returncode themselves."""
+  import types
+
+  import procs
+  workdir = tmp_path_factory.mktemp("default_run") / "run"
+  result = procs.run_main("--config=configs/default.py", f"--workdir={workdir}",
+                          "--config.orbit.render_after_training=False", devices_per_process=1,
+                          env={"XLA_FLAGS": ""}, timeout=900)
+  return types.SimpleNamespace(workdir=workdir, result=result)
+
+
 @pytest.fixture(scope="module")
 def emulator(tmp_path_factory):
   """tests/gcs.py's Cloud Storage emulator (skips, saying why, where the test extra lacks it), with this
@@ -121,7 +137,7 @@ def emulator(tmp_path_factory):
 # `-n 2` (pytest-xdist: whole files per worker in this order, pytest_xdist_make_scheduler below,
 # --no-loadscope-reorder) the two workers end together instead of one finishing a long file alone. The order
 # of tests does not change what they check.
-LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 124, "test_aot": 124, "test_chaos": 85,
+LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 75, "test_aot": 124, "test_chaos": 85,
                  "test_view": 84, "test_benchmark": 84, "test_per_frame": 83, "test_wandb": 70, "test_pod_sweep": 59,
                  "test_resilience": 56, "test_prepare": 55, "test_shards": 49, "test_model": 44,
                  "test_multislice": 41, "test_real_configs": 36, "test_workdir_lock": 34, "test_bucket": 34,
@@ -135,7 +151,8 @@ LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 124,
                  "test_region_multiprocess": 270, "test_region_step": 140}
 
 
-# The files that read the session's smoke run (smoke_run above) go to one worker, which trains it once.
+# The files that read the session's smoke run (smoke_run above) or its default job (default_run: test_golden,
+# test_export) go to one worker, which trains each once.
 SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view")
 
 

@@ -82,22 +82,18 @@ def _cpu_vendor() -> str:
 
 
 @pytest.mark.slow  # the whole default job (1,500 steps, the 8 test views with LPIPS): minutes on 2 cores
-def test_the_default_job_gives_the_readmes_headline_metrics(tmp_path):
+def test_the_default_job_gives_the_readmes_headline_metrics(default_run):
   """`nerfpod train --config=configs/default.py` as a user runs it (one CPU device, XLA's default flags) gives
   the README's mean PSNR, SSIM and LPIPS to 4 significant digits: the figures recorded for this machine's CPU
   vendor (HEADLINE). Another CPU of the same vendor may differ in the last digits (another instruction set,
   other code from XLA:CPU); on a known vendor a change of the figures fails here, so the README is re-measured
   with it. (Without the orbit, which computes nothing that training or evaluation do.)"""
   import json
-  import procs
   vendor = _cpu_vendor()
   if vendor not in HEADLINE:
     pytest.skip(f"no headline figures recorded for CPU vendor {vendor!r} (only {sorted(HEADLINE)})")
-  result = procs.run_main("--config=configs/default.py", f"--workdir={tmp_path}",
-                          "--config.orbit.render_after_training=False", devices_per_process=1,
-                          env={"XLA_FLAGS": ""}, timeout=900)
-  assert result.returncode == 0, result.stderr[-3000:]
-  metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+  assert default_run.result.returncode == 0, default_run.result.stderr[-3000:]  # (conftest.default_run)
+  metrics = json.loads((default_run.workdir / "eval" / "metrics.json").read_text())
   assert metrics["step"] == 1500 and metrics["split"] == "test" and len(metrics["views"]) == 8
   got = {k: f"{metrics['mean'][k]:.4g}" for k in HEADLINE[vendor]}
   want = {k: f"{v:.4g}" for k, v in HEADLINE[vendor].items()}

@@ -462,6 +462,9 @@ def test_a_gs_release_deletes_only_its_own_generation(gcs, capfd):
 def test_no_storage_endpoint_no_bucket_or_no_credentials_is_one_sentence(monkeypatch, cloud, tmp_path, caplog):
   port = _closed_port()
   monkeypatch.setenv("STORAGE_EMULATOR_HOST", f"127.0.0.1:{port}")
+  # The endpoints this process has reached are not checked again (storage.check_reachable): the port, free now,
+  # may be one an earlier test's emulator listened on.
+  monkeypatch.setattr(storage, "_reached", set())
   started = time.monotonic()
   with pytest.raises(UserError) as refused:
     workdir_lock.WorkdirLock(WORKDIR).acquire()
