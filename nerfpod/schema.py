@@ -206,6 +206,9 @@ FIELDS: dict[str, Field] = _declare({
         "units of the density and colour MLPs' hidden layers"),
     "model.hashgrid.geo_features": (7, integer(0, example=15),
         "features passed from the density MLP to the colour MLP"),
+    "model.hashgrid.scale_aware": (False, boolean(),
+        "weight each level's features by how well its cells resolve the sample's pixel footprint (Zip-NeRF's "
+        "anti-aliasing; the footprint from the training cameras' focal length)"),
     # model.proposal: proposal fields (render.proposal_samples): density only, in the hash grid's box,
     # model.hashgrid.features_per_level wide
     "model.proposal.num_levels": (5, integer(1, example=5),
@@ -454,6 +457,12 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.regions={c['model.regions']} renders each region's segment with proposal or stratified "
                f"samples, not hierarchical ones; use --config.render.num_importance=0 (or "
                f"--config.model.regions=1).")
+  if c["model.hashgrid.scale_aware"] and (c["model.field"] != "hashgrid" or c["render.space"] == "ndc"
+                                           or c["model.regions"] > 1):
+    out.append(f"model.hashgrid.scale_aware weighs the hash grid's levels by pixel footprints in world or "
+               f"contracted space, and this run has model.field={c['model.field']}, render.space="
+               f"{c['render.space']}, model.regions={c['model.regions']}; use it with model.field=hashgrid, "
+               f"render.space euclidean or contract and one region (or --config.model.hashgrid.scale_aware=false).")
   if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
     out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
                f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")

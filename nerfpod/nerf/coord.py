@@ -56,6 +56,15 @@ def contract(points_Nx3):
   return jnp.where(norm <= 1.0, points_Nx3, (2.0 - 1.0 / norm) * points_Nx3 / norm)
 
 
+def contraction_scale(points_Nx3):
+  """How much `contract` shrinks a small ball about each point (N, 1): the cube root of its Jacobian's
+  determinant (mip-NeRF 360 and Zip-NeRF's isotropic approximation). 1 inside the unit ball; outside, radially
+  1 / |x|^2 and tangentially (2 - 1 / |x|) / |x|, so (2 |x| - 1)^(2/3) / |x|^2."""
+  norm = jnp.sqrt(jnp.maximum(jnp.sum(points_Nx3 ** 2, axis=-1, keepdims=True), 1e-20))
+  safe = jnp.maximum(norm, 1.0)
+  return jnp.where(norm <= 1.0, 1.0, (2.0 * safe - 1.0) ** (2.0 / 3.0) / safe ** 2)
+
+
 def t_to_s(t, near, far, spacing: str):
   """Ray distance t in [near, far] -> normalised s in [0, 1] under `spacing` ('linear' or 'inverse')."""
   if spacing == "linear":

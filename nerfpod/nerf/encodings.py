@@ -89,18 +89,31 @@ class HashGridEncoding(nn.Module):
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
 
   @nn.compact
-  def __call__(self, x_Nx3):
+  def __call__(self, x_Nx3, scales_N=None):
+    """The features (N, num_levels * features_per_level); with `scales_N`, each point's footprint (a standard
+    deviation, in the unit cube's units), each level's features weighted by level_weights (Zip-NeRF)."""
     table_size = 2**self.log2_table_size
     outputs = []
-    for level, res in enumerate(level_resolutions(self.num_levels, self.base_resolution,
-                                                  self.max_resolution)):
+    resolutions = level_resolutions(self.num_levels, self.base_resolution, self.max_resolution)
+    for level, res in enumerate(resolutions):
       rows = min(table_size, (res + 1)**3)
       table = self.param(f"level_{level}", _symmetric_uniform(1e-4), (rows, self.features_per_level))
       if rows == (res + 1)**3 and rows <= self.matmul_max_rows:
-        outputs.append(dense_level_matmul(table, x_Nx3, res))
+        feats = dense_level_matmul(table, x_Nx3, res)
       else:
-        outputs.append(level_gather(table, x_Nx3, res))
+        feats = level_gather(table, x_Nx3, res)
+      if scales_N is not None:
+        feats = feats * level_weights(scales_N, res)[..., None]
+      outputs.append(feats)
     return jnp.concatenate(outputs, axis=-1)
+
+
+def level_weights(scales_N, resolution: int):
+  """Zip-NeRF's feature downweighting (Barron et al. 2023, eq. 8): erf(1 / sqrt(8 sigma^2 n^2)) for a point
+  whose footprint has standard deviation sigma (unit-cube units) on a level of n cells a side: near 1 where the
+  footprint spans less than a cell (the level resolves it), falling towards 0 where it spans many (there the
+  level's features would alias: detail no pixel of that size resolves). sigma = 0 gives exactly 1."""
+  return jax.scipy.special.erf(1.0 / jnp.maximum(jnp.sqrt(8.0) * scales_N * resolution, 1e-30))
 
 
 def level_gather(table_RxF, x_Nx3, resolution: int):

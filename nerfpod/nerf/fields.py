@@ -2,6 +2,7 @@
 from typing import Sequence
 
 import flax.linen as nn
+import jax
 import jax.numpy as jnp
 
 from nerfpod.nerf import encodings
@@ -31,7 +32,8 @@ class MLPField(nn.Module):
   dtype: jnp.dtype  # matmul dtype: bfloat16 for mixed precision, params stay float32
 
   @nn.compact
-  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None):
+  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None, scales_N=None):
+    del scales_N  # (footprints weigh hash-grid levels; NeRF's encoding has none: schema refuses the pair)
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     encoded = positional = encodings.positional_encoding(points_Nx3, self.num_frequencies)
     x = encoded
@@ -60,6 +62,9 @@ class HashGridField(nn.Module):
   Density is exp of the first output of the density MLP (Instant-NGP's "trunc_exp" forward); the colour MLP
   takes the remaining features and, with view directions, their degree-4 spherical-harmonic encoding, and
   with appearance codes (`codes_NxA`, each point's ray's frame's), the code (nerfacto's colour head).
+  With `scale_aware` and each point's footprint (`scales_N`, a standard deviation in world units of the
+  field's space), each level's features are weighted by how well its cells resolve it
+  (encodings.level_weights, Zip-NeRF's downweighting).
   """
   # Sizes and switches come from config.model.hashgrid and config.model; no defaults here.
   bound: float
@@ -72,15 +77,19 @@ class HashGridField(nn.Module):
   geo_features: int
   use_viewdirs: bool
   dtype: jnp.dtype
+  scale_aware: bool = False
   matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
 
   @nn.compact
-  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None):
+  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None, scales_N=None):
     unit = (points_Nx3 + self.bound) / (2.0 * self.bound)
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
+    unit_scales = None
+    if self.scale_aware and scales_N is not None:
+      unit_scales = jax.lax.stop_gradient(scales_N) / (2.0 * self.bound)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, self.matmul_max_rows, name="grid")(jnp.clip(unit, 0.0, 1.0))
+        self.max_resolution, self.matmul_max_rows, name="grid")(jnp.clip(unit, 0.0, 1.0), unit_scales)
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
     h = dense(1 + self.geo_features, "density_out")(h).astype(jnp.float32)

@@ -71,6 +71,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
   num_frames: int = 0        # training frames: rows of the appearance codes and pose corrections
   pose_refine: bool = False  # learn a pose correction per training frame
   near_gradient_distance: float = 0.0  # > 0: the field's gradients scaled by min(1, (distance / this)^2)
+  pixel_angle: float = 0.0    # > 0 (model.hashgrid.scale_aware): a pixel's width at distance 1, radians
   regions: int = 1            # K: fields, one per convex region of space (1: one field everywhere)
   region_planes: tuple = ()   # regions > 1: the nerf_regions.Partition's three arrays as nested tuples
 
@@ -84,7 +85,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
   def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes):
     points = self._points(origins, directions, t_RxS)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
-    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
+    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
+                       **self._footprints(origins, directions, t_RxS))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(points.shape[:-1]), t_RxS,
                                  directions, self.near_gradient_distance)
     out = compositing.composite(rgb, sigma, t_RxS, directions, last_delta=self.last_delta,
@@ -222,6 +224,20 @@ renders every region and composites: one device holding the whole model. K = 1 i
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
 
+  def _footprints(self, origins, directions, t_RxS) -> dict:
+    """{} without `pixel_angle`, else {"scales_N": ...}: each sample's pixel footprint (R * S,) in the field's
+    space, the standard deviation of a pixel's width there (width / sqrt(12)): the pixel's angle times the
+    sample's distance from the ray's origin, shrunk by the contraction where space='contract'
+    (coord.contraction_scale). One angle for every ray of the scene (its training cameras' median)."""
+    if not self.pixel_angle:
+      return {}
+    distance = t_RxS * jnp.linalg.norm(directions, axis=-1, keepdims=True)
+    scales = self.pixel_angle / np.sqrt(12.0) * distance
+    if self.space == "contract":
+      raw = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
+      scales = scales * coord.contraction_scale(raw)[..., 0]
+    return {"scales_N": scales.reshape(-1)}
+
   def _points(self, origins, directions, t_RxS):
     """The sample points at distances t, in the field's space (contracted where space='contract')."""
     points = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
@@ -253,7 +269,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows)
-    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
+    rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
+                       **self._footprints(origins, directions, t_mids))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
                                 self.near_gradient_distance)
     out = compositing.composite_intervals(rgb, sigma, t_edges, directions, background=background)
@@ -389,15 +406,20 @@ def _as_tuples(part: nerf_regions.Partition) -> tuple:
 
 
 def from_config(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0,
-                camera_positions=None) -> NeRF:
+                camera_positions=None, pixel_angle: float = 0.0) -> NeRF:
   """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
   JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
   whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera).
   `num_frames`: the training frames, each with its own appearance code (model.appearance_dim > 0) and pose
   correction (train.pose_refine); at least 1 where either is on. `camera_positions` (N, 3): the training
-  cameras' centres, where model.region_cut='cameras' cuts the regions around them."""
+  cameras' centres, where model.region_cut='cameras' cuts the regions around them. `pixel_angle`: a pixel's
+  width at distance 1 (radians: 1 / focal length in pixels), the footprints of model.hashgrid.scale_aware
+  (needed there; unused elsewhere)."""
   if (config.model.appearance_dim or config.train.pose_refine) and num_frames < 1:
     raise ValueError("model.appearance_dim and train.pose_refine need the training frame count (num_frames)")
+  scale_aware = config.model.field == "hashgrid" and config.model.hashgrid.scale_aware
+  if scale_aware and not pixel_angle > 0:
+    raise ValueError("model.hashgrid.scale_aware needs the scene's pixel angle (pixel_angle)")
   dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
   backend = backend or jax.default_backend()
   render = config.render
@@ -408,6 +430,7 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
               grid_matmul_max_rows=grid_matmul_max_rows(config, backend), num_frames=int(num_frames),
               pose_refine=bool(config.train.pose_refine),
               near_gradient_distance=float(config.train.near_gradient_distance),
+              pixel_angle=float(pixel_angle) if scale_aware else 0.0,
               **_region_attributes(config, camera_positions))
 
 

@@ -138,6 +138,16 @@ _PLACEHOLDER_BOUNDS = (2.0, 6.0)
 _PLACEHOLDER_FRAMES = 100
 # Likewise the NDC cube's camera (fx, fy, width, height) of a forward-facing scene: LLFF's at images_8.
 _PLACEHOLDER_NDC_CAMERA = (421.0, 421.0, 504.0, 378.0)
+# Likewise a pixel's angle (model.hashgrid.scale_aware): 1 / a focal length of 500 pixels.
+_PLACEHOLDER_PIXEL_ANGLE = 1.0 / 500.0
+
+
+def pixel_angle_of(scene: scenes.Scene) -> float:
+  """A pixel's width at distance 1 (radians) of the scene's training cameras: 1 / their median focal length
+  (pixels, at the loaded size; the mean of fx and fy). model.hashgrid.scale_aware's footprints use it for every
+  ray, of any view (held-out, orbits, the viewer): one angle for the scene."""
+  cams = scene.split("train").cameras
+  return float(1.0 / np.median(0.5 * (np.asarray(cams.fx) + np.asarray(cams.fy))))
 
 
 def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Components:
@@ -151,14 +161,16 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     background, with_alpha = tuple(scene.background), scene.split("train").alphas is not None
     num_frames = len(scene.split("train"))
     cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # model.region_cut=cameras cuts around them
+    pixel_angle = pixel_angle_of(scene)
   else:
     cameras = None
     num_frames = _PLACEHOLDER_FRAMES
+    pixel_angle = _PLACEHOLDER_PIXEL_ANGLE
     ndc = _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None
     near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
-  model = nerf_model.from_config(config, ndc, backend, num_frames, cameras)
+  model = nerf_model.from_config(config, ndc, backend, num_frames, cameras, pixel_angle)
   optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1)  # regions: the step's
   return Components(config, mesh, model, optimizer, float(near), float(far), background,
                     train_state.state_shapes(model, optimizer, mesh),
