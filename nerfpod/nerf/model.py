@@ -234,13 +234,12 @@ renders every region and composites: one device holding the whole model. K = 1 i
     distance = t_RxS * jnp.linalg.norm(directions, axis=-1, keepdims=True)
     scales = self.pixel_angle / np.sqrt(12.0) * distance
     if self.space == "contract":
-      raw = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
-      scales = scales * coord.contraction_scale(raw)[..., 0]
+      scales = scales * coord.contraction_scale(_ray_points(origins, directions, t_RxS))[..., 0]
     return {"scales_N": scales.reshape(-1)}
 
   def _points(self, origins, directions, t_RxS):
     """The sample points at distances t, in the field's space (contracted where space='contract')."""
-    points = origins[..., None, :] + t_RxS[..., None] * directions[..., None, :]
+    points = _ray_points(origins, directions, t_RxS)
     return coord.contract(points) if self.space == "contract" else points
 
   def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms, codes):
@@ -361,6 +360,11 @@ def _scale_gradient(x, scale):
 
 _scale_gradient.defvjp(lambda x, scale: (x, scale),
                        lambda scale, g: (g * scale, jnp.zeros_like(scale)))
+
+
+def _ray_points(origins_Rx3, directions_Rx3, t_RxS):
+  """The points (R, S, 3) at distances t along the rays, in the world (before any contraction)."""
+  return origins_Rx3[..., None, :] + t_RxS[..., None] * directions_Rx3[..., None, :]
 
 
 def _per_point(codes_RxA, sample_shape) -> tuple:
