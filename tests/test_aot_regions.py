@@ -61,6 +61,7 @@ def test_region_traffic_sums_the_gathers_over_the_region_axis_and_the_reductions
   assert aot.check_collectives(stray, state_bytes=200000, regions=True) == ["all-gather of 512 bytes"]
 
 
+@pytest.mark.slow  # a whole TPU compile of the region step in a process of its own (~20 s)
 @needs_libtpu
 def test_a_region_models_step_reports_its_partial_sums_gathered_over_the_region_axis():
   """4 regions on v5e-8 (data 2 x region 4), the smoke step: its partial sums are 10 numbers per ray and

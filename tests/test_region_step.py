@@ -1,6 +1,8 @@
 """A model of K regions (model.regions, NeRF-XL) in the model, on the mesh and in the train step: each device
 renders its regions, partial sums are gathered over the region axis; the same loss, gradients and parameters as
 the whole model on one device."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,6 +39,7 @@ def test_regions_one_is_the_one_field_model():
   assert model.regions == 1 and model.region_planes == ()  # NeRF's defaults: the model it always was
 
 
+@pytest.mark.slow  # (~15 s) the sharded step's equality below composites the device shares as well
 def test_each_device_share_of_the_regions_composites_to_the_whole_model():
   """The model's own rendering of all K regions equals rendering the regions in two halves, each with its half
   of the stacked parameters only (a device's share), composited after."""
@@ -97,7 +100,9 @@ def test_the_mesh_gains_a_region_axis_and_refuses_what_does_not_split():
   assert distributed.local_slice(64, mesh) == slice(0, 64)
 
 
-@pytest.mark.parametrize("shape", [(2, 4), (4, 2), (2, 1, 4)])
+# (4, 2) and (2, 1, 4) compile the 8-device step again for another layout: the slow set (about 15 s each).
+@pytest.mark.parametrize("shape", [(2, 4), pytest.param((4, 2), marks=pytest.mark.slow),
+                                   pytest.param((2, 1, 4), marks=pytest.mark.slow)])
 def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   """Loss, metrics and parameters after two steps (plain SGD: parameters move exactly as the gradients) on
   8 devices, (data, region) = `shape`, equal the whole model's on one device, which holds every region and
@@ -112,7 +117,7 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
     assert mesh.axis_names == (distributed.SLICE_AXIS, distributed.DATA_AXIS, distributed.REGION_AXIS)
   else:
     mesh = _region_mesh(shape)
-  state_1, metrics_1 = _run(one, config, 2, sgd)
+  state_1, metrics_1 = _whole_model_two_sgd_steps()
   state_8, metrics_8 = _run(mesh, config, 2, sgd)
   for m1, m8 in zip(metrics_1, metrics_8):
     for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
@@ -127,6 +132,15 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   leaf = state_8.params["params"]["regions"]["coarse"]["rgb"]["kernel"]
   assert tuple(leaf.sharding.spec)[:1] == (distributed.REGION_AXIS,) and not any(tuple(leaf.sharding.spec)[1:])
   assert leaf.addressable_shards[0].data.shape[0] == 4 // shape[-1]
+
+
+@functools.cache
+def _whole_model_two_sgd_steps():
+  """The reference of the sharded steps above: the whole 4-region model's two SGD steps on one device (one
+  program, whichever mesh it is compared with, so computed once a session)."""
+  one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+  state, metrics = _run(one, _config(**{"model.regions": 4}), 2, optax.sgd(1.0))
+  return jax.device_get(state), metrics
 
 
 def _region_mesh(shape):
@@ -240,6 +254,7 @@ def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(
   assert "Traceback" not in result.stderr
 
 
+@pytest.mark.slow  # (~12 s) one more pair of step compiles
 def test_the_step_clips_the_norm_of_every_regions_gradients():
   """train.grad_clip with regions: the step clips by the global norm (every region's gradients, which no
   device's optimiser sees alone), as optax.clip_by_global_norm clips the whole model's on one device."""

@@ -131,7 +131,8 @@ def test_a_non_finite_state_is_never_saved_and_a_saved_one_counts_as_damaged(tmp
 
 def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in_a_row():
   config = smoke_config(**{"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
-                           "model.mlp.skips": (), "train.batch_size": 64})
+                           "model.mlp.skips": (), "train.batch_size": 64,
+                           "render.proposal_samples": ()})
   from nerfpod.run import train_state
   from nerfpod.nerf import model as nerf_model
   mesh = _mesh(2)
