@@ -187,7 +187,8 @@ def _run_steps(mesh, config, num_steps, optimizer, state=None, first_step=0):
 
 
 @pytest.mark.slow  # two compiles of the hash grid's step with pose gradients (~30 s); the quick loop keeps the
-# region model's per-frame equality (tests/test_region_step.py), which steps the same tables on 8 devices
+# hash grid's 8-against-1 step (tests/test_step.py) and the region model's per-frame equality
+# (tests/test_region_step.py), which steps the same tables on a (data 2, region 4) mesh against one device
 def test_eight_devices_match_one_device_with_appearance_and_pose_refinement():
   """The default field (a hash grid with a proposal round, view directions) with per-frame appearance codes
   and pose corrections: 8 devices against 1 (tests/test_step.py checks the other fields the same way)."""
