@@ -87,12 +87,19 @@ def umeyama(src_Nx3, dst_Nx3):
 
 def pose_errors(estimated: dict, known: dict) -> tuple[np.ndarray, np.ndarray]:
   """Per common frame: rotation error (degrees) and camera-centre error (as a share of the known cameras' mean
-  distance from their centroid), after aligning the estimated cameras' centres to the known ones."""
+  distance from their centroid). The centres are compared after the similarity that best aligns the estimated
+  centres to the known ones; the orientations after the rotation that best aligns the estimated orientations to
+  the known ones (the chordal mean of known @ estimated^T). The centres alone fix the frame's rotation poorly
+  where the cameras lie near a plane or a line (a forward-facing capture): on 20 horns photos 1.5% of centre
+  noise turned every camera by 0.9-1.0 degrees through that rotation, while their orientations agree within
+  0.2-0.4 degrees."""
   names = sorted(set(estimated) & set(known))
   a = np.array([estimated[n][:3, 3] for n in names])
   b = np.array([known[n][:3, 3] for n in names])
   s, r, t = umeyama(a, b)
   position = np.linalg.norm((s * (r @ a.T)).T + t - b, axis=1) / np.linalg.norm(b - b.mean(0), axis=1).mean()
+  u, _, vt = np.linalg.svd(sum(known[n][:3, :3] @ estimated[n][:3, :3].T for n in names))
+  r = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
   cosines = [(np.trace((r @ estimated[n][:3, :3]).T @ known[n][:3, :3]) - 1) / 2 for n in names]
   return np.degrees(np.arccos(np.clip(cosines, -1, 1))), position
 
@@ -664,7 +671,7 @@ def test_horns_photos_agree_with_the_published_poses(tmp_path, capsys):
   print(f"horns: {len(rotation)} of 20 registered in {seconds:.1f} s; rotation error median "
         f"{np.median(rotation):.2f} max {rotation.max():.2f} degrees; camera centre error median "
         f"{100 * np.median(position):.2f}% max {100 * position.max():.2f}%")
-  assert len(rotation) == 20 and np.median(rotation) < 1.0 and np.median(position) < 0.03
+  assert len(rotation) == 20 and np.median(rotation) < 0.5 and np.median(position) < 0.03
 
 
 # The cup at 400x300 in every run; at its own 800x600 (3.5-5 min on 2 cores, the longest test by far) only
