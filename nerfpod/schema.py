@@ -279,6 +279,10 @@ FIELDS: dict[str, Field] = _declare({
     "train.pose_pin_mean": (False, boolean(),
         "keep the corrections' mean (over the training frames) at zero: a common shift or turn of every camera, "
         "which no training pixel sees, is taken out of each update (held-out cameras keep their given poses)"),
+    "train.pose_precondition": (False, boolean(),
+        "CamP's preconditioning of the corrections: each frame's 6 numbers whitened by how they move its image "
+        "(a shift and a turn that move it alike are decorrelated); the learning rates then step image sizes; "
+        "no better than without on the default scene with poses a degree off (docs/results.md)"),
     "train.seed": (0, integer(0), "seeds the parameters, the ray batches and the stratified jitter"),
     "train.log_every": (100, integer(1, example=100), "steps between TensorBoard scalars and console lines"),
     "train.image_every": (500, integer(0, example=500),

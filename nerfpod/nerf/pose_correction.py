@@ -78,3 +78,69 @@ def corrected_poses(poses_Nx4x4, corrections_Nx6) -> np.ndarray:
   poses[:, :3, :3] = so3_exp_numpy(corrections[:, 3:]) @ poses[:, :3, :3]
   poses[:, :3, 3] += corrections[:, :3]
   return poses
+
+
+# CamP's preconditioning (Park et al. 2023, "Camera Preconditioning for Neural Radiance Fields"): the points
+# each camera's sensitivity is averaged over, and the damping added to J^T J's diagonal before its inverse
+# square root (a share of that diagonal, as CamP's relative padding; Levenberg-Marquardt's damping).
+PRECONDITION_POINTS = 512
+PRECONDITION_DAMPING = 1e-2
+_UNBOUNDED_FAR = 1e6
+
+
+def projection_jacobians(poses_Nx4x4, cameras, points_NxKx3) -> np.ndarray:
+  """d(projection)/d(correction) at the zero correction, (N, K, 2, 6) float64: how each point's image moves
+  (in image sizes: pixels over the camera's larger side, so one number for any resolution) as the frame's
+  correction (t, w) moves its camera. `cameras`: nerf.cameras.Cameras of the N frames (pinhole: the lens
+  distortion is left out). For a point X at p = X - o from the camera, camera coordinates c = R^T exp(w)^T
+  (p - t) (OpenGL: the camera looks down -z), so dc/dt = -R^T and dc/dw = R^T [p]x at zero; the image
+  u = cx + fx c_x / -c_z, v = cy + fy c_y / c_z."""
+  poses = np.asarray(poses_Nx4x4, np.float64)
+  rot, origin = poses[:, :3, :3], poses[:, :3, 3]
+  p = np.asarray(points_NxKx3, np.float64) - origin[:, None, :]
+  rt = np.swapaxes(rot, -1, -2)  # world -> camera
+  c = np.einsum("nij,nkj->nki", rt, p)
+  skew = np.zeros(p.shape + (3,))
+  skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -p[..., 2], p[..., 1], -p[..., 0]
+  skew[..., 1, 0], skew[..., 2, 0], skew[..., 2, 1] = p[..., 2], -p[..., 1], p[..., 0]
+  dc = np.concatenate([np.broadcast_to(-rt[:, None], p.shape[:2] + (3, 3)),
+                       np.einsum("nij,nkjl->nkil", rt, skew)], -1)  # (N, K, 3, 6)
+  size = np.maximum(np.asarray(cameras.width, np.float64), np.asarray(cameras.height, np.float64))
+  fx, fy = (np.asarray(f, np.float64)[:, None] / size[:, None] for f in (cameras.fx, cameras.fy))
+  cx_, cy_, cz = c[..., 0], c[..., 1], c[..., 2]
+  duv_dc = np.zeros(c.shape[:2] + (2, 3))
+  duv_dc[..., 0, 0], duv_dc[..., 0, 2] = -fx / cz, fx * cx_ / cz**2
+  duv_dc[..., 1, 1], duv_dc[..., 1, 2] = fy / cz, -fy * cy_ / cz**2
+  return duv_dc @ dc
+
+
+def frustum_points(poses_Nx4x4, cameras, near: float, far: float, count: int = PRECONDITION_POINTS,
+                   seed: int = 0) -> np.ndarray:
+  """(N, count, 3) world points inside each camera's view: pixels drawn uniformly over its image, depths
+  uniformly in disparity (1 / depth) between near and far (an unbounded far counts as 1e6), so near and far
+  content both weigh in, as along the rays the sampler spaces."""
+  rng = np.random.default_rng(seed)
+  poses = np.asarray(poses_Nx4x4, np.float64)
+  n = len(poses)
+  near = max(float(near), 1e-3 * min(float(far), _UNBOUNDED_FAR))
+  far = min(float(far), _UNBOUNDED_FAR)
+  px = rng.uniform(0, 1, (n, count)) * np.asarray(cameras.width, np.float64)[:, None]
+  py = rng.uniform(0, 1, (n, count)) * np.asarray(cameras.height, np.float64)[:, None]
+  depth = 1.0 / rng.uniform(1.0 / far, 1.0 / near, (n, count))
+  c = np.stack([(px - np.asarray(cameras.cx)[:, None]) / np.asarray(cameras.fx)[:, None],
+                -(py - np.asarray(cameras.cy)[:, None]) / np.asarray(cameras.fy)[:, None],
+                -np.ones((n, count))], -1) * depth[..., None]
+  return poses[:, None, :3, 3] + np.einsum("nij,nkj->nki", poses[:, :3, :3], c)
+
+
+def preconditioners(poses_Nx4x4, cameras, near: float, far: float, damping: float = PRECONDITION_DAMPING,
+                    count: int = PRECONDITION_POINTS) -> np.ndarray:
+  """CamP's preconditioners (N, 6, 6) float32: per frame M = (J^T J + damping diag(J^T J))^(-1/2), J^T J the
+  mean over frustum_points of projection_jacobians' J^T J. Optimising v with the correction = M v makes a unit
+  step of v in any direction move the frame's image by about one image size (mean square), and decorrelates
+  what moves it alike (a sideways shift and a turn, for a distant scene)."""
+  jac = projection_jacobians(poses_Nx4x4, cameras, frustum_points(poses_Nx4x4, cameras, near, far, count))
+  jtj = np.einsum("nkai,nkaj->nij", jac, jac) / jac.shape[1]
+  jtj = jtj + damping * np.einsum("nii->ni", jtj)[:, :, None] * np.eye(6)
+  values, vectors = np.linalg.eigh(jtj)
+  return np.einsum("nij,nj,nkj->nik", vectors, 1.0 / np.sqrt(values), vectors).astype(np.float32)

@@ -9,6 +9,7 @@ the pod compile tool compiles, on a TPU topology's devices. The train state, its
 nerfpod.run.train_state's.
 """
 import dataclasses
+import math
 import sys
 from typing import Any
 
@@ -23,7 +24,8 @@ from nerfpod.render import camera_path, renderer
 from nerfpod.run import compilation, train_state
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
-from nerfpod.nerf import cameras as nerf_cameras, model as nerf_model, regions as nerf_regions, sampling
+from nerfpod.nerf import cameras as nerf_cameras, model as nerf_model, pose_correction, sampling
+from nerfpod.nerf import regions as nerf_regions
 
 def uses_frames(config) -> bool:
   """Whether the training batches carry each ray's training-frame index (per-frame appearance or poses)."""
@@ -150,6 +152,19 @@ def pixel_angle_of(scene: scenes.Scene) -> float:
   return float(1.0 / np.median(0.5 * (np.asarray(cams.fx) + np.asarray(cams.fy))))
 
 
+def pose_preconditioners(config, scene: scenes.Scene | None, num_frames: int) -> np.ndarray | None:
+  """train.pose_precondition: CamP's matrices (N, 6, 6) of the training cameras over the scene's depths
+  (pose_correction.preconditioners; NDC scenes: from their near plane at 1 to infinity, in the world);
+  without a scene (the pod compile tool), identities of the same shape. None where it is off."""
+  if not (config.train.pose_refine and config.train.pose_precondition):
+    return None
+  if scene is None:
+    return np.tile(np.eye(6, dtype=np.float32), (num_frames, 1, 1))
+  train = scene.split("train")
+  near, far = (1.0, math.inf) if config.render.space == "ndc" else (scene.near, scene.far)
+  return pose_correction.preconditioners(train.poses, train.cameras, near, far)
+
+
 def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Components:
   """The step's and renderer's pieces for `config` on `mesh` (any devices: a TPU topology's too), the model
   formulated and compiled for `backend` (default JAX's). With `scene`, its ray bounds, NDC camera,
@@ -171,7 +186,8 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
   model = nerf_model.from_config(config, ndc, backend, num_frames, cameras, pixel_angle)
-  optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1)  # regions: the step's
+  optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1,  # regions: the step's
+                                         pose_preconditioners=pose_preconditioners(config, scene, num_frames))
   return Components(config, mesh, model, optimizer, float(near), float(far), background,
                     train_state.state_shapes(model, optimizer, mesh),
                     batch_shapes(config.train.batch_size, mesh, with_alpha, uses_frames(config)),

@@ -66,18 +66,38 @@ def pinned_mean() -> optax.GradientTransformation:
       lambda u: u - jnp.mean(u, axis=0, keepdims=True), updates))
 
 
-def make_optimizer(train_config, clip: bool = True) -> optax.GradientTransformation:
+def preconditioned(inner: optax.GradientTransformation, matrices_Nx6x6) -> optax.GradientTransformation:
+  """`inner` run on v, where the corrections (N, 6) are M v with each frame's symmetric M (CamP's
+  preconditioning, pose_correction.preconditioners): the gradient it sees is M g (d loss / dv = M^T g), its
+  update u of v is applied as M u, and its parameters (weight decay) are M^-1 x. The corrections stay the
+  parameters (and start at zero, as v does), so checkpoints, exports and evaluation read them as before."""
+  matrices = jnp.asarray(matrices_Nx6x6, jnp.float32)
+  inverses = jnp.linalg.inv(matrices)
+  apply = lambda m: (lambda x: jnp.einsum("nij,nj->ni", m, x))  # noqa: E731
+
+  def update(updates, state, params=None):
+    latent = None if params is None else jax.tree.map(apply(inverses), params)
+    steps, state = inner.update(jax.tree.map(apply(matrices), updates), state, latent)
+    return jax.tree.map(apply(matrices), steps), state
+
+  return optax.GradientTransformation(inner.init, update)
+
+
+def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -> optax.GradientTransformation:
   """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0 and
   `clip`: a model of several regions clips in its step instead, where the norm of every region's gradients is
   known; each device's optimiser sees its own regions' only). With train.pose_refine, the pose corrections
   have their own: AdamW on the same schedule's shape from train.pose_lr_init to train.pose_lr_final, with
   train.pose_weight_decay (nerfacto's camera optimiser); with train.pose_pin_mean, each of its updates less
-  its mean over the frames (pinned_mean)."""
+  its mean over the frames (pinned_mean); with `pose_preconditioners` (N, 6, 6: train.pose_precondition),
+  AdamW steps the preconditioned corrections (preconditioned)."""
   tc = train_config
   adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
   if tc.pose_refine:
     pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
                        weight_decay=tc.pose_weight_decay)
+    if pose_preconditioners is not None:
+      pose = preconditioned(pose, pose_preconditioners)
     if tc.pose_pin_mean:
       pose = optax.chain(pose, pinned_mean())
     adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
