@@ -127,15 +127,10 @@ def test_a_known_pose_perturbation_is_recovered_on_a_textured_plane():
 
 
 def _project(poses, cams, points):
-  """Each frame's points projected by a pinhole (OpenGL camera: looks down -z, y up), in image sizes (pixels over
-  the larger side): the reference the preconditioner's Jacobians are checked against."""
-  out = []
-  for i, pose in enumerate(poses):
-    c = (points[i] - pose[:3, 3]) @ pose[:3, :3]
-    size = max(cams.width[i], cams.height[i])
-    out.append(np.stack([cams.cx[i] + cams.fx[i] * c[:, 0] / -c[:, 2], cams.cy[i] + cams.fy[i] * c[:, 1] / c[:, 2]],
-                        -1) / size)
-  return np.stack(out)
+  """Each frame's points projected through its camera (nerf.cameras.project), in image sizes (pixels over the
+  larger side): the reference the preconditioner's Jacobians are checked against."""
+  return np.stack([cameras.project(points[i], pose, cams[i])[0] / max(cams.width[i], cams.height[i])
+                   for i, pose in enumerate(poses)])
 
 
 def _ring(n=4):

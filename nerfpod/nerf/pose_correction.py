@@ -13,6 +13,8 @@ Shapes: N frames (or rays), vectors (..., 6) as [tx, ty, tz, wx, wy, wz].
 import jax.numpy as jnp
 import numpy as np
 
+from nerfpod.nerf import cameras as nerf_cameras
+
 # The model's parameter holding the corrections, (N, 6) per training frame (nerf/model.py).
 PARAM = "pose_correction"
 
@@ -42,6 +44,15 @@ def so3_exp(w_Nx3):
   return jnp.eye(3, dtype=w.dtype) + sin_a * k + cos_a * (k @ k)
 
 
+def _skew_numpy(v) -> np.ndarray:
+  """_skew in float64 NumPy: (..., 3) -> (..., 3, 3), [v]x u = v x u."""
+  v = np.asarray(v, np.float64)
+  k = np.zeros(v.shape + (3,))
+  k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+  k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+  return k
+
+
 def so3_exp_numpy(w_Nx3) -> np.ndarray:
   """so3_exp in float64 NumPy (for exports, outside the traced step)."""
   w = np.asarray(w_Nx3, np.float64)
@@ -49,9 +60,7 @@ def so3_exp_numpy(w_Nx3) -> np.ndarray:
   safe = np.where(a > 1e-8, a, 1.0)
   sin_a = np.where(a > 1e-8, np.sin(safe) / safe, 1.0 - a * a / 6.0)
   cos_a = np.where(a > 1e-8, (1.0 - np.cos(safe)) / (safe * safe), 0.5 - a * a / 24.0)
-  k = np.zeros(w.shape[:-1] + (3, 3))
-  k[..., 0, 1], k[..., 0, 2], k[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-  k[..., 1, 0], k[..., 2, 0], k[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+  k = _skew_numpy(w)
   return np.eye(3) + sin_a * k + cos_a * (k @ k)
 
 
@@ -100,11 +109,8 @@ def projection_jacobians(poses_Nx4x4, cameras, points_NxKx3) -> np.ndarray:
   p = np.asarray(points_NxKx3, np.float64) - origin[:, None, :]
   rt = np.swapaxes(rot, -1, -2)  # world -> camera
   c = np.einsum("nij,nkj->nki", rt, p)
-  skew = np.zeros(p.shape + (3,))
-  skew[..., 0, 1], skew[..., 0, 2], skew[..., 1, 2] = -p[..., 2], p[..., 1], -p[..., 0]
-  skew[..., 1, 0], skew[..., 2, 0], skew[..., 2, 1] = p[..., 2], -p[..., 1], p[..., 0]
   dc = np.concatenate([np.broadcast_to(-rt[:, None], p.shape[:2] + (3, 3)),
-                       np.einsum("nij,nkjl->nkil", rt, skew)], -1)  # (N, K, 3, 6)
+                       np.einsum("nij,nkjl->nkil", rt, _skew_numpy(p))], -1)  # (N, K, 3, 6)
   size = np.maximum(np.asarray(cameras.width, np.float64), np.asarray(cameras.height, np.float64))
   fx, fy = (np.asarray(f, np.float64)[:, None] / size[:, None] for f in (cameras.fx, cameras.fy))
   cx_, cy_, cz = c[..., 0], c[..., 1], c[..., 2]
@@ -116,21 +122,21 @@ def projection_jacobians(poses_Nx4x4, cameras, points_NxKx3) -> np.ndarray:
 
 def frustum_points(poses_Nx4x4, cameras, near: float, far: float, count: int = PRECONDITION_POINTS,
                    seed: int = 0) -> np.ndarray:
-  """(N, count, 3) world points inside each camera's view: pixels drawn uniformly over its image, depths
-  uniformly in disparity (1 / depth) between near and far (an unbounded far counts as 1e6), so near and far
-  content both weigh in, as along the rays the sampler spaces."""
+  """(N, count, 3) world points inside each camera's view: pixels drawn uniformly over its image, each ray
+  through its own camera and lens (nerf.cameras.frame_rays), depths uniformly in disparity (1 / depth) between
+  near and far (an unbounded far counts as 1e6), so near and far content both weigh in, as along the rays the
+  sampler spaces."""
   rng = np.random.default_rng(seed)
   poses = np.asarray(poses_Nx4x4, np.float64)
   n = len(poses)
   near = max(float(near), 1e-3 * min(float(far), _UNBOUNDED_FAR))
   far = min(float(far), _UNBOUNDED_FAR)
-  px = rng.uniform(0, 1, (n, count)) * np.asarray(cameras.width, np.float64)[:, None]
-  py = rng.uniform(0, 1, (n, count)) * np.asarray(cameras.height, np.float64)[:, None]
+  cols = rng.uniform(0, 1, (n, count)) * np.asarray(cameras.width, np.float64)[:, None]
+  rows = rng.uniform(0, 1, (n, count)) * np.asarray(cameras.height, np.float64)[:, None]
   depth = 1.0 / rng.uniform(1.0 / far, 1.0 / near, (n, count))
-  c = np.stack([(px - np.asarray(cameras.cx)[:, None]) / np.asarray(cameras.fx)[:, None],
-                -(py - np.asarray(cameras.cy)[:, None]) / np.asarray(cameras.fy)[:, None],
-                -np.ones((n, count))], -1) * depth[..., None]
-  return poses[:, None, :3, 3] + np.einsum("nij,nkj->nki", poses[:, :3, :3], c)
+  frames = np.broadcast_to(np.arange(n)[:, None], (n, count))
+  origins, directions = nerf_cameras.frame_rays(poses[:, None], cameras, frames, rows, cols, pixel_center=0.0)
+  return origins + directions * depth[..., None].astype(np.float32)  # directions: camera-space z = -1
 
 
 def preconditioners(poses_Nx4x4, cameras, near: float, far: float, damping: float = PRECONDITION_DAMPING,
