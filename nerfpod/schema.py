@@ -128,6 +128,14 @@ def step_range() -> Field:
                "() or (first, last): two steps >= 1 with first <= last", (100, 110), ((0, 3), (5, 2), (1, 2, 3)))
 
 
+def fraction_range() -> Field:
+  """() (off) or (start, end): two fractions of a length, 0 <= start < end <= 1."""
+  return Field(lambda v: isinstance(v, (tuple, list)) and (len(v) == 0 or (
+      len(v) == 2 and all(_is_number(i) for i in v) and 0.0 <= v[0] < v[1] <= 1.0)),
+               "() or (start, end): two fractions with 0 <= start < end <= 1", (0.1, 0.5),
+               ((0.5, 0.1), (0.0, 2.0), (0.1, 0.2, 0.3)))
+
+
 def _declare(table: dict) -> dict[str, Field]:
   """{name: (default, field, doc)} -> {name: the field with its default and doc}."""
   return {name: dataclasses.replace(field, default=default, doc=doc)
@@ -283,6 +291,10 @@ FIELDS: dict[str, Field] = _declare({
         "CamP's preconditioning of the corrections: each frame's 6 numbers whitened by how they move its image "
         "(a shift and a turn that move it alike are decorrelated); the learning rates then step image sizes; "
         "no better than without on the default scene with poses a degree off (docs/results.md)"),
+    "train.coarse_to_fine": ((), fraction_range(),
+        "(start, end), fractions of train.num_steps: the hash grid's finer levels open one after another from "
+        "start to end (BARF's coarse-to-fine, the coarsest level always on), so that early pose corrections "
+        "follow the scene's coarse shape; (): every level from the first step"),
     "train.seed": (0, integer(0), "seeds the parameters, the ray batches and the stratified jitter"),
     "train.log_every": (100, integer(1, example=100), "steps between TensorBoard scalars and console lines"),
     "train.image_every": (500, integer(0, example=500),
@@ -468,6 +480,10 @@ def _rules(c: dict) -> list[str]:
                f"contracted space, and this run has model.field={c['model.field']}, render.space="
                f"{c['render.space']}, model.regions={c['model.regions']}; use it with model.field=hashgrid, "
                f"render.space euclidean or contract and one region (or --config.model.hashgrid.scale_aware=false).")
+  if c["train.coarse_to_fine"] and (c["model.field"] != "hashgrid" or c["model.regions"] > 1):
+    out.append(f"train.coarse_to_fine={_show(c['train.coarse_to_fine'])} opens the hash grid's levels one by one, "
+               f"and this run has model.field={c['model.field']}, model.regions={c['model.regions']}; use it "
+               f"with model.field=hashgrid and one region (or --config.train.coarse_to_fine='()').")
   if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
     out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
                f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")

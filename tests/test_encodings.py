@@ -132,3 +132,49 @@ def test_encoding_with_matmul_levels_equals_the_gather_encoding():
   (value_matmul, grads_matmul), (value_gather, grads_gather) = [value_and_grad(m)(params) for m in (matmul, gather)]
   np.testing.assert_allclose(value_matmul, value_gather, rtol=1e-5)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), grads_matmul, grads_gather)
+
+
+def _barf_weights(step, start, end, num_levels):
+  """BARF's eq. 14 written out in NumPy, float64: alpha from 0 to L - 1, level 0 always open."""
+  alpha = min(max((step - start) / (end - start), 0.0), 1.0) * (num_levels - 1)
+  weights = [1.0]
+  for level in range(1, num_levels):
+    x = min(max(alpha - level + 1, 0.0), 1.0)
+    weights.append((1.0 - np.cos(np.pi * x)) / 2.0)
+  return np.array(weights)
+
+
+@pytest.mark.parametrize("step", [0, 100, 101, 150, 237.5, 300, 399, 400, 1000])
+def test_coarse_to_fine_weights_are_barfs(step):
+  got = np.asarray(encodings.coarse_to_fine_weights(step, 100, 400, 8))
+  np.testing.assert_allclose(got, _barf_weights(step, 100, 400, 8), atol=1e-6)
+  if step <= 100:
+    np.testing.assert_array_equal(got, [1.0] + [0.0] * 7)  # before the start: the coarsest level only
+  if step >= 400:
+    np.testing.assert_array_equal(got, np.ones(8))  # from the end on: exactly 1, every level whole
+  assert np.all(np.diff(got) <= 0)  # a finer level never opens before a coarser one
+
+
+def test_coarse_to_fine_weights_rise_with_the_step():
+  weights = np.stack([encodings.coarse_to_fine_weights(s, 0, 50, 5) for s in range(0, 60, 5)])
+  assert np.all(np.diff(weights, axis=0) >= 0)
+  assert weights[5, 2] == pytest.approx(1.0) and weights[5, 3] == 0.0  # halfway: levels 0-2 open, 3-4 shut
+
+
+def test_closed_levels_give_no_features_and_no_gradients_and_open_ones_are_the_plain_encoding():
+  grid, params = _grid_and_params()
+  x = jax.random.uniform(jax.random.key(5), (64, 3))
+  opened = jnp.array([1.0, 0.5, 0.0])
+  loss = lambda p, o: jnp.sum(grid.apply(p, x, None, o) ** 2)
+  features = np.asarray(grid.apply(params, x, None, opened))
+  plain = np.asarray(grid.apply(params, x))
+  np.testing.assert_array_equal(features[:, :2], plain[:, :2])
+  np.testing.assert_allclose(features[:, 2:4], 0.5 * plain[:, 2:4], rtol=1e-6)
+  np.testing.assert_array_equal(features[:, 4:], 0.0)
+  grads = jax.grad(loss)(params, opened)["params"]
+  assert np.abs(grads["level_0"]).max() > 0 and np.abs(grads["level_1"]).max() > 0
+  np.testing.assert_array_equal(grads["level_2"], 0.0)  # a shut level does not learn
+  # Every level open: the plain encoding to the bit, values and gradients.
+  np.testing.assert_array_equal(grid.apply(params, x, None, jnp.ones(3)), plain)
+  jax.tree.map(np.testing.assert_array_equal, jax.grad(loss)(params, jnp.ones(3)),
+               jax.grad(lambda p: jnp.sum(grid.apply(p, x) ** 2))(params))

@@ -94,6 +94,8 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "model.regions=4 cuts the world into regions, but render.space=contract"),
     ({"model.regions": 4, "render.num_importance": 8, "render.proposal_samples": ()},
      "model.regions=4 renders each region's segment with proposal or stratified samples"),
+    ({"train.coarse_to_fine": (0.1, 0.5), "model.field": "mlp"},
+     "train.coarse_to_fine='(0.1,0.5)' opens the hash grid's levels one by one, and this run has model.field=mlp"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))

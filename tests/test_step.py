@@ -1,4 +1,6 @@
 """The sharded train step: same loss and parameters on 8 simulated devices as on one."""
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -198,3 +200,53 @@ def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_b
   assert not compilation.gradient_mean_is_ordered(config, "cpu")
   config.compile.gradient_mean = "ordered"
   assert compilation.gradient_mean_is_ordered(config, "tpu")
+
+
+def test_coarse_to_fine_shuts_the_finer_levels_until_its_start_and_is_the_plain_step_from_its_end():
+  """train.coarse_to_fine (Options.coarse_to_fine, here steps (5, 10)): before step 5, only the NeRF field's
+  coarsest hash-grid level learns (a shut level's gradient is 0, so Adam leaves its table as it was) and the
+  proposal field is untouched by it; from step 10 on the step is the plain step's, to the bit."""
+  config = smoke_config(**{"train.batch_size": 128})
+  scene = scenes.load(config.data)
+  model = nerf_model.from_config(config)
+  optimizer = train_state.make_optimizer(config.train)
+  mesh = distributed.make_mesh()
+  batch = dict(data.ray_batches(scene.split("train"), 0, 128, slice(0, 128), 0.5, 1)[0])
+  batch.pop("step")
+  batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
+  key = jax.random.key(7)
+  make = lambda steps: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
+                                            step.Options(coarse_to_fine=steps))
+  c2f, plain = make((5, 10)), make(())
+  at = lambda s: train_state.initial_state(model, optimizer, 0, mesh).replace(  # noqa: E731
+      step=jax.device_put(jnp.int32(s), distributed.replicated(mesh)))
+
+  def two_steps(step_fn, start):  # (the schedule's warm-up gives the first update a learning rate of 0)
+    state = step_fn(at(start), batch, key)[0]
+    return jax.device_get(step_fn(state, batch, key))
+
+  before = jax.device_get(at(0).params)["params"]
+  after = two_steps(c2f, 0)[0].params["params"]
+  grid_before, grid_after = before["coarse"]["grid"], after["coarse"]["grid"]
+  levels = config.model.hashgrid.num_levels
+  assert sorted(grid_before) == [f"level_{i}" for i in range(levels)]
+  assert np.abs(grid_after["level_0"] - grid_before["level_0"]).max() > 0
+  for i in range(1, levels):
+    np.testing.assert_array_equal(grid_after[f"level_{i}"], grid_before[f"level_{i}"])
+  # The proposal round's own grid is not the NeRF field's: it learns at every level (the interlevel loss).
+  proposal = [k for k in after if k.startswith("proposal")][0]
+  last = f"level_{config.model.proposal.num_levels - 1}"
+  assert np.abs(after[proposal]["grid"][last] - before[proposal]["grid"][last]).max() > 0
+
+  late_c2f, late_plain = two_steps(c2f, 10), two_steps(plain, 10)
+  jax.tree.map(np.testing.assert_array_equal, late_c2f, late_plain)
+  finest = f"level_{levels - 1}"
+  assert np.abs(late_c2f[0].params["params"]["coarse"]["grid"][finest] - grid_before[finest]).max() > 0
+
+
+def test_options_take_coarse_to_fine_as_steps_of_the_run():
+  comps = types.SimpleNamespace(config=smoke_config(**{"train.num_steps": 300, "train.coarse_to_fine": (0.1, 0.5)}),
+                                compiler_options=None)
+  assert step.Options.of(comps, 1, backend="cpu").coarse_to_fine == (30, 150)
+  comps.config = smoke_config()
+  assert step.Options.of(comps, 1, backend="cpu").coarse_to_fine == ()

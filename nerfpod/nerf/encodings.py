@@ -89,9 +89,11 @@ class HashGridEncoding(nn.Module):
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
 
   @nn.compact
-  def __call__(self, x_Nx3, scales_N=None):
+  def __call__(self, x_Nx3, scales_N=None, opened_L=None):
     """The features (N, num_levels * features_per_level); with `scales_N`, each point's footprint (a standard
-    deviation, in the unit cube's units), each level's features weighted by level_weights (Zip-NeRF)."""
+    deviation, in the unit cube's units), each level's features weighted by level_weights (Zip-NeRF); with
+    `opened_L` (num_levels,), each level's features (and so its gradients) times its weight
+    (coarse_to_fine_weights)."""
     table_size = 2**self.log2_table_size
     outputs = []
     resolutions = level_resolutions(self.num_levels, self.base_resolution, self.max_resolution)
@@ -104,6 +106,8 @@ class HashGridEncoding(nn.Module):
         feats = level_gather(table, x_Nx3, res)
       if scales_N is not None:
         feats = feats * level_weights(scales_N, res)[..., None]
+      if opened_L is not None:
+        feats = feats * opened_L[level]
       outputs.append(feats)
     return jnp.concatenate(outputs, axis=-1)
 
@@ -114,6 +118,18 @@ def level_weights(scales_N, resolution: int):
   footprint spans less than a cell (the level resolves it), falling towards 0 where it spans many (there the
   level's features would alias: detail no pixel of that size resolves). sigma = 0 gives exactly 1."""
   return jax.scipy.special.erf(1.0 / jnp.maximum(jnp.sqrt(8.0) * scales_N * resolution, 1e-30))
+
+
+def coarse_to_fine_weights(step, start_step: int, end_step: int, num_levels: int):
+  """BARF's coarse-to-fine weights (Lin et al. 2021, eq. 14) of a hash grid's levels at training `step`:
+  alpha rises linearly from 0 at `start_step` to num_levels - 1 at `end_step`, and level l >= 1 has weight
+  (1 - cos(pi * clip(alpha - l + 1, 0, 1))) / 2, so the levels open one after another, each smoothly; level 0
+  (the coarsest) is always open, as BARF keeps its raw input. (num_levels,) float32: all 0 but level 0 up to
+  `start_step`, exactly 1 from `end_step` on."""
+  progress = jnp.clip((jnp.asarray(step, jnp.float32) - start_step) / max(end_step - start_step, 1), 0.0, 1.0)
+  alpha = progress * (num_levels - 1)
+  x = jnp.clip(alpha - jnp.arange(num_levels, dtype=jnp.float32) + 1.0, 0.0, 1.0)
+  return jnp.where(x >= 1.0, 1.0, (1.0 - jnp.cos(jnp.pi * x)) / 2.0)
 
 
 def level_gather(table_RxF, x_Nx3, resolution: int):

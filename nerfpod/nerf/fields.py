@@ -64,7 +64,8 @@ class HashGridField(nn.Module):
   with appearance codes (`codes_NxA`, each point's ray's frame's), the code (nerfacto's colour head).
   With `scale_aware` and each point's footprint (`scales_N`, a standard deviation in world units of the
   field's space), each level's features are weighted by how well its cells resolve it
-  (encodings.level_weights, Zip-NeRF's downweighting).
+  (encodings.level_weights, Zip-NeRF's downweighting). `opened_L`: the levels' coarse-to-fine weights during
+  training (encodings.coarse_to_fine_weights), None for every level whole.
   """
   # Sizes and switches come from config.model.hashgrid and config.model; no defaults here.
   bound: float
@@ -81,7 +82,7 @@ class HashGridField(nn.Module):
   matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
 
   @nn.compact
-  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None, scales_N=None):
+  def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None, scales_N=None, opened_L=None):
     unit = (points_Nx3 + self.bound) / (2.0 * self.bound)
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
     unit_scales = None
@@ -89,7 +90,8 @@ class HashGridField(nn.Module):
       unit_scales = jax.lax.stop_gradient(scales_N) / (2.0 * self.bound)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, self.matmul_max_rows, name="grid")(jnp.clip(unit, 0.0, 1.0), unit_scales)
+        self.max_resolution, self.matmul_max_rows, name="grid")(jnp.clip(unit, 0.0, 1.0), unit_scales,
+                                                                opened_L)
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
     h = dense(1 + self.geo_features, "density_out")(h).astype(jnp.float32)

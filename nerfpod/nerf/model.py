@@ -82,11 +82,11 @@ renders every region and composites: one device holding the whole model. K = 1 i
     return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
   grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
 
-  def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes):
+  def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes, opened=None):
     points = self._points(origins, directions, t_RxS)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
-                       **self._footprints(origins, directions, t_RxS))
+                       **self._footprints(origins, directions, t_RxS), **_opened(opened))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(points.shape[:-1]), t_RxS,
                                  directions, self.near_gradient_distance)
     out = compositing.composite(rgb, sigma, t_RxS, directions, last_delta=self.last_delta,
@@ -128,12 +128,13 @@ renders every region and composites: one device holding the whole model. K = 1 i
 
   @nn.compact
   def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None,
-               region_ids=None):
+               region_ids=None, opened=None):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
     near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
     (R, n) array of numbers in [0, 1) per entry of `sample_counts()`, or none at all (evaluation); frames:
-    (R,) int32 training-frame index of each ray (training), or None.
+    (R,) int32 training-frame index of each ray (training), or None; opened: the hash grid's levels'
+    coarse-to-fine weights (num_levels,) for the NeRF field (training with train.coarse_to_fine), or None.
     """
     if self.regions > 1:
       # render_partials' (with `region_ids`), or every region here, composited: uniforms (K, R, n) per round.
@@ -156,12 +157,12 @@ renders every region and composites: one device holding the whole model. K = 1 i
                                        self.model_config.hashgrid.bound)
     if self.proposal_samples:
       return [self._proposal_render(origins_Rx3, directions_Rx3, viewdirs, near, far, background, uniforms,
-                                    codes)]
+                                    codes, opened)]
     t = self._distances(near, far, self.num_samples, uniforms[0])
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
                                    matmul_max_rows=self.grid_matmul_max_rows)
-    coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes)
+    coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes, opened)
     if self.num_importance == 0:
       return [coarse]
     # Importance samples are drawn in s, where the coarse samples are evenly spread ('linear': s is t).
@@ -176,7 +177,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
                                    matmul_max_rows=self.grid_matmul_max_rows)
-    fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes)
+    fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes, opened)
     return [coarse, fine]
 
   @property
@@ -242,7 +243,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     points = _ray_points(origins, directions, t_RxS)
     return coord.contract(points) if self.space == "contract" else points
 
-  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms, codes):
+  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms, codes, opened=None):
     if self.spacing == "linear":
       warp = sampling.linear_warp(near, far)
     else:  # even in s is even in inverse distance
@@ -269,7 +270,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
-                       **self._footprints(origins, directions, t_mids))
+                       **self._footprints(origins, directions, t_mids), **_opened(opened))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
                                 self.near_gradient_distance)
     out = compositing.composite_intervals(rgb, sigma, t_edges, directions, background=background)
@@ -365,6 +366,12 @@ _scale_gradient.defvjp(lambda x, scale: (x, scale),
 def _ray_points(origins_Rx3, directions_Rx3, t_RxS):
   """The points (R, S, 3) at distances t along the rays, in the world (before any contraction)."""
   return origins_Rx3[..., None, :] + t_RxS[..., None] * directions_Rx3[..., None, :]
+
+
+def _opened(opened_L) -> dict:
+  """The NeRF field's keyword for the levels' coarse-to-fine weights: none where every level is whole (the
+  field's call, and so the program, as without the option)."""
+  return {} if opened_L is None else {"opened_L": opened_L}
 
 
 def _per_point(codes_RxA, sample_shape) -> tuple:

@@ -21,7 +21,7 @@ from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
 from nerfpod.render.metrics import mse_to_psnr
 from nerfpod.nerf import model as nerf_model
-from nerfpod.nerf import regions, stepfun
+from nerfpod.nerf import encodings, regions, stepfun
 
 
 def per_ray_uniforms(key, ray_ids, count: int):
@@ -44,6 +44,8 @@ class Options:
   update_under_cond: bool | None = None  # None: compilation.update_under_cond() for JAX's backend
   compiler_options: dict | None = None
   grad_clip: float = 0.0  # model.regions > 1: the step clips the global gradient norm (make_optimizer(clip=False))
+  # (start, end) steps of the hash grid's coarse-to-fine opening (train.coarse_to_fine as steps); (): off
+  coarse_to_fine: tuple = ()
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -53,7 +55,8 @@ class Options:
     tc = config.train
     return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
-               comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0)
+               comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
+               coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine))
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -77,6 +80,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   With proposal sampling (model.proposal_samples), the loss adds `interlevel_weight` times mip-NeRF 360's
   interlevel loss of every proposal round and `distortion_weight` times the distortion loss of the NeRF's
   weights; both are also returned as metrics.
+  With `coarse_to_fine` (start, end) steps, the NeRF field's hash-grid levels open one after another between
+  them (encodings.coarse_to_fine_weights of the state's step; BARF's schedule); the held-out views, the orbit
+  and the exports render every level whole, as the step does from `end` on.
   """
   background = jnp.asarray(background, jnp.float32)
   random_background, microbatches = options.random_background, options.microbatches
@@ -90,7 +96,12 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   axes = distributed.batch_axes(mesh)
   axis_sizes = tuple(mesh.shape[name] for name in mesh.axis_names)
 
-  def loss_fn(params, batch, key):
+  def opened(step):
+    if not options.coarse_to_fine:
+      return None
+    return encodings.coarse_to_fine_weights(step, *options.coarse_to_fine, model.model_config.hashgrid.num_levels)
+
+  def loss_fn(params, batch, key, step):
     # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
     uniforms = [per_ray_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count)
                 for i, count in enumerate(model.sample_counts())]
@@ -99,7 +110,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
     levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms,
-                         frames=batch.get("frame"))  # per-frame appearance and pose corrections, where on
+                         frames=batch.get("frame"),  # per-frame appearance and pose corrections, where on
+                         opened=opened(step))
     mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
     loss = jnp.sum(mses)
     extra = {}
@@ -128,16 +140,16 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
 
   value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
 
-  def accumulate(params, batch, key):
+  def accumulate(params, batch, key, step):
     """(loss, mses), grads of the mean over this device's rays, one micro-batch at a time."""
     if microbatches == 1:
-      return value_and_grad(params, batch, key)
+      return value_and_grad(params, batch, key, step)
     slices = jax.tree.map(lambda x: x.reshape((microbatches, -1) + x.shape[1:]), batch)
     def body(total, micro):
-      value, grads = value_and_grad(params, micro, key)
+      value, grads = value_and_grad(params, micro, key, step)
       return jax.tree.map(lambda a, b: a + b / microbatches, total, (value, grads)), None
     zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(value_and_grad, params,
-                                                        jax.tree.map(lambda x: x[0], slices), key))
+                                                        jax.tree.map(lambda x: x[0], slices), key, step))
     return jax.lax.scan(body, zeros, slices)[0]
 
   def local_step(state, batch, key):
@@ -146,7 +158,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
     # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
     # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
     params = vary(state.params)
-    (loss, (mses, extra)), grads = accumulate(params, batch, key)
+    (loss, (mses, extra)), grads = accumulate(params, batch, key, state.step)
     grads, loss, mses, extra = reduce((grads, loss, mses, extra))
     # A non-finite loss or gradient never reaches the state: the step is skipped (the parameters and Adam's
     # moments and count stay as they were; the data moves on) and counted in metrics["skipped"]. The test is
@@ -184,8 +196,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
 
 
 def _region_loss_fn(model, mesh, near: float, far: float, background, options: Options):
-  """loss_fn(params, batch, key) of a model of K regions (model.regions > 1) on `mesh`, whose region axis (of
-  size K / L, or none: L = K) gives each device L regions: it renders each ray through its own regions
+  """loss_fn(params, batch, key, step) of a model of K regions (model.regions > 1) on `mesh`, whose region axis
+  (of size K / L, or none: L = K) gives each device L regions: it renders each ray through its own regions
   (NeRF.render_partials), gathers every region's partial sums of its rays over the region axis and composites
   them in ray order (regions.composite_regions): the loss is the whole ray's, the same on every device of the
   region axis.
@@ -207,7 +219,8 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
     return x if axis_size == 1 else distributed.gather_regions(x)
 
-  def loss_fn(params, batch, key):
+  def loss_fn(params, batch, key, step):  # (step: the schema refuses train.coarse_to_fine with regions)
+    del step
     first = jax.lax.axis_index(distributed.REGION_AXIS) * local if axis_size > 1 else 0
     ids = first + jnp.arange(local)
     # Region r's numbers of round i: stream i (as the one-field model's), then r folded in.
