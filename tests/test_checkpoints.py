@@ -12,7 +12,7 @@ import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import distributed
+from nerfpod import distributed, schema
 from nerfpod.run import preemption
 from nerfpod.workdir import checkpoints, files as workdir_files
 from nerfpod.errors import UserError
@@ -202,14 +202,23 @@ def test_restoring_a_state_of_another_shape_is_one_sentence_and_keeps_the_checkp
 
 
 def test_a_config_json_this_version_does_not_know_is_one_sentence(tmp_path):
-  """The viewer and the exports read a run's config.json: one that lacks a field (another nerfpod version's)
-  is refused in one sentence naming the field; a whole one reads as written."""
+  """The viewer, the exports and --mode=eval read a run's config.json: one that lacks a field (written before
+  the field was added) reads back with it at its default, what that run did (as a resume counts it); one
+  holding a field this version does not know (another nerfpod version's) is refused in one sentence naming
+  the field; a whole one reads as written."""
   config = _config_json()
   (tmp_path / "config.json").write_text(json.dumps(config))
   assert workdir_files.read_config(str(tmp_path)).train.seed == config["train"]["seed"]
-  del config["eval"]["lpips_net"]
+  config["eval"]["lpips_net"] = "vgg"
+  del config["eval"]["pose_fit"], config["train"]["coarse_to_fine"]
   (tmp_path / "config.json").write_text(json.dumps(config))
-  with pytest.raises(UserError, match=r"config.json holds a config this nerfpod version refuses \(.*eval.lpips_net"
+  read = workdir_files.read_config(str(tmp_path))
+  assert read.eval.pose_fit == schema.FIELDS["eval.pose_fit"].default == "refined"
+  assert tuple(read.train.coarse_to_fine) == schema.FIELDS["train.coarse_to_fine"].default
+  assert read.eval.lpips_net == "vgg" and read.train.seed == config["train"]["seed"]  # what it holds wins
+  config["eval"]["lpips_network"] = "alex"
+  (tmp_path / "config.json").write_text(json.dumps(config))
+  with pytest.raises(UserError, match=r"config.json holds a config this nerfpod version refuses \(.*eval.lpips_network"
                                       r".*\); use the nerfpod version that trained it."):
     workdir_files.read_config(str(tmp_path))
 

@@ -36,6 +36,17 @@ def incompatible_fields(saved: dict, current: dict) -> list[str]:
                                           for p in RESUMABLE_CHANGES)]
 
 
+def _with_defaults(defaults: dict, saved: dict) -> dict:
+  """`saved` (a workdir's config.json) with each field it lacks at its schema default, as incompatible_fields
+  counts it: a workdir written before a field existed reads back as the run it was. What `saved` holds wins,
+  fields this version does not know included (the schema refuses those)."""
+  out = dict(defaults)
+  for key, value in saved.items():
+    out[key] = (_with_defaults(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict)
+                else value)
+  return out
+
+
 def check_workdir(workdir: str, writable: bool) -> None:
   """Refuses, in one sentence each, a --workdir that is a file, or (`writable`: training) one that cannot be
   made or written. gs:// paths are left to their own errors."""
@@ -138,8 +149,8 @@ def write_regions(workdir: str, cut: str, region_planes) -> None:
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
-  """The run's config from workdir/config.json (earlier field names renamed), checked by the schema; a
-  missing, unreadable or unreachable one is one sentence. For the tools that take only a --workdir."""
+  """The run's config from workdir/config.json (a field it lacks, added since the run, at its default),
+  checked by the schema; a missing, unreadable or unreachable one is one sentence. For the tools that take only a --workdir."""
   storage.check_reachable(workdir)  # no network: one sentence now, not after a bucket client's retries
   path = storage.path(workdir) / "config.json"
   try:
@@ -161,7 +172,7 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
       raise ValueError("not a JSON object")
   except ValueError as e:
     raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
-  config = ml_collections.ConfigDict(tree)
+  config = ml_collections.ConfigDict(_with_defaults(schema.defaults().to_dict(), tree))
   try:
     schema.validate(config)
   except schema.ConfigError as e:  # its fixes name command-line overrides, which these tools do not take
