@@ -51,6 +51,8 @@ def shrink_for_smoke(c: ml_collections.ConfigDict) -> None:
   c.eval.max_views = 2
   c.eval.chunk = 1024
   c.eval.lpips_net = "none"  # PSNR and SSIM only: LPIPS's network costs each short run more than its steps
+  c.eval.pose_steps = 5      # (runs with pose refinement fit each held-out camera: a few steps of few rays)
+  c.eval.pose_rays = 64
   c.orbit.num_frames = 4
   c.orbit.width = 16
   c.orbit.height = 16

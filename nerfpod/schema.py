@@ -350,6 +350,16 @@ FIELDS: dict[str, Field] = _declare({
     "eval.appearance_lr": (0.01, number(above=0.0, example=0.01), "learning rate of that fit (Adam)"),
     "eval.appearance_rays": (1024, integer(1, example=1024),
         "random rays of the left half per step of that fit (rounded up to a multiple of the device count)"),
+    "eval.pose_fit": ("refined", choice("refined", "always", "never"),
+        "BARF's test-time pose optimisation of each held-out camera (the field frozen; eval/metrics.json's "
+        "poses_optimised): for runs with train.pose_refine ('refined'), for every run ('always': the same "
+        "protocol for a run without, to compare), or 'never'"),
+    "eval.pose_steps": (100, integer(1, example=100),
+        "Adam steps of that fit, each on eval.pose_rays random pixels of the whole view"),
+    "eval.pose_lr": (1e-3, number(above=0.0, example=1e-3),
+        "learning rate of that fit (radians and scene units), decayed log-linearly to a tenth at its last step"),
+    "eval.pose_rays": (1024, integer(1, example=1024),
+        "random rays of the view per step of that fit (rounded up to a multiple of the device count)"),
 
     "orbit.render_after_training": (True, boolean(), "render the orbit (archive + videos) when training ends"),
     "orbit.path": ("orbit", choice("orbit", "spiral", "ellipse", "file"),

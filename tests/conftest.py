@@ -152,8 +152,8 @@ LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 75, 
 
 
 # The files that read the session's smoke run (smoke_run above) or its default job (default_run: test_golden,
-# test_export) go to one worker, which trains each once.
-SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view")
+# test_export, test_eval_protocols) go to one worker, which trains each once.
+SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view", "test_eval_protocols")
 
 
 def pytest_collection_modifyitems(config, items):

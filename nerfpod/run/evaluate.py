@@ -110,19 +110,28 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
   held-out cameras mapped into the refined cameras' frame: its similarity, views and means); one with
   appearance codes and eval.appearance_steps > 0 adds "appearance_half" (NeRF-W's: each view's code fitted
   on its left half, metrics on its right half, beside the mean code's on that same half under "mean_code";
-  through the aligned cameras where there are; not for a model of several regions, whose fields the fit's
-  program does not shard)."""
+  through the aligned cameras where there are); eval.pose_fit ('refined': runs with pose refinement) adds
+  "poses_optimised" (BARF's: each held-out camera's pose fitted to its whole image from the aligned pose, or
+  the given one, metrics from the fitted pose, each view's fitted correction beside them). Neither fit is made
+  for a model of several regions, whose fields their programs do not shard."""
   config = comps.config
   split = comps.scene.split(config.eval.split)
   evaluator, why_not = _lpips_evaluator(comps)
   plain = _Scores(evaluator, comps.mesh.size)
   similarity = protocols.gauge(params, comps.scene.split("train").poses)
   aligned = None if similarity is None else _Scores(evaluator, comps.mesh.size)
+  ordered = compilation.gradient_mean_is_ordered(config)
   fit = protocols.has_codes(params) and config.eval.appearance_steps > 0 and comps.model.regions == 1
   if fit:
     fitter = protocols.make_code_fitter(comps.render_model, comps.mesh, comps.near, comps.far, comps.background,
-                                        config.eval.appearance_lr, compilation.gradient_mean_is_ordered(config))
+                                        config.eval.appearance_lr, ordered)
     half, half_mean = _Scores(evaluator, comps.mesh.size), _Scores(evaluator, comps.mesh.size)
+  fit_poses = comps.model.regions == 1 and (
+      config.eval.pose_fit == "always" or (config.eval.pose_fit == "refined" and similarity is not None))
+  if fit_poses:
+    pose_fitter = protocols.make_pose_fitter(comps.render_model, comps.mesh, comps.near, comps.far,
+                                             comps.background, config.eval.pose_lr, config.eval.pose_steps, ordered)
+    optimised, corrections = _Scores(evaluator, comps.mesh.size), []
   for index, out in render_views(comps, params):
     rgb = np.clip(out["rgb"], 0.0, 1.0)
     truth = split.image(index)
@@ -148,6 +157,14 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
       got = renderer.render_rays(comps.renderer, protocols.with_code(params, code), comps.mesh,
                                  origins.reshape(-1, 3), directions.reshape(-1, 3), config.eval.chunk)
       half.add(entry, np.clip(got["rgb"].reshape(origins.shape), 0.0, 1.0), _right_half(truth))
+    if fit_poses:
+      fitted, correction = protocols.fit_pose(pose_fitter, params, comps.mesh, pose, intr, truth,
+                                              config.data.pixel_center, config.eval.pose_steps,
+                                              config.eval.pose_rays, seed=config.train.seed * 1_000_003 + index)
+      out = renderer.render_image(comps.renderer, params, comps.mesh, fitted, intr, config.data.pixel_center,
+                                  config.eval.chunk)
+      optimised.add(entry, np.clip(out["rgb"], 0.0, 1.0), truth)
+      corrections.append(protocols.describe_correction(correction))
   views, mean = plain.result()
   result = {"step": int(step), "scene": comps.scene.name, "split": config.eval.split,
             "lpips_net": None if evaluator is None else evaluator.net, "views": views, "mean": mean,
@@ -168,11 +185,22 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
         "steps": int(config.eval.appearance_steps), "lr": float(config.eval.appearance_lr),
         "rays_per_step": int(config.eval.appearance_rays), "views": half_views, "mean": half_means,
         "mean_code": mean_means}
+  if fit_poses:
+    optimised_views, optimised_mean = optimised.result()
+    for view, correction in zip(optimised_views, corrections):
+      view["correction"] = correction
+    result["poses_optimised"] = {
+        "protocol": protocols.POSES_OPTIMISED, "cameras": "plain" if similarity is None else "aligned",
+        "steps": int(config.eval.pose_steps), "lr": float(config.eval.pose_lr),
+        "rays_per_step": int(config.eval.pose_rays), "views": optimised_views, "mean": optimised_mean,
+        "correction": {name: float(np.median([c[name] for c in corrections])) for name in ("rotation_deg",
+                                                                                           "translation")}}
   if jax.process_index() == 0:
     workdir_files.write_json(storage.path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
     if writer is not None:
       for name in METRICS:
-        for key, tag in ((None, ""), ("poses_aligned", "aligned/"), ("appearance_half", "appearance_half/")):
+        for key, tag in ((None, ""), ("poses_aligned", "aligned/"), ("appearance_half", "appearance_half/"),
+                         ("poses_optimised", "poses_optimised/")):
           block = result if key is None else result.get(key)
           if block is not None and block["mean"][name] is not None:
             writer.add_scalar(f"eval/{config.eval.split}/{tag}{name}", block["mean"][name], step)
@@ -186,6 +214,11 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
       block = result["appearance_half"]
       print(f"eval {config.eval.split}, right halves: codes fitted on the left halves {_summary(block['mean'])}; "
             f"the mean code {_summary(block['mean_code'])}", flush=True)
+    if "poses_optimised" in result:
+      block = result["poses_optimised"]
+      print(f"eval {config.eval.split}, held-out cameras fitted to their images: {_summary(block['mean'])} "
+            f"(median correction {block['correction']['rotation_deg']:.3f} deg, "
+            f"{block['correction']['translation']:.4f} units)", flush=True)
   return result
 
 
