@@ -239,9 +239,9 @@ def test_a_workdir_written_before_train_pose_pin_mean_resumes_with_it_at_its_def
 
 @pytest.mark.slow
 def test_the_main_jobs_held_out_cameras_moved_by_half_a_degree_are_found_again(default_run):
-  """The main job's model (conftest.default_run, also the README's headline metrics), two of its test views
-  whose cameras are turned by 0.5 degrees about a random axis and moved by 0.01 units (about 1.2 pixels): from
-  the moved cameras their PSNR falls by several dB; the pose fit at the config's settings (eval.pose_*),
+  """The main job's model (conftest.default_run, also the README's headline metrics), a test view whose camera
+  is turned by 0.5 degrees about a random axis and moved by 0.01 units (about 1.2 pixels): from the moved
+  camera its PSNR falls by several dB (27.8 -> 18.4); the pose fit at the config's settings (eval.pose_*),
   started there, ends within 0.3 dB of the given cameras' PSNR and nearer the true cameras than it started."""
   from nerfpod.run import trained
   assert default_run.result.returncode == 0, default_run.result.stderr[-3000:]
@@ -251,7 +251,7 @@ def test_the_main_jobs_held_out_cameras_moved_by_half_a_degree_are_found_again(d
   fitter = protocols.make_pose_fitter(comps.render_model, comps.mesh, comps.near, comps.far, comps.background,
                                       config.eval.pose_lr, config.eval.pose_steps)
   rng = np.random.default_rng(7)
-  for index in (0, 1):
+  for index in (0,):
     true, intr, truth = np.asarray(split.poses[index], np.float64), split.cameras[index], split.image(index)
     axis, direction = rng.normal(size=3), rng.normal(size=3)
     move = np.concatenate([0.01 * direction / np.linalg.norm(direction), np.radians(0.5) * axis / np.linalg.norm(axis)])
