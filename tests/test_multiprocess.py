@@ -34,7 +34,10 @@ OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.
              "model.appearance_dim": 4,
              # NeRF-W's half-image code fit at evaluation, checked 2 x 4 against 1 x 8 below: a few steps on a
              # few rays each do that (its default 100 steps of 1,024 rays took 7 of a warm run's 20 s).
-             "eval.appearance_steps": 5, "eval.appearance_rays": 64}
+             "eval.appearance_steps": 5, "eval.appearance_rays": 64,
+             # BARF's test-time pose fit (the smoke config's 5 steps of 64 rays), on a run without refinement
+             # ('always'): the same fitter, checked 2 x 4 against 1 x 8 below.
+             "eval.pose_fit": "always"}
 # How close two runs' parameters must be, per tensor: the norm of the difference relative to the tensor's
 # norm, and the fraction of entries off by more than 1e-3 of the tensor's largest magnitude. 2x4 and 1x8
 # devices sum the gradient mean in the same order (distributed.ordered_mean): on this config they give the
@@ -98,10 +101,14 @@ def test_two_processes_as_two_slices_and_one_device_follow_the_same_trajectory(r
   # NeRF-W's half-image code fit (the run has appearance codes): each process fits on its share of the rays,
   # the gradient averaged in the step's order; the fitted views agree to round-off (1e-8 relative seen).
   pod_half, one_half = pod_metrics.pop("appearance_half"), one_metrics.pop("appearance_half")
+  pod_fit, one_fit = pod_metrics.pop("poses_optimised"), one_metrics.pop("poses_optimised")  # likewise
   assert pod_metrics == one_metrics
-  for got, want in zip(pod_half["views"] + [pod_half["mean"]], one_half["views"] + [one_half["mean"]]):
+  for got, want in zip(pod_half["views"] + [pod_half["mean"]] + pod_fit["views"] + [pod_fit["mean"]],
+                       one_half["views"] + [one_half["mean"]] + one_fit["views"] + [one_fit["mean"]]):
     for name in ("psnr", "ssim"):
       assert got[name] == pytest.approx(want[name], rel=1e-6), (name, got, want)
+  for got, want in zip(pod_fit["views"], one_fit["views"]):
+    assert got["correction"] == pytest.approx(want["correction"], rel=1e-4, abs=1e-7)
 
   # Each process loaded its own half of every global batch, and the halves make up the whole batch.
   config = smoke_config(**OVERRIDES)
