@@ -25,26 +25,25 @@ RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
   """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
-  A field the saved config lacks counts as its schema default: a field added after the workdir was written
-  (train.pose_pin_mean, say) is one whose default is what that run did."""
-  a, b = schema.flatten(saved), schema.flatten(current)
-  for name in set(b) - set(a):
-    if name in schema.FIELDS and json.dumps(schema.FIELDS[name].default) == json.dumps(b[name]):
-      a[name] = b[name]  # (compared as JSON: a tuple is the list config.json holds)
+  A field the saved config lacks counts as its schema default (with_defaults)."""
+  a, b = schema.flatten(with_defaults(saved)), schema.flatten(current)
   differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
   return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
                                           for p in RESUMABLE_CHANGES)]
 
 
-def _with_defaults(defaults: dict, saved: dict) -> dict:
-  """`saved` (a workdir's config.json) with each field it lacks at its schema default, as incompatible_fields
-  counts it: a workdir written before a field existed reads back as the run it was. What `saved` holds wins,
-  fields this version does not know included (the schema refuses those)."""
-  out = dict(defaults)
-  for key, value in saved.items():
-    out[key] = (_with_defaults(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict)
-                else value)
-  return out
+def with_defaults(saved: dict) -> dict:
+  """`saved` (a workdir's config.json, as JSON loads it) with each field it lacks at its schema default, in
+  the same JSON form (a tuple is the list config.json holds): a field added after the workdir was written
+  (train.pose_pin_mean, say) is one whose default is what that run did, for a resume and for the tools that
+  read the workdir alike. What `saved` holds wins, fields this version does not know included (the schema
+  refuses those)."""
+  def merge(defaults: dict, given: dict) -> dict:
+    out = dict(defaults)
+    for key, value in given.items():
+      out[key] = merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+  return merge(json.loads(schema.defaults().to_json_best_effort()), saved)
 
 
 def check_workdir(workdir: str, writable: bool) -> None:
@@ -149,8 +148,9 @@ def write_regions(workdir: str, cut: str, region_planes) -> None:
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
-  """The run's config from workdir/config.json (a field it lacks, added since the run, at its default),
-  checked by the schema; a missing, unreadable or unreachable one is one sentence. For the tools that take only a --workdir."""
+  """The run's config from workdir/config.json (a field it lacks, added since the run, at its default:
+  with_defaults), checked by the schema; a missing, unreadable or unreachable one is one sentence. For the
+  tools that take only a --workdir."""
   storage.check_reachable(workdir)  # no network: one sentence now, not after a bucket client's retries
   path = storage.path(workdir) / "config.json"
   try:
@@ -172,7 +172,7 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
       raise ValueError("not a JSON object")
   except ValueError as e:
     raise UserError(f"{path} is not valid JSON ({e}); pass the --workdir of a nerfpod training run.") from None
-  config = ml_collections.ConfigDict(_with_defaults(schema.defaults().to_dict(), tree))
+  config = ml_collections.ConfigDict(with_defaults(tree))
   try:
     schema.validate(config)
   except schema.ConfigError as e:  # its fixes name command-line overrides, which these tools do not take
