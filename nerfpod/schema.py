@@ -121,6 +121,11 @@ def integers(low: int = 0) -> Field:
                f"a tuple of integers >= {low}", (low,), ((low - 1,),))
 
 
+def numbers(low: float = 0.0) -> Field:
+  return Field(lambda v: isinstance(v, (tuple, list)) and all(_is_number(i) and i >= low for i in v),
+               f"a tuple of numbers >= {low:g}", (0.03,), ((low - 1.0,),))
+
+
 def step_range() -> Field:
   """() (off) or (first, last): steps counted from 1, first <= last."""
   return Field(lambda v: isinstance(v, (tuple, list)) and (len(v) == 0 or (
@@ -268,6 +273,10 @@ FIELDS: dict[str, Field] = _declare({
     "train.grad_clip": (0.0, number(0.0), "clip the global gradient norm to this; 0: no clipping"),
     "train.interlevel_weight": (1.0, number(0.0, example=1.0),
         "proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)"),
+    "train.interlevel_blur": ((), numbers(0.0),
+        "Zip-NeRF's anti-aliased interlevel loss: one box half-width per proposal round, in normalised ray "
+        "distance (Zip-NeRF: (0.03, 0.003)), the NeRF's weights blurred by it before the proposals bound "
+        "them; (): mip-NeRF 360's loss"),
     "train.distortion_weight": (0.0, number(0.0, example=0.002),
         "proposal sampling: weight of the distortion loss (eq. 15); 0: off"),
     "train.near_gradient_distance": (0.0, number(0.0, example=1.0),
@@ -490,6 +499,13 @@ def _rules(c: dict) -> list[str]:
                f"contracted space, and this run has model.field={c['model.field']}, render.space="
                f"{c['render.space']}, model.regions={c['model.regions']}; use it with model.field=hashgrid, "
                f"render.space euclidean or contract and one region (or --config.model.hashgrid.scale_aware=false).")
+  rounds = len(c["render.proposal_samples"])
+  if c["train.interlevel_blur"] and len(c["train.interlevel_blur"]) != rounds:
+    fix = (f"give one radius per round (e.g. --config.train.interlevel_blur={_show((0.03,) * rounds)}) or "
+           if rounds else "")
+    out.append(f"train.interlevel_blur={_show(c['train.interlevel_blur'])} blurs the interlevel loss of each "
+               f"proposal round, and render.proposal_samples={_show(c['render.proposal_samples'])} has {rounds}: "
+               f"{fix}use --config.train.interlevel_blur='()'.")
   if c["train.coarse_to_fine"] and (c["model.field"] != "hashgrid" or c["model.regions"] > 1):
     out.append(f"train.coarse_to_fine={_show(c['train.coarse_to_fine'])} opens the hash grid's levels one by one, "
                f"and this run has model.field={c['model.field']}, model.regions={c['model.regions']}; use it "

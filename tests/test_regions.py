@@ -208,3 +208,12 @@ def test_interlevel_loss_per_segment_sums_to_the_whole_rays_where_the_prefixes_a
 
   whole = stepfun.interlevel_loss(*union(nerf), *union(env))
   np.testing.assert_allclose(total, whole, rtol=1e-5, atol=1e-8)
+  # Zip-NeRF's form (train.interlevel_blur) at radius 0, the NeRF's histogram resampled onto the proposal's
+  # intervals: per segment it sums to the whole ray's too (a radius > 0 blurs weight across the segments'
+  # ends, which no segment sees, so there the sum is the whole ray's less that).
+  blurred = sum(regions.interlevel_loss(nerf[k][0], nerf[k][1] / prefix[k][:, None], env[k][0],
+                                        env[k][1] / prefix[k][:, None], jnp.asarray(prefix[k]), radius=0.0)
+                for k in range(count))
+  np.testing.assert_allclose(blurred, stepfun.blurred_interlevel_loss(*union(nerf), *union(env), 0.0),
+                             rtol=1e-4, atol=1e-8)
+  assert np.all(np.abs(np.asarray(blurred) - np.asarray(total)) > 0)  # another loss than mip-NeRF 360's

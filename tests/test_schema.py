@@ -96,6 +96,12 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "model.regions=4 renders each region's segment with proposal or stratified samples"),
     ({"train.coarse_to_fine": (0.1, 0.5), "model.field": "mlp"},
      "train.coarse_to_fine='(0.1,0.5)' opens the hash grid's levels one by one, and this run has model.field=mlp"),
+    ({"train.interlevel_blur": (0.03, 0.003)},
+     "train.interlevel_blur='(0.03,0.003)' blurs the interlevel loss of each proposal round, and "
+     "render.proposal_samples='(16,)' has 1: give one radius per round (e.g. "
+     "--config.train.interlevel_blur='(0.03,)') or use --config.train.interlevel_blur='()'."),
+    ({"train.interlevel_blur": (0.03,), "render.proposal_samples": ()},
+     "render.proposal_samples='()' has 0: use --config.train.interlevel_blur='()'."),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))

@@ -250,3 +250,36 @@ def test_options_take_coarse_to_fine_as_steps_of_the_run():
   assert step.Options.of(comps, 1, backend="cpu").coarse_to_fine == (30, 150)
   comps.config = smoke_config()
   assert step.Options.of(comps, 1, backend="cpu").coarse_to_fine == ()
+
+
+def test_the_blurred_interlevel_loss_trains_the_proposals_alone_and_options_take_it_from_the_config():
+  """train.interlevel_blur (Options.interlevel_blur): the step's interlevel loss is Zip-NeRF's blurred one
+  (another number from the same state and batch), and it still reaches only the proposal field: after two
+  steps the NeRF field's parameters are those of the plain loss's step to the bit, the proposal's are not."""
+  config = smoke_config(**{"render.proposal_samples": (16,), "render.num_samples": 8, "train.batch_size": 64})
+  comps = types.SimpleNamespace(config=config, compiler_options=None)
+  assert step.Options.of(comps, 1, backend="cpu").interlevel_blur == ()
+  config.train.interlevel_blur = (0.03,)
+  assert step.Options.of(comps, 1, backend="cpu").interlevel_blur == (0.03,)
+  mesh = distributed.make_mesh()
+  scene = scenes.load(config.data)
+  model = nerf_model.from_config(config)
+  optimizer = train_state.make_optimizer(config.train)
+  batch = dict(data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 1)[0])
+  batch.pop("step")
+  batch = distributed.to_global(mesh, batch)
+  runs = []
+  for blur in ((), (0.03,)):
+    step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+                                    step.Options(interlevel_blur=blur))
+    state = train_state.initial_state(model, optimizer, 0, mesh)
+    state, first = step_fn(state, batch, jax.random.key(0))  # (the warm-up's first learning rate is 0)
+    state, _ = step_fn(state, batch, jax.random.key(1))
+    runs.append((jax.device_get(first), jax.device_get(state.params)["params"]))
+  (plain_metrics, plain), (blurred_metrics, blurred) = runs
+  assert float(plain_metrics["mse"]) == float(blurred_metrics["mse"])
+  assert float(blurred_metrics["interlevel"]) > 0.0
+  assert float(blurred_metrics["interlevel"]) != pytest.approx(float(plain_metrics["interlevel"]), rel=1e-3)
+  jax.tree.map(np.testing.assert_array_equal, plain["coarse"], blurred["coarse"])
+  proposal = [k for k in plain if k.startswith("proposal")][0]
+  assert any(np.any(a != b) for a, b in zip(jax.tree.leaves(plain[proposal]), jax.tree.leaves(blurred[proposal])))

@@ -175,3 +175,68 @@ def test_shapes_are_static(intervals):
   weights = jnp.ones((5, intervals))
   out = jax.eval_shape(lambda e, w: stepfun.sample_intervals(e, w, 7), edges, weights)
   assert out.shape == (5, 8)
+
+
+def _blurred_brute_force(edges, weights, query, radius, n: int = 200_000):
+  """The histogram's density blurred by a box of half-width `radius` (the mean of the density over
+  [x - radius, x + radius]: its exact CDF, piecewise linear, differenced), integrated over each query
+  interval by the midpoint rule on n points, in float64; radius 0: the exact CDF differenced."""
+  out = []
+  for e, w, q in zip(edges, weights, query):
+    cdf = lambda x: np.interp(x, e, np.concatenate([[0.0], np.cumsum(w)]))  # noqa: E731 (0 before, total after)
+    if radius == 0:
+      out.append(np.diff(cdf(q)))
+      continue
+    x = q[0] + (np.arange(n) + 0.5) / n * (q[-1] - q[0])
+    density = (cdf(x + radius) - cdf(x - radius)) / (2 * radius)
+    interval = np.clip(np.searchsorted(q, x, side="right") - 1, 0, len(q) - 2)
+    out.append(np.bincount(interval, density, len(q) - 1) * (q[-1] - q[0]) / n)
+  return np.array(out)
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.003, 0.03, 0.2])
+def test_blurred_weights_match_a_brute_force_blur_and_resampling(radius):
+  rng = np.random.default_rng(3)
+  edges, weights = _random_histograms(rng, 12, 10)
+  edges[:3, 4] = edges[:3, 5]  # zero-width intervals (weight on a point) occur too
+  query, _ = _random_histograms(rng, 12, 7)
+  got = np.asarray(stepfun.blurred_weights(*map(jnp.asarray, (edges, weights, query)), radius))
+  want = _blurred_brute_force(edges, weights, query, radius)
+  assert got.shape == (12, 7)
+  np.testing.assert_allclose(got, want, atol=2e-5)
+  if radius > 0:  # the blur moves weight: resampling alone does not give the same numbers
+    assert np.abs(want - _blurred_brute_force(edges, weights, query, 0.0)).max() > 1e-3
+
+
+def test_blurred_weights_keep_the_mass_and_give_exact_zeros_away_from_it():
+  edges = jnp.array([[0.0, 0.5, 0.6, 1.0]])
+  weights = jnp.array([[0.0, 0.7, 0.0]])
+  # Query edges wide enough to hold all of the blurred weight: its sum is the histogram's.
+  wide = jnp.linspace(-0.5, 1.5, 21)[None]
+  np.testing.assert_allclose(np.sum(stepfun.blurred_weights(edges, weights, wide, 0.03)), 0.7, rtol=1e-6)
+  # Weight only on [0.5, 0.6], blurred by 0.03, reaches [0.47, 0.63]: outside it, exactly nothing.
+  query = jnp.array([[0.0, 0.2, 0.46, 0.47, 0.55, 0.63, 0.64, 1.0]])
+  got = np.asarray(stepfun.blurred_weights(edges, weights, query, 0.03))[0]
+  assert got[0] == 0.0 and got[1] == 0.0 and got[-2] == 0.0 and got[-1] == 0.0
+  # The trapezoid rises over [0.47, 0.53] and is flat (0.7 / 0.1) to 0.57: [0.47, 0.55] holds its rising
+  # part and 0.02 of the flat one.
+  ramp = 0.7 * (0.06 / 2) / 0.1  # the weight under one ramp of width 0.06, height 0.7 / 0.1
+  np.testing.assert_allclose(got[3], ramp + 0.7 / 0.1 * 0.02, rtol=1e-5)
+  np.testing.assert_allclose(got[2:6].sum(), 0.7, rtol=1e-6)
+
+
+def test_blurred_interlevel_loss_is_zero_where_the_proposal_holds_the_blurred_weights_and_raises_it_where_short():
+  rng = np.random.default_rng(4)
+  edges, weights = _random_histograms(rng, 20, 16)
+  env_edges, _ = _random_histograms(rng, 20, 10)
+  target = np.asarray(stepfun.blurred_weights(*map(jnp.asarray, (edges, weights, env_edges)), 0.03))
+  loss = lambda p: stepfun.blurred_interlevel_loss(edges, weights, env_edges, p, 0.03)  # noqa: E731
+  # The target itself (up to its round-off when computed again inside the loss: an excess of ~1e-7 squared)
+  # and more than it cost nothing.
+  assert np.all(np.asarray(loss(jnp.asarray(target))) < 1e-11)
+  assert np.all(np.asarray(loss(jnp.asarray(target * 1.5))) == 0.0)
+  short = target * 0.5
+  np.testing.assert_allclose(np.asarray(loss(jnp.asarray(short))),
+                             np.sum((target - short)**2 / (short + stepfun.EPS), axis=-1), rtol=1e-4)
+  grad = np.asarray(jax.grad(lambda p: jnp.sum(loss(p)))(jnp.asarray(short)))
+  assert np.all(grad[target > 1e-6] < 0.0) and np.all(grad[target == 0.0] == 0.0)

@@ -280,12 +280,16 @@ def composite_regions(partials, background=None):
   return out
 
 
-def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, prefix_R):
+def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, prefix_R, radius: float | None = None):
   """mip-NeRF 360's interlevel loss (stepfun.interlevel_loss) of one segment, per ray (R,): the NeRF's and
   the proposal's histograms of the segment (their own weights, from transmittance 1) both scaled by
   `prefix_R`, the NeRF's transmittance before the segment (composite_regions' prefix). Summed over the
   segments, this is the whole ray's loss where each proposal's transmittance before a segment equals the
   NeRF's; docs/scale.md says what differs otherwise. Pass the NeRF's weights and the prefix through
-  stop_gradient (the NeRF is the proposals' target)."""
+  stop_gradient (the NeRF is the proposals' target). With `radius`, Zip-NeRF's anti-aliased form
+  (stepfun.blurred_interlevel_loss) of the segment, scaled alike."""
   scale = prefix_R[..., None]
+  if radius is not None:
+    return stepfun.blurred_interlevel_loss(edges_RxB1, scale * weights_RxB, env_edges_RxK1, scale * env_weights_RxK,
+                                           radius)
   return stepfun.interlevel_loss(edges_RxB1, scale * weights_RxB, env_edges_RxK1, scale * env_weights_RxK)

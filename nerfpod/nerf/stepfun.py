@@ -6,7 +6,10 @@ hierarchical sampling draws its fine samples with it from the coarse weights (ne
 sampling (mip-NeRF 360) draws the NeRF's intervals from a cheap field's histogram (`sample_intervals`); the
 cheap field learns to *bound* the NeRF's histogram (`interlevel_loss`, mip-NeRF 360 eq. 12-13), so that its
 samples cover every place the NeRF puts weight; `distortion_loss` (eq. 15) pulls each ray's weight together
-into one compact interval.
+into one compact interval. `blurred_interlevel_loss` is Zip-NeRF's anti-aliased form of the interlevel loss:
+the NeRF's histogram blurred by a box and resampled onto the proposal's intervals (`blurred_weights`), a
+target that moves smoothly with the intervals' positions instead of jumping as an interval's edge crosses
+another's (z-aliasing).
 
 Everything here works in any 1-D domain; the model uses the normalised ray distance s in [0, 1] (so that the
 losses do not depend on the scene's scale). Shapes are static: B and the number of samples are Python ints,
@@ -98,6 +101,46 @@ def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, ep
   """
   bound = outer(edges_RxB1, env_edges_RxK1, env_weights_RxK)
   return jnp.sum(jnp.maximum(0.0, weights_RxB - bound)**2 / (weights_RxB + eps), axis=-1)
+
+
+def _sum_of_uniforms_cdf(z, short, long):
+  """The CDF at z of the sum of two independent uniform variables on [0, short] and [0, long]
+  (0 <= short <= long): a trapezoid's density, rising over [0, short], flat to `long`, falling to short + long.
+  Piecewise, so that each piece is computed from small numbers (no cancellation of large squares), and exact
+  where short = 0 (the uniform CDF on [0, long]) or long = 0 (a step at 0)."""
+  product = jnp.maximum(short * long, jnp.finfo(jnp.float32).tiny)
+  rising = z * z / (2.0 * product)
+  flat = (z - 0.5 * short) / jnp.maximum(long, jnp.finfo(jnp.float32).tiny)
+  falling = 1.0 - (short + long - z)**2 / (2.0 * product)
+  return jnp.where(z <= 0.0, 0.0, jnp.where(z >= short + long, 1.0,
+                   jnp.where(z < short, rising, jnp.where(z <= long, flat, falling))))
+
+
+def blurred_weights(edges_RxB1, weights_RxB, query_RxK1, radius: float):
+  """The histogram's weights on the intervals of `query` (R, K), its density first blurred by a box of
+  half-width `radius` (Zip-NeRF's blur_and_resample_weights): interval i's weight, uniform on [e_i, e_i+1],
+  becomes a trapezoid over [e_i - radius, e_i+1 + radius], and query interval k receives the part of every
+  trapezoid that lies on it. radius = 0 resamples the histogram exactly; weight blurred past the query's ends
+  is not counted. Each interval against each query edge (R x K+1 x B, tens of each): every part is computed
+  from that interval's own numbers, so an interval far from a query edge gives it exactly 0 or 1."""
+  lo = edges_RxB1[..., None, :-1]                     # (R, 1, B)
+  width = jnp.diff(edges_RxB1, axis=-1)[..., None, :]
+  box = 2.0 * radius
+  short, long = jnp.minimum(width, box), jnp.maximum(width, box)
+  # The blurred interval's CDF at each query edge (R, K+1, B): the sum of U[lo, lo + width] and U[-r, r].
+  cdf = _sum_of_uniforms_cdf(query_RxK1[..., :, None] - (lo - radius), short, long)
+  mass_before = jnp.sum(weights_RxB[..., None, :] * cdf, axis=-1)  # (R, K+1)
+  return jnp.maximum(jnp.diff(mass_before, axis=-1), 0.0)
+
+
+def blurred_interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, radius: float,
+                            eps: float = EPS):
+  """Zip-NeRF's anti-aliased interlevel loss, per ray (R,): sum_k max(0, w~_k - p_k)^2 / (p_k + eps) over
+  the proposal's intervals k, w~ the NeRF's weights blurred by a box of half-width `radius` and resampled
+  onto them (blurred_weights), p the proposal's weights. As interlevel_loss, pass the NeRF's weights through
+  stop_gradient; the gradient raises the proposal's weights where they fall short of the blurred target."""
+  target = blurred_weights(edges_RxB1, weights_RxB, env_edges_RxK1, radius)
+  return jnp.sum(jnp.maximum(0.0, target - env_weights_RxK)**2 / (env_weights_RxK + eps), axis=-1)
 
 
 def distortion_loss(edges_RxB1, weights_RxB):

@@ -8,6 +8,7 @@
 """
 import concurrent.futures
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +47,9 @@ class Options:
   grad_clip: float = 0.0  # model.regions > 1: the step clips the global gradient norm (make_optimizer(clip=False))
   # (start, end) steps of the hash grid's coarse-to-fine opening (train.coarse_to_fine as steps); (): off
   coarse_to_fine: tuple = ()
+  # train.interlevel_blur: one box half-width per proposal round (Zip-NeRF's anti-aliased interlevel loss);
+  # (): mip-NeRF 360's
+  interlevel_blur: tuple = ()
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -56,7 +60,8 @@ class Options:
     return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
                comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
-               coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine))
+               coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine),
+               interlevel_blur=tuple(float(r) for r in tc.interlevel_blur))
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -78,8 +83,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   are averaged (gradient accumulation): the same result in a fraction of the activation memory.
   `compiler_options`: XLA options to compile the step with (compilation.compiler_options).
   With proposal sampling (model.proposal_samples), the loss adds `interlevel_weight` times mip-NeRF 360's
-  interlevel loss of every proposal round and `distortion_weight` times the distortion loss of the NeRF's
-  weights; both are also returned as metrics.
+  interlevel loss of every proposal round (with `interlevel_blur`, one radius per round: Zip-NeRF's
+  anti-aliased form, stepfun.blurred_interlevel_loss) and `distortion_weight` times the distortion loss of the
+  NeRF's weights; both are also returned as metrics.
   With `coarse_to_fine` (start, end) steps, the NeRF field's hash-grid levels open one after another between
   them (encodings.coarse_to_fine_weights of the state's step; BARF's schedule); the held-out views, the orbit
   and the exports render every level whole, as the step does from `end` on.
@@ -95,6 +101,11 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   # all-reduce, docs/scale.md#multi-slice.
   axes = distributed.batch_axes(mesh)
   axis_sizes = tuple(mesh.shape[name] for name in mesh.axis_names)
+
+  def interlevel_loss(edges, weights, env_edges, env_weights, round_):
+    if options.interlevel_blur:
+      return stepfun.blurred_interlevel_loss(edges, weights, env_edges, env_weights, options.interlevel_blur[round_])
+    return stepfun.interlevel_loss(edges, weights, env_edges, env_weights)
 
   def opened(step):
     if not options.coarse_to_fine:
@@ -120,9 +131,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       # The proposals learn to bound the NeRF's weights (a fixed target for them: no gradient into the NeRF
       # from this loss); the photometric loss reaches only the NeRF (sample positions carry no gradient).
       target_weights = jax.lax.stop_gradient(final["weights"])
-      extra["interlevel"] = sum(jnp.mean(stepfun.interlevel_loss(final["s_edges"], target_weights,
-                                                                 p["s_edges"], p["weights"]))
-                                for p in final["proposals"])
+      extra["interlevel"] = sum(jnp.mean(interlevel_loss(final["s_edges"], target_weights, p["s_edges"],
+                                                         p["weights"], round_))
+                                for round_, p in enumerate(final["proposals"]))
       extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
       loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
     return loss, (mses, extra)
@@ -240,8 +251,10 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     if own["proposals"]:
       prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
       weights = jax.lax.stop_gradient(own["weights"])
-      per_ray = sum(jax.vmap(regions.interlevel_loss)(own["s_edges"], weights, p["s_edges"], p["weights"], prefix)
-                    for p in own["proposals"])  # (L, R)
+      blur = options.interlevel_blur or (None,) * len(own["proposals"])
+      per_ray = sum(jax.vmap(functools.partial(regions.interlevel_loss, radius=radius))(
+                        own["s_edges"], weights, p["s_edges"], p["weights"], prefix)
+                    for radius, p in zip(blur, own["proposals"]))  # (L, R)
       extra["interlevel"] = jnp.mean(jnp.sum(gather(per_ray), axis=0))
       extra["distortion"] = jnp.mean(out["distortion"])
       loss = loss + options.interlevel_weight * extra["interlevel"] + options.distortion_weight * extra["distortion"]
