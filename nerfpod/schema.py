@@ -276,7 +276,7 @@ FIELDS: dict[str, Field] = _declare({
     "train.interlevel_blur": ((), numbers(0.0),
         "Zip-NeRF's anti-aliased interlevel loss: one box half-width per proposal round, in normalised ray "
         "distance (Zip-NeRF: (0.03, 0.003)), the NeRF's weights blurred by it before the proposals bound "
-        "them; (): mip-NeRF 360's loss"),
+        "them; (): mip-NeRF 360's loss (no better on the cup and the fox: docs/results.md)"),
     "train.distortion_weight": (0.0, number(0.0, example=0.002),
         "proposal sampling: weight of the distortion loss (eq. 15); 0: off"),
     "train.near_gradient_distance": (0.0, number(0.0, example=1.0),
