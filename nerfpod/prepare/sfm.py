@@ -74,29 +74,41 @@ def image_pairs(n: int, matching: str, overlap: int = SEQUENTIAL_OVERLAP,
   return sorted(pairs)
 
 
-def similarity(src_Nx3: np.ndarray, dst_Nx3: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-  """The similarity (s, R, t) minimising sum |s R src + t - dst|^2 (Umeyama 1991)."""
+def similarity(src_Nx3: np.ndarray, dst_Nx3: np.ndarray, src_rot_Nx3x3=None, dst_rot_Nx3x3=None,
+               ) -> tuple[float, np.ndarray, np.ndarray]:
+  """The similarity (s, R, t) minimising sum |s R src + t - dst|^2 (Umeyama 1991). With orientations
+  (camera-to-world rotations of the same N cameras), R also minimises sum |R src_rot - dst_rot|^2 (the chordal
+  distance), the centres' term in units of their spreads so that both weigh alike: where the centres lie near
+  a line or a plane and leave R loose about it, the orientations fix it."""
   ms, md = src_Nx3.mean(0), dst_Nx3.mean(0)
   x, y = src_Nx3 - ms, dst_Nx3 - md
-  u, sv, vt = np.linalg.svd(y.T @ x / len(x))
+  var = (x**2).sum(1).mean()
+  covariance = y.T @ x / len(x)
+  if src_rot_Nx3x3 is not None:
+    spreads = np.sqrt(var * (y**2).sum(1).mean())
+    covariance = covariance / (spreads if spreads > 0 else 1.0) + np.mean(dst_rot_Nx3x3 @ np.swapaxes(
+        src_rot_Nx3x3, -1, -2), axis=0)
+  u, _, vt = np.linalg.svd(covariance)
   d = np.eye(3)
   d[2, 2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
   r = u @ d @ vt
-  var = (x**2).sum(1).mean()
-  s = float(np.trace(np.diag(sv) @ d) / var) if var > 0 else 1.0
+  s = float(np.sum(y * (x @ r.T)) / len(x) / var) if var > 0 else 1.0
   return s, r, md - s * r @ ms
 
 
 def pose_agreement(a: dict, b: dict) -> dict:
-  """How two models' cameras ({name: 4x4 camera-to-world}) agree on the images both have, after aligning a's
-  camera centres to b's by a similarity: {"common", "rotation_deg" (median angle between the orientations),
-  "centre" (median centre distance over b's mean distance of cameras from their centroid)}."""
+  """How two models' cameras ({name: 4x4 camera-to-world}) agree on the images both have, after the similarity
+  that best aligns a's camera centres and orientations to b's (`similarity` with both): {"common",
+  "rotation_deg" (median angle between the orientations), "centre" (median centre distance over b's mean
+  distance of cameras from their centroid)}. The centres alone fix the rotation poorly where the cameras lie
+  near a line (a straight walk) or a plane: a little noise in them would turn every orientation of a model
+  that agrees away from the other's."""
   names = sorted(set(a) & set(b))
   if len(names) < 3:
     return {"common": len(names), "rotation_deg": math.nan, "centre": math.nan}
   pa = np.array([a[n][:3, 3] for n in names])
   pb = np.array([b[n][:3, 3] for n in names])
-  s, r, t = similarity(pa, pb)
+  s, r, t = similarity(pa, pb, np.array([a[n][:3, :3] for n in names]), np.array([b[n][:3, :3] for n in names]))
   spread = np.linalg.norm(pb - pb.mean(0), axis=1).mean()
   centre = np.linalg.norm((s * (r @ pa.T)).T + t - pb, axis=1) / (spread if spread > 0 else 1.0)
   cos = [(np.trace((r @ a[n][:3, :3]).T @ b[n][:3, :3]) - 1) / 2 for n in names]
