@@ -289,7 +289,4 @@ def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, pr
   stop_gradient (the NeRF is the proposals' target). With `radius`, Zip-NeRF's anti-aliased form
   (stepfun.blurred_interlevel_loss) of the segment, scaled alike."""
   scale = prefix_R[..., None]
-  if radius is not None:
-    return stepfun.blurred_interlevel_loss(edges_RxB1, scale * weights_RxB, env_edges_RxK1, scale * env_weights_RxK,
-                                           radius)
-  return stepfun.interlevel_loss(edges_RxB1, scale * weights_RxB, env_edges_RxK1, scale * env_weights_RxK)
+  return stepfun.interlevel_loss(edges_RxB1, scale * weights_RxB, env_edges_RxK1, scale * env_weights_RxK, radius)

@@ -92,13 +92,17 @@ def outer(edges_RxB1, env_edges_RxK1, env_weights_RxK):
   return jnp.maximum(hi - lo, 0.0)
 
 
-def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, eps: float = EPS):
+def interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, radius: float | None = None,
+                    eps: float = EPS):
   """mip-NeRF 360's proposal loss (eq. 12), per ray (R,): sum_i max(0, w_i - outer_i)^2 / (w_i + eps).
 
   `weights` are the NeRF's (the target: pass them through stop_gradient), `env_*` the proposal's. Zero
   exactly when the proposal's histogram bounds the NeRF's everywhere; the gradient raises the proposal's
-  weights where they fall short.
+  weights where they fall short. With a `radius` (train.interlevel_blur), Zip-NeRF's anti-aliased form
+  instead (blurred_interlevel_loss).
   """
+  if radius is not None:
+    return blurred_interlevel_loss(edges_RxB1, weights_RxB, env_edges_RxK1, env_weights_RxK, radius, eps)
   bound = outer(edges_RxB1, env_edges_RxK1, env_weights_RxK)
   return jnp.sum(jnp.maximum(0.0, weights_RxB - bound)**2 / (weights_RxB + eps), axis=-1)
 

@@ -102,11 +102,6 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   axes = distributed.batch_axes(mesh)
   axis_sizes = tuple(mesh.shape[name] for name in mesh.axis_names)
 
-  def interlevel_loss(edges, weights, env_edges, env_weights, round_):
-    if options.interlevel_blur:
-      return stepfun.blurred_interlevel_loss(edges, weights, env_edges, env_weights, options.interlevel_blur[round_])
-    return stepfun.interlevel_loss(edges, weights, env_edges, env_weights)
-
   def opened(step):
     if not options.coarse_to_fine:
       return None
@@ -131,9 +126,10 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       # The proposals learn to bound the NeRF's weights (a fixed target for them: no gradient into the NeRF
       # from this loss); the photometric loss reaches only the NeRF (sample positions carry no gradient).
       target_weights = jax.lax.stop_gradient(final["weights"])
-      extra["interlevel"] = sum(jnp.mean(interlevel_loss(final["s_edges"], target_weights, p["s_edges"],
-                                                         p["weights"], round_))
-                                for round_, p in enumerate(final["proposals"]))
+      radii = options.interlevel_blur or (None,) * len(final["proposals"])  # None: mip-NeRF 360's loss
+      extra["interlevel"] = sum(jnp.mean(stepfun.interlevel_loss(final["s_edges"], target_weights, p["s_edges"],
+                                                                 p["weights"], radius))
+                                for radius, p in zip(radii, final["proposals"]))
       extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
       loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
     return loss, (mses, extra)
@@ -251,10 +247,10 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     if own["proposals"]:
       prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
       weights = jax.lax.stop_gradient(own["weights"])
-      blur = options.interlevel_blur or (None,) * len(own["proposals"])
+      radii = options.interlevel_blur or (None,) * len(own["proposals"])  # None: mip-NeRF 360's loss
       per_ray = sum(jax.vmap(functools.partial(regions.interlevel_loss, radius=radius))(
                         own["s_edges"], weights, p["s_edges"], p["weights"], prefix)
-                    for radius, p in zip(blur, own["proposals"]))  # (L, R)
+                    for radius, p in zip(radii, own["proposals"]))  # (L, R)
       extra["interlevel"] = jnp.mean(jnp.sum(gather(per_ray), axis=0))
       extra["distortion"] = jnp.mean(out["distortion"])
       loss = loss + options.interlevel_weight * extra["interlevel"] + options.distortion_weight * extra["distortion"]
