@@ -271,6 +271,9 @@ FIELDS: dict[str, Field] = _declare({
         "gradients faster)"),
     "train.random_background": (True, boolean(), "data with alpha: composite training rays on random colours"),
     "train.grad_clip": (0.0, number(0.0), "clip the global gradient norm to this; 0: no clipping"),
+    "train.sparse_table_updates": (False, boolean(),
+        "Adam for the hash tables as Instant-NGP's: an entry whose gradient is exactly zero keeps its moments "
+        "and value (dense Adam moves it on along its momentum)"),
     "train.interlevel_weight": (1.0, number(0.0, example=1.0),
         "proposal sampling: weight of the interlevel loss (mip-NeRF 360 eq. 13)"),
     "train.interlevel_blur": ((), numbers(0.0),

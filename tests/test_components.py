@@ -5,6 +5,7 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from jax.sharding import Mesh
 
@@ -57,6 +58,78 @@ def test_gradient_clipping_scales_the_global_norm_to_the_limit_before_adam():
     for name, g in grads.items():
       g = np.asarray(g) * scale
       np.testing.assert_allclose(updates[name], -lr * g / (np.abs(g) + eps), rtol=1e-5, err_msg=name)
+
+
+def _lazy_adam_reference(grads_TxN, b1, b2, eps, lr):
+  """Adam entry by entry in float64, skipping an entry whose gradient is zero (its moments and value left),
+  with the bias correction of the global step t (TensorFlow's LazyAdam)."""
+  steps, n = grads_TxN.shape
+  w, m, v = np.zeros(n), np.zeros(n), np.zeros(n)
+  for t in range(1, steps + 1):
+    for i in range(n):
+      g = grads_TxN[t - 1, i]
+      if g == 0:
+        continue
+      m[i] = b1 * m[i] + (1 - b1) * g
+      v[i] = b2 * v[i] + (1 - b2) * g * g
+      w[i] -= lr * (m[i] / (1 - b1**t)) / (np.sqrt(v[i] / (1 - b2**t)) + eps)
+  return w
+
+
+def test_sparse_adam_skips_entries_without_gradient():
+  """scale_by_sparse_adam against the per-entry reference above, on gradients that are zero at random steps
+  (an entry seen at step 1 only, one never seen, one seen at every step); where every step has a gradient it is
+  optax's Adam, and dense Adam moves an entry on after its gradients stop, which this does not."""
+  rng = np.random.default_rng(0)
+  b1, b2, eps, lr = 0.9, 0.99, 1e-6, 0.1
+  grads = rng.normal(size=(12, 6)) * (rng.random((12, 6)) < 0.5)
+  grads[:, 0] = 0.0                                   # never seen
+  grads[:, 1] = 0.0
+  grads[0, 1] = 0.7                                   # seen at the first step only
+  grads[:, 2] = rng.normal(size=12) + 0.1             # seen at every step
+  optimizer = optax.chain(train_state.scale_by_sparse_adam(b1, b2, eps), optax.scale_by_learning_rate(lr))
+  params = jnp.zeros(6, jnp.float32)
+  state = optimizer.init(params)
+  for g in grads:
+    updates, state = optimizer.update(jnp.asarray(g, jnp.float32), state, params)
+    params = optax.apply_updates(params, updates)
+  np.testing.assert_allclose(params, _lazy_adam_reference(grads, b1, b2, eps, lr), rtol=1e-5, atol=1e-7)
+  assert params[0] == 0.0 and params[1] == pytest.approx(-lr, rel=1e-5)   # one step of lr, then left alone
+
+  dense = optax.adam(lr, b1=b1, b2=b2, eps=eps)
+  dense_params, dense_state = jnp.zeros(6, jnp.float32), dense.init(jnp.zeros(6))
+  for g in grads:
+    updates, dense_state = dense.update(jnp.asarray(g, jnp.float32), dense_state, dense_params)
+    dense_params = optax.apply_updates(dense_params, updates)
+  assert float(dense_params[2]) == pytest.approx(float(params[2]), rel=1e-5)  # a gradient every step: Adam's
+  assert float(dense_params[1]) < 3 * -lr                              # dense: on along its momentum
+
+
+def test_sparse_table_updates_reach_the_hash_tables_only(smoke):
+  """With train.sparse_table_updates, make_optimizer gives the hash grids' level tables (the field's and the
+  proposal's) Instant-NGP's Adam and every other parameter optax's Adam; off, its state is optax's Adam alone."""
+  config = smoke_config(**{"train.sparse_table_updates": True})
+  params = jax.tree.map(np.asarray, smoke.init_state().params)  # the smoke model's, on the host
+  labels = train_state._labels(tables=True)(params)
+  named = {jax.tree_util.keystr(path): label for path, label in jax.tree_util.tree_leaves_with_path(labels)}
+  tables = {name for name, label in named.items() if label == "table"}
+  assert tables and all("['grid']['level_" in name for name in tables)
+  assert {name for name in named if "['grid']['level_" in name} == tables
+  assert any("proposal" in name for name in tables) == bool(config.render.proposal_samples)
+  # A step whose gradient is zero on a table's first row leaves it; a dense Adam after a first step would not.
+  grads = jax.tree.map(jnp.ones_like, params)
+  optimizer = train_state.make_optimizer(config.train)
+  state = optimizer.init(params)
+  _, state = optimizer.update(grads, state, params)
+  first_table = sorted(tables)[0]
+  def zero_first_row(path, g):
+    return g.at[0].set(0.0) if jax.tree_util.keystr(path) == first_table else g
+  updates, _ = optimizer.update(jax.tree_util.tree_map_with_path(zero_first_row, grads), state, params)
+  flat = {jax.tree_util.keystr(p): u for p, u in jax.tree_util.tree_leaves_with_path(updates)}
+  assert np.all(np.asarray(flat[first_table][0]) == 0.0) and np.all(np.asarray(flat[first_table][1]) != 0.0)
+  tc = smoke_config().train
+  adam = optax.adam(train_state.learning_rate_schedule(tc))
+  assert jax.tree.structure(train_state.make_optimizer(tc).init(params)) == jax.tree.structure(adam.init(params))
 
 
 @pytest.fixture(scope="module")

@@ -326,9 +326,11 @@ def test_eight_devices_match_one_device_with_appearance_and_pose_refinement():
 
 
 def test_pose_corrections_have_their_own_learning_rate_and_a_resume_continues_exactly(tmp_path):
-  """The run's optimiser (pose corrections on their own AdamW) over 4 steps straight, and over 2 steps, a
-  checkpoint, a restore and 2 more: the same bits."""
+  """The run's optimiser (pose corrections on their own AdamW, the hash tables on the Adam that skips entries
+  without a gradient, the rest on Adam: three parts) over 4 steps straight, and over 2 steps, a checkpoint, a
+  restore and 2 more: the same bits."""
   config = smoke_config(**BOTH, **{"model.use_viewdirs": True, "train.batch_size": 64, "train.num_steps": 4,
+                                   "train.sparse_table_updates": True,
                                    "render.proposal_samples": (),  # a smaller program (8 devices vs 1 has them)
                                    "train.lr_warmup_steps": 0, "train.pose_lr_init": 1e-2,
                                    "train.pose_lr_final": 1e-2})

@@ -12,7 +12,7 @@ the shapes a restore fills, and the streams of randomness.
 Randomness is a function of (seed, what): the parameters and the rays draw from their own streams, folded
 into the seed; the train step folds in the step on top.
 """
-from typing import Any
+from typing import Any, NamedTuple
 
 import flax
 import jax
@@ -50,11 +50,57 @@ def learning_rate_schedule(train_config, lr_init: float | None = None,
   return optax.join_schedules([warmup, decay], [tc.lr_warmup_steps])
 
 
-def _pose_labels(params):
-  """'pose' for the pose corrections, 'field' for every other parameter (appearance codes included)."""
+def _labels(tables: bool):
+  """The parameters' labels for make_optimizer's multi_transform: 'pose' for the pose corrections, with `tables`
+  'table' for the hash grids' level tables (nerf.encodings.HashGridEncoding's 'level_<l>' parameters), 'field'
+  for every other parameter (appearance codes included)."""
   def label(path, _):
-    return "pose" if any(getattr(k, "key", None) == pose_correction.PARAM for k in path) else "field"
-  return jax.tree_util.tree_map_with_path(label, params)
+    keys = [getattr(k, "key", None) for k in path]
+    if pose_correction.PARAM in keys:
+      return "pose"
+    if tables and len(keys) >= 2 and keys[-2] == "grid" and str(keys[-1]).startswith("level_"):
+      return "table"
+    return "field"
+  return lambda params: jax.tree_util.tree_map_with_path(label, params)
+
+
+class SparseAdamState(NamedTuple):
+  count: jax.Array  # scalar int32: steps taken, for the bias correction (as optax's Adam)
+  mu: Any
+  nu: Any
+
+
+def scale_by_sparse_adam(b1: float, b2: float, eps: float) -> optax.GradientTransformation:
+  """Adam that skips hash-table entries without a gradient (Instant-NGP, whose tiny-cuda-nn Adam skips
+  non-matrix parameters whose gradient is exactly zero; TensorFlow's LazyAdam): where no sample of the batch
+  touched a row, its entries' moments and values stay as they were. Dense Adam would keep moving an entry seen
+  once along its decaying momentum for tens of steps (about ten times the one step this gives it, at b1 =
+  0.9): in rarely seen space, where floaters form. The bias correction is the global step's, as optax's
+  Adam, without state per entry (tiny-cuda-nn counts each entry's own steps: at b2 = 0.99 an entry first
+  touched late takes the same first step either way, and the cup and the fox measured alike with both); on
+  entries with a gradient at every step it is optax.scale_by_adam's update."""
+  def init(params):
+    zeros = lambda: jax.tree.map(lambda p: jnp.zeros(p.shape, jnp.float32), params)  # noqa: E731
+    return SparseAdamState(count=jnp.zeros((), jnp.int32), mu=zeros(), nu=zeros())
+
+  def update(updates, state, params=None):
+    del params
+    count = optax.safe_int32_increment(state.count)
+    t = count.astype(jnp.float32)
+    correct1, correct2 = 1 - jnp.power(jnp.float32(b1), t), 1 - jnp.power(jnp.float32(b2), t)
+
+    def entry(g, mu, nu):
+      hit = g != 0
+      mu = jnp.where(hit, b1 * mu + (1 - b1) * g, mu)
+      nu = jnp.where(hit, b2 * nu + (1 - b2) * g * g, nu)
+      step = (mu / correct1) / (jnp.sqrt(nu / correct2) + eps)
+      return jnp.where(hit, step, 0.0).astype(g.dtype), mu, nu
+
+    out = jax.tree.map(entry, updates, state.mu, state.nu)
+    pick = lambda i: jax.tree.map(lambda _, o: o[i], updates, out)  # noqa: E731
+    return pick(0), SparseAdamState(count=count, mu=pick(1), nu=pick(2))
+
+  return optax.GradientTransformation(init, update)
 
 
 def pinned_mean() -> optax.GradientTransformation:
@@ -86,13 +132,20 @@ def preconditioned(inner: optax.GradientTransformation, matrices_Nx6x6) -> optax
 def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -> optax.GradientTransformation:
   """Adam on the schedule above, after clipping the global gradient norm to train.grad_clip (if > 0 and
   `clip`: a model of several regions clips in its step instead, where the norm of every region's gradients is
-  known; each device's optimiser sees its own regions' only). With train.pose_refine, the pose corrections
-  have their own: AdamW on the same schedule's shape from train.pose_lr_init to train.pose_lr_final, with
-  train.pose_weight_decay (nerfacto's camera optimiser); with train.pose_pin_mean, each of its updates less
-  its mean over the frames (pinned_mean); with `pose_preconditioners` (N, 6, 6: train.pose_precondition),
-  AdamW steps the preconditioned corrections (preconditioned)."""
+  known; each device's optimiser sees its own regions' only). With train.sparse_table_updates, the hash grids'
+  tables have an Adam that skips entries without a gradient (scale_by_sparse_adam, the same schedule and
+  decays). With
+  train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
+  train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser); with
+  train.pose_pin_mean, each of its updates less its mean over the frames (pinned_mean); with
+  `pose_preconditioners` (N, 6, 6: train.pose_precondition), AdamW steps the preconditioned corrections
+  (preconditioned)."""
   tc = train_config
   adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
+  transforms = {}
+  if tc.sparse_table_updates:
+    transforms["table"] = optax.chain(scale_by_sparse_adam(tc.adam_b1, tc.adam_b2, tc.adam_eps),
+                                      optax.scale_by_learning_rate(learning_rate_schedule(tc)))
   if tc.pose_refine:
     pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
                        weight_decay=tc.pose_weight_decay)
@@ -100,7 +153,9 @@ def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -
       pose = preconditioned(pose, pose_preconditioners)
     if tc.pose_pin_mean:
       pose = optax.chain(pose, pinned_mean())
-    adam = optax.multi_transform({"field": adam, "pose": pose}, _pose_labels)
+    transforms["pose"] = pose
+  if transforms:
+    adam = optax.multi_transform({"field": adam, **transforms}, _labels(tables=tc.sparse_table_updates))
   return optax.chain(optax.clip_by_global_norm(tc.grad_clip), adam) if clip and tc.grad_clip > 0 else adam
 
 
