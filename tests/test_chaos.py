@@ -35,7 +35,7 @@ NUM_STEPS = 16
 OVERRIDES = {"train.num_steps": NUM_STEPS, "train.batch_size": 128, "checkpoint.every_steps": 2,
              "checkpoint.max_to_keep": 2, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 2,
              "orbit.num_frames": 8}
-RUN_TIMEOUT = 150  # seconds for one run of 2 processes on a loaded 2-core machine
+RUN_TIMEOUT = 300  # seconds for one run of 2 processes on a loaded 2-core machine: a bound for a hung run
 KINDS = ("start-up/restore", "mid-step", "mid-save", "evaluation", "orbit")
 # The schedule of SIGKILLs: what each one waits for before its random delay. Training faults first, then
 # evaluation and orbit faults (which need training to be over), then a start-up fault of a finished run.
