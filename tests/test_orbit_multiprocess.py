@@ -16,7 +16,7 @@ from nerfpod.run import modes
 pytestmark = pytest.mark.slow
 OVERRIDES = {"train.num_steps": 2, "train.log_every": 1, "train.image_every": 0, "eval.max_views": 1,
              "orbit.num_frames": 5, "orbit.width": 16, "orbit.height": 16}
-RUN_TIMEOUT = 300  # seconds for both processes to start, restore, render and export on a loaded machine (a bound for a hang)
+RUN_TIMEOUT = 300  # s for both processes to start, restore, render and export on a loaded machine: a hang's bound
 
 
 def _rendered(output: str) -> list[tuple[str, str]]:
