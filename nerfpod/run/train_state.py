@@ -134,10 +134,9 @@ def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -
   `clip`: a model of several regions clips in its step instead, where the norm of every region's gradients is
   known; each device's optimiser sees its own regions' only). With train.sparse_table_updates, the hash grids'
   tables have an Adam that skips entries without a gradient (scale_by_sparse_adam, the same schedule and
-  decays). With
-  train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape from
-  train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser); with
-  train.pose_pin_mean, each of its updates less its mean over the frames (pinned_mean); with
+  decays). With train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape
+  from train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser);
+  with train.pose_pin_mean, each of its updates less its mean over the frames (pinned_mean); with
   `pose_preconditioners` (N, 6, 6: train.pose_precondition), AdamW steps the preconditioned corrections
   (preconditioned)."""
   tc = train_config
