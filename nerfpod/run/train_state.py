@@ -4,6 +4,7 @@ the shapes a restore fills, and the streams of randomness.
     TrainState              step, params, opt_state (a flax struct: what checkpoints hold)
     learning_rate_schedule  warm-up, then log-linear decay (the original NeRF's)
     make_optimizer          Adam (and AdamW for pose corrections), after gradient clipping
+    scale_by_sparse_adam    Adam that skips hash-table entries without a gradient (train.sparse_table_updates)
     initial_state           the state from the seed, laid over the mesh (state_shardings)
     state_shapes            its ShapeDtypeStructs, without computing anything
     state_specs             where each leaf lives: a region's fields on the region axis, the rest replicated
