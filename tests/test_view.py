@@ -306,10 +306,16 @@ def test_a_path_saved_from_the_page_holds_the_keyframes_path(page):
   from nerfpod.nerf import keyframes
   viewer, driver, client = page
   placed = []
+  # The server's copy of the camera changes as soon as it is set; the browser's reports of its camera (which
+  # replace that copy) follow, and one sent before the browser had moved could land after the click. So wait
+  # for the browser's own report of the new camera before clicking.
+  reports = []
+  client.camera.on_update(lambda camera: reports.append((np.array(camera.position), np.array(camera.look_at))))
   for position in [(3.0, 0.0, 2.0), (0.0, 3.0, 2.5), (-3.0, 0.5, 1.5)]:
     client.camera.position = position
     client.camera.look_at = (0.0, 0.0, 0.0)
-    _wait(lambda: np.allclose(client.camera.position, position, atol=1e-6), 10, "the camera to move")
+    _wait(lambda: reports and np.allclose(reports[-1][0], position, atol=1e-4)
+          and np.allclose(reports[-1][1], 0.0, atol=1e-4), 10, "the browser to report the moved camera")
     _click(driver, "Add keyframe")
     _wait(lambda: len(viewer.keyframes) == len(placed) + 1, 10, "the keyframe to be added")
     pose = np.eye(4)
