@@ -107,7 +107,8 @@ def test_sparse_adam_skips_entries_without_gradient():
 
 def test_sparse_table_updates_reach_the_hash_tables_only(smoke):
   """With train.sparse_table_updates, make_optimizer gives the hash grids' level tables (the field's and the
-  proposal's) Instant-NGP's Adam and every other parameter optax's Adam; off, its state is optax's Adam alone."""
+  proposal's) the Adam that skips entries without a gradient and every other parameter optax's Adam; off, its
+  state is optax's Adam alone."""
   config = smoke_config(**{"train.sparse_table_updates": True})
   params = jax.tree.map(np.asarray, smoke.init_state().params)  # the smoke model's, on the host
   labels = train_state._labels(tables=True)(params)

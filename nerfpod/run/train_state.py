@@ -141,11 +141,12 @@ def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -
   `pose_preconditioners` (N, 6, 6: train.pose_precondition), AdamW steps the preconditioned corrections
   (preconditioned)."""
   tc = train_config
-  adam = optax.adam(learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
+  schedule = learning_rate_schedule(tc)
+  adam = optax.adam(schedule, b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
   transforms = {}
   if tc.sparse_table_updates:
     transforms["table"] = optax.chain(scale_by_sparse_adam(tc.adam_b1, tc.adam_b2, tc.adam_eps),
-                                      optax.scale_by_learning_rate(learning_rate_schedule(tc)))
+                                      optax.scale_by_learning_rate(schedule))
   if tc.pose_refine:
     pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
                        weight_decay=tc.pose_weight_decay)
