@@ -178,3 +178,44 @@ def test_closed_levels_give_no_features_and_no_gradients_and_open_ones_are_the_p
   np.testing.assert_array_equal(grid.apply(params, x, None, jnp.ones(3)), plain)
   jax.tree.map(np.testing.assert_array_equal, jax.grad(loss)(params, jnp.ones(3)),
                jax.grad(lambda p: jnp.sum(grid.apply(p, x) ** 2))(params))
+
+
+def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_values_and_gradients():
+  """encodings.materialized (a matmul by the identity, kept in memory by XLA where the points' computation
+  would be fused into every level) changes no bit: of the points, of their cotangents, and of a hash-grid
+  field's colours, densities and every parameter's gradient, jitted on this backend as training is, with the
+  points computed from rays inside the program (what XLA would otherwise fuse)."""
+  from nerfpod.nerf import fields
+  x = jax.random.uniform(jax.random.key(0), (4096, 3), minval=-3.0, maxval=3.0)
+  x = x.at[:3].set(jnp.array([[0.0, 1.0, 0.5], [1e-30, -0.0, 1e30], [1.0 / 3.0, 2.0 / 3.0, 1.0]]))
+  np.testing.assert_array_equal(jax.jit(encodings.materialized)(x), x)
+  cotangent = jax.random.normal(jax.random.key(1), x.shape)
+  np.testing.assert_array_equal(jax.jit(lambda c: jax.vjp(encodings.materialized, x)[1](c)[0])(cotangent), cotangent)
+
+  origins = jax.random.normal(jax.random.key(2), (256, 3))
+  directions = jax.random.normal(jax.random.key(3), (256, 3))
+  t = jax.random.uniform(jax.random.key(4), (256, 16), minval=0.5, maxval=2.5)
+  def field_of(materialize):
+    return fields.HashGridField(bound=1.5, num_levels=6, features_per_level=2, log2_table_size=12,
+                                base_resolution=4, max_resolution=128, hidden_width=16, geo_features=7,
+                                use_viewdirs=True, dtype=jnp.float32, materialize_points=materialize)
+  points = lambda: (origins[:, None] + t[..., None] * directions[:, None]).reshape(-1, 3)
+  viewdirs = jnp.repeat(directions / jnp.linalg.norm(directions, axis=-1, keepdims=True), 16, axis=0)
+  params = field_of(False).init(jax.random.key(5), points(), viewdirs)
+  params = jax.tree.map(lambda p: p + 0.3 * jax.random.normal(jax.random.key(6), p.shape), params)  # tables too
+  def loss(materialize):
+    def f(p):
+      rgb, sigma = field_of(materialize).apply(p, points(), viewdirs)
+      return jnp.sum(rgb * rgb) + jnp.sum(jnp.log1p(sigma)), (rgb, sigma)
+    return jax.jit(jax.value_and_grad(f, has_aux=True))(params)
+  (plain, (rgb, sigma)), grads = loss(False)
+  (kept, (rgb_kept, sigma_kept)), grads_kept = loss(True)
+  assert float(jnp.abs(sigma).max()) > 0 and float(jnp.abs(grads["params"]["grid"]["level_5"]).max()) > 0
+  np.testing.assert_array_equal(kept, plain)
+  np.testing.assert_array_equal(rgb_kept, rgb)
+  np.testing.assert_array_equal(sigma_kept, sigma)
+  jax.tree.map(np.testing.assert_array_equal, grads_kept, grads)
+  ops = str(jax.make_jaxpr(lambda p: field_of(True).apply(p, points(), viewdirs))(params))
+  assert ops.count("dot_general") == str(jax.make_jaxpr(lambda p: field_of(False).apply(p, points(), viewdirs))(
+      params)).count("dot_general") + 1  # one matmul keeps the points for all six levels
+

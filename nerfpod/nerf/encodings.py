@@ -87,6 +87,7 @@ class HashGridEncoding(nn.Module):
   max_resolution: int
 
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
+  materialize_points: bool = False  # the points kept in memory once for every level (materialized: CPUs)
 
   @nn.compact
   def __call__(self, x_Nx3, scales_N=None, opened_L=None):
@@ -95,6 +96,8 @@ class HashGridEncoding(nn.Module):
     `opened_L` (num_levels,), each level's features (and so its gradients) times its weight
     (coarse_to_fine_weights)."""
     table_size = 2**self.log2_table_size
+    if self.materialize_points:
+      x_Nx3 = materialized(x_Nx3)
     outputs = []
     resolutions = level_resolutions(self.num_levels, self.base_resolution, self.max_resolution)
     for level, res in enumerate(resolutions):
@@ -110,6 +113,19 @@ class HashGridEncoding(nn.Module):
         feats = feats * opened_L[level]
       outputs.append(feats)
     return jnp.concatenate(outputs, axis=-1)
+
+
+def materialized(x_NxD):
+  """x itself, every bit of it, computed as the matmul x @ I (each value is 1 * x_i plus zeros, exact at full
+  precision), so that XLA keeps it in memory.
+
+  XLA:CPU fuses the points' computation (each sample's ray, its distance, the box's mapping) into every
+  consumer, and a hash-grid level's rows and weights are computed per corner and axis: each point and its ray
+  were recomputed 24 times per level, a third of a CPU train step (configs/tiny_fast.py, docs/results.md). A
+  dot's output is not fused into its consumers, so they read the points instead. The gradient, the same
+  product with the cotangents, is exact too."""
+  eye = jnp.eye(x_NxD.shape[-1], dtype=x_NxD.dtype)
+  return jnp.dot(x_NxD, eye, precision=jax.lax.Precision.HIGHEST)
 
 
 def level_weights(scales_N, resolution: int):

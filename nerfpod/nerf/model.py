@@ -81,6 +81,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
       return tuple(self.proposal_samples) + (self.num_samples,)
     return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
   grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
+  grid_materialize_points: bool = False  # hash grid: its points kept in memory for its levels (CPUs)
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes, opened=None):
     points = self._points(origins, directions, t_RxS)
@@ -161,7 +162,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t = self._distances(near, far, self.num_samples, uniforms[0])
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
-                                   matmul_max_rows=self.grid_matmul_max_rows)
+                                   matmul_max_rows=self.grid_matmul_max_rows,
+                                   materialize_points=self.grid_materialize_points)
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes, opened)
     if self.num_importance == 0:
       return [coarse]
@@ -176,7 +178,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t_fine = s_fine if self.spacing == "linear" else coord.s_to_t(s_fine, near, far, self.spacing)
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
-                                   matmul_max_rows=self.grid_matmul_max_rows)
+                                   matmul_max_rows=self.grid_matmul_max_rows,
+                                   materialize_points=self.grid_materialize_points)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes, opened)
     return [coarse, fine]
 
@@ -222,6 +225,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
                        in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
         proposal_samples=tuple(self.proposal_samples), grid_matmul_max_rows=self.grid_matmul_max_rows,
+        grid_materialize_points=self.grid_materialize_points,
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
 
@@ -258,7 +262,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
       t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
       points = self._points(origins, directions, t_mids)
       field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
-                                         matmul_max_rows=self.grid_matmul_max_rows)
+                                         matmul_max_rows=self.grid_matmul_max_rows,
+                                         materialize_points=self.grid_materialize_points)
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
       proposals.append({"s_edges": s_edges, "weights": weights})
@@ -268,7 +273,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     points = self._points(origins, directions, t_mids)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
-                              matmul_max_rows=self.grid_matmul_max_rows)
+                              matmul_max_rows=self.grid_matmul_max_rows,
+                              materialize_points=self.grid_materialize_points)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
                        **self._footprints(origins, directions, t_mids), **_opened(opened))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
@@ -294,6 +300,7 @@ class RegionRenderer(nn.Module):
   proposal_samples: tuple
   grid_matmul_max_rows: int
   near_gradient_distance: float
+  grid_materialize_points: bool = False
 
   @nn.compact
   def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
@@ -315,7 +322,8 @@ class RegionRenderer(nn.Module):
         t_edges = warp(s_edges)
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
-                                           matmul_max_rows=self.grid_matmul_max_rows)
+                                           matmul_max_rows=self.grid_matmul_max_rows,
+                                           materialize_points=self.grid_materialize_points)
         sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
@@ -329,7 +337,8 @@ class RegionRenderer(nn.Module):
       t_points = warp(s_edges[..., :-1] + u * jnp.diff(s_edges, axis=-1))
     points = points_of(t_points)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
-    field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows)
+    field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows,
+                              materialize_points=self.grid_materialize_points)
     rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
                                 self.near_gradient_distance)
@@ -438,7 +447,8 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
               last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
               proposal_samples=tuple(render.proposal_samples),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
-              grid_matmul_max_rows=grid_matmul_max_rows(config, backend), num_frames=int(num_frames),
+              grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
+              grid_materialize_points=backend == "cpu", num_frames=int(num_frames),
               pose_refine=bool(config.train.pose_refine),
               near_gradient_distance=float(config.train.near_gradient_distance),
               pixel_angle=float(pixel_angle) if scale_aware else 0.0,
