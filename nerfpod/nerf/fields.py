@@ -92,8 +92,7 @@ class HashGridField(nn.Module):
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
         self.max_resolution, self.matmul_max_rows, self.materialize_points, name="grid")(
-            jnp.clip(unit, 0.0, 1.0), unit_scales,
-                                                                opened_L)
+            jnp.clip(unit, 0.0, 1.0), unit_scales, opened_L)
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
     h = dense(1 + self.geo_features, "density_out")(h).astype(jnp.float32)
