@@ -218,4 +218,3 @@ def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_va
   ops = str(jax.make_jaxpr(lambda p: field_of(True).apply(p, points(), viewdirs))(params))
   assert ops.count("dot_general") == str(jax.make_jaxpr(lambda p: field_of(False).apply(p, points(), viewdirs))(
       params)).count("dot_general") + 1  # one matmul keeps the points for all six levels
-
