@@ -219,8 +219,8 @@ def test_the_program_without_a_scene_has_a_runs_state_and_batch_shapes(smoke):
   tpu = components.build_program(config, mesh, backend="tpu").model
   assert tpu.grid_matmul_max_rows == config.compile.matmul_max_rows and built.model.grid_matmul_max_rows == 0
   # The points kept in memory for the grid's levels on a CPU only (the programs for accelerators unchanged).
-  assert built.model.grid_materialize_points and not tpu.grid_materialize_points
-  assert not components.build_program(config, mesh, backend="gpu").model.grid_materialize_points
+  assert built.model.grid_materialize and not tpu.grid_materialize
+  assert not components.build_program(config, mesh, backend="gpu").model.grid_materialize
 
 
 def test_eval_samples_render_the_trained_field_with_a_finer_quadrature(smoke_on_4):

@@ -182,15 +182,20 @@ def test_closed_levels_give_no_features_and_no_gradients_and_open_ones_are_the_p
 
 def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_values_and_gradients():
   """encodings.materialized (a matmul by the identity, kept in memory by XLA where the points' computation
-  would be fused into every level) changes no bit: of the points, of their cotangents, and of a hash-grid
-  field's colours, densities and every parameter's gradient, jitted on this backend as training is, with the
-  points computed from rays inside the program (what XLA would otherwise fuse)."""
+  would be fused into every level) changes no bit: of the points, of their cotangents, of integer rows, and of
+  a hash-grid field's colours, densities and every parameter's gradient (the lookup reading the kept rows,
+  told they are in bounds), jitted on this backend as training is, with the points computed from rays inside
+  the program (what XLA would otherwise fuse)."""
   from nerfpod.nerf import fields
   x = jax.random.uniform(jax.random.key(0), (4096, 3), minval=-3.0, maxval=3.0)
   x = x.at[:3].set(jnp.array([[0.0, 1.0, 0.5], [1e-30, -0.0, 1e30], [1.0 / 3.0, 2.0 / 3.0, 1.0]]))
   np.testing.assert_array_equal(jax.jit(encodings.materialized)(x), x)
   cotangent = jax.random.normal(jax.random.key(1), x.shape)
   np.testing.assert_array_equal(jax.jit(lambda c: jax.vjp(encodings.materialized, x)[1](c)[0])(cotangent), cotangent)
+  rows = jax.random.randint(jax.random.key(7), (4096, 8), 0, 2**31 - 1, dtype=jnp.int32).at[0].set(2**31 - 1)
+  kept_rows = jax.jit(encodings.materialized)(rows)
+  assert kept_rows.dtype == jnp.int32
+  np.testing.assert_array_equal(kept_rows, rows)
 
   origins = jax.random.normal(jax.random.key(2), (256, 3))
   directions = jax.random.normal(jax.random.key(3), (256, 3))
@@ -198,7 +203,7 @@ def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_va
   def field_of(materialize):
     return fields.HashGridField(bound=1.5, num_levels=6, features_per_level=2, log2_table_size=12,
                                 base_resolution=4, max_resolution=128, hidden_width=16, geo_features=7,
-                                use_viewdirs=True, dtype=jnp.float32, materialize_points=materialize)
+                                use_viewdirs=True, dtype=jnp.float32, materialize=materialize)
   points = lambda: (origins[:, None] + t[..., None] * directions[:, None]).reshape(-1, 3)
   viewdirs = jnp.repeat(directions / jnp.linalg.norm(directions, axis=-1, keepdims=True), 16, axis=0)
   params = field_of(False).init(jax.random.key(5), points(), viewdirs)
@@ -216,5 +221,7 @@ def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_va
   np.testing.assert_array_equal(sigma_kept, sigma)
   jax.tree.map(np.testing.assert_array_equal, grads_kept, grads)
   ops = str(jax.make_jaxpr(lambda p: field_of(True).apply(p, points(), viewdirs))(params))
-  assert ops.count("dot_general") == str(jax.make_jaxpr(lambda p: field_of(False).apply(p, points(), viewdirs))(
-      params)).count("dot_general") + 1  # one matmul keeps the points for all six levels
+  plain_ops = str(jax.make_jaxpr(lambda p: field_of(False).apply(p, points(), viewdirs))(params))
+  # one matmul keeps the points for all six levels, one per level its corners' rows
+  assert ops.count("dot_general") == plain_ops.count("dot_general") + 1 + 6
+  assert ops.count("PROMISE_IN_BOUNDS") == 6 and "PROMISE_IN_BOUNDS" not in plain_ops

@@ -120,7 +120,7 @@ class FieldQuery:
     self.chunk = max(self.mesh.size, chunk - chunk % self.mesh.size)
     model = trained.comps.model
     field = fields.make_field(trained.config.model, model.dtype, matmul_max_rows=model.grid_matmul_max_rows,
-                              materialize_points=model.grid_materialize_points)
+                              materialize=model.grid_materialize)
     name, contracted = trained.field_name(), trained.config.render.space == "contract"
     self.partition = model.partition if model.regions > 1 else None
     self.boxes = model.region_boxes if model.regions > 1 else None

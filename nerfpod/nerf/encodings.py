@@ -87,7 +87,7 @@ class HashGridEncoding(nn.Module):
   max_resolution: int
 
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
-  materialize_points: bool = False  # the points kept in memory once for every level (materialized: CPUs)
+  materialize: bool = False  # the points, and each level's corner rows, kept in memory (materialized: CPUs)
 
   @nn.compact
   def __call__(self, x_Nx3, scales_N=None, opened_L=None):
@@ -96,7 +96,7 @@ class HashGridEncoding(nn.Module):
     `opened_L` (num_levels,), each level's features (and so its gradients) times its weight
     (coarse_to_fine_weights)."""
     table_size = 2**self.log2_table_size
-    if self.materialize_points:
+    if self.materialize:
       x_Nx3 = materialized(x_Nx3)
     outputs = []
     resolutions = level_resolutions(self.num_levels, self.base_resolution, self.max_resolution)
@@ -106,7 +106,7 @@ class HashGridEncoding(nn.Module):
       if rows == (res + 1)**3 and rows <= self.matmul_max_rows:
         feats = dense_level_matmul(table, x_Nx3, res)
       else:
-        feats = level_gather(table, x_Nx3, res)
+        feats = level_gather(table, x_Nx3, res, self.materialize)
       if scales_N is not None:
         feats = feats * level_weights(scales_N, res)[..., None]
       if opened_L is not None:
@@ -117,14 +117,18 @@ class HashGridEncoding(nn.Module):
 
 def materialized(x_NxD):
   """x itself, every bit of it, computed as the matmul x @ I (each value is 1 * x_i plus zeros, exact at full
-  precision), so that XLA keeps it in memory.
+  precision; integer arrays in integer arithmetic), so that XLA keeps it in memory.
 
-  XLA:CPU fuses the points' computation (each sample's ray, its distance, the box's mapping) into every
-  consumer, and a hash-grid level's rows and weights are computed per corner and axis: each point and its ray
-  were recomputed 24 times per level, a third of a CPU train step (configs/tiny_fast.py, docs/results.md). A
-  dot's output is not fused into its consumers, so they read the points instead. The gradient, the same
-  product with the cotangents, is exact too."""
+  XLA:CPU fuses a cheap computation into every consumer, recomputing it per consumer element: a hash-grid
+  level's rows and weights are computed per corner and axis, so each point and its ray were recomputed 24
+  times per level, a third of a CPU train step (configs/tiny_fast.py, docs/results.md), and each corner's row
+  (its hash) once per feature in the lookup and again for the gradient's scatter. A dot's output is not fused
+  into its consumers, so they read it instead. A float array's gradient, the same product with the
+  cotangents, is exact too; an integer array (a row number) has none."""
   eye = jnp.eye(x_NxD.shape[-1], dtype=x_NxD.dtype)
+  if jnp.issubdtype(x_NxD.dtype, jnp.integer):
+    return jax.lax.dot_general(x_NxD, eye, (((x_NxD.ndim - 1,), (0,)), ((), ())),
+                               preferred_element_type=x_NxD.dtype)
   return jnp.dot(x_NxD, eye, precision=jax.lax.Precision.HIGHEST)
 
 
@@ -148,11 +152,20 @@ def coarse_to_fine_weights(step, start_step: int, end_step: int, num_levels: int
   return jnp.where(x >= 1.0, 1.0, (1.0 - jnp.cos(jnp.pi * x)) / 2.0)
 
 
-def level_gather(table_RxF, x_Nx3, resolution: int):
+def level_gather(table_RxF, x_Nx3, resolution: int, materialize: bool = False):
   """A level's trilinearly interpolated features (N, F) by gathering its 8 corners' rows (Instant-NGP's
-  formulation; its gradient is a scatter-add into the table)."""
+  formulation; its gradient is a scatter-add into the table).
+
+  `materialize` (CPUs): the corners' rows computed once into memory (materialized), read by the lookup and by
+  its gradient's scatter, and the lookup told that they lie in the table (they do: corners are clipped to the
+  grid, hashes taken modulo the table's size), which spares a bounds test per value. The same values either
+  way, bit for bit."""
   corners, weights = trilinear_corners_and_weights(x_Nx3, resolution)
-  feats = jnp.take(table_RxF, grid_indices(corners, resolution, len(table_RxF)), axis=0)
+  rows = grid_indices(corners, resolution, len(table_RxF))
+  if materialize:
+    feats = table_RxF.at[materialized(rows)].get(mode="promise_in_bounds")
+  else:
+    feats = jnp.take(table_RxF, rows, axis=0)
   return jnp.sum(weights[..., None] * feats, axis=-2)
 
 

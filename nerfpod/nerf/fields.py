@@ -80,7 +80,7 @@ class HashGridField(nn.Module):
   dtype: jnp.dtype
   scale_aware: bool = False
   matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
-  materialize_points: bool = False  # the encoding's points kept in memory (encodings.materialized: CPUs)
+  materialize: bool = False  # the encoding's points and rows kept in memory (encodings.materialized: CPUs)
 
   @nn.compact
   def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None, scales_N=None, opened_L=None):
@@ -91,7 +91,7 @@ class HashGridField(nn.Module):
       unit_scales = jax.lax.stop_gradient(scales_N) / (2.0 * self.bound)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, self.matmul_max_rows, self.materialize_points, name="grid")(
+        self.max_resolution, self.matmul_max_rows, self.materialize, name="grid")(
             jnp.clip(unit, 0.0, 1.0), unit_scales, opened_L)
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
@@ -124,7 +124,7 @@ class ProposalField(nn.Module):
   hidden_width: int
   dtype: jnp.dtype
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
-  materialize_points: bool = False  # as HashGridField's
+  materialize: bool = False  # as HashGridField's
 
   @nn.compact
   def __call__(self, points_Nx3):
@@ -132,32 +132,32 @@ class ProposalField(nn.Module):
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, self.matmul_max_rows, self.materialize_points, name="grid")(jnp.clip(unit, 0.0, 1.0))
+        self.max_resolution, self.matmul_max_rows, self.materialize, name="grid")(jnp.clip(unit, 0.0, 1.0))
     h = nn.relu(nn.Dense(self.hidden_width, dtype=self.dtype, name="hidden")(features))
     raw = nn.Dense(1, dtype=self.dtype, name="density")(h).astype(jnp.float32)[..., 0]
     return jnp.where(inside, jnp.exp(jnp.minimum(raw, 15.0)), 0.0)
 
 
 def make_proposal_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0,
-                        materialize_points: bool = False) -> ProposalField:
+                        materialize: bool = False) -> ProposalField:
   """A proposal field sized by config.model.proposal, in the box of config.model.hashgrid.bound;
-  `matmul_max_rows` and `materialize_points` as for make_field."""
+  `matmul_max_rows` and `materialize` as for make_field."""
   return ProposalField(bound=model_config.hashgrid.bound,
                        features_per_level=model_config.hashgrid.features_per_level,
                        **dict(model_config.proposal), dtype=dtype, matmul_max_rows=matmul_max_rows,
-                       materialize_points=materialize_points, name=name)
+                       materialize=materialize, name=name)
 
 
 def make_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0,
-               materialize_points: bool = False) -> nn.Module:
+               materialize: bool = False) -> nn.Module:
   """The field named by `model.field` ('mlp' or 'hashgrid'), sized by config.model.mlp or .hashgrid;
   `matmul_max_rows`: the hash grid's dense levels up to that many rows are looked up by matmuls;
-  `materialize_points`: the hash grid's points kept in memory for its levels (encodings.materialized)."""
+  `materialize`: the hash grid's points and corner rows kept in memory (encodings.materialized)."""
   if model_config.field == "mlp":
     mlp = dict(model_config.mlp)
     return MLPField(**dict(mlp, skips=tuple(mlp["skips"])), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
                     name=name)
   if model_config.field == "hashgrid":
     return HashGridField(**dict(model_config.hashgrid), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
-                         matmul_max_rows=matmul_max_rows, materialize_points=materialize_points, name=name)
+                         matmul_max_rows=matmul_max_rows, materialize=materialize, name=name)
   raise ValueError(f"unknown model.field {model_config.field!r}")  # nerfpod.schema refuses it first

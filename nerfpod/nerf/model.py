@@ -81,7 +81,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
       return tuple(self.proposal_samples) + (self.num_samples,)
     return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
   grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
-  grid_materialize_points: bool = False  # hash grid: its points kept in memory for its levels (CPUs)
+  grid_materialize: bool = False  # hash grid: its points and corner rows kept in memory (CPUs)
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes, opened=None):
     points = self._points(origins, directions, t_RxS)
@@ -163,7 +163,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
                                    matmul_max_rows=self.grid_matmul_max_rows,
-                                   materialize_points=self.grid_materialize_points)
+                                   materialize=self.grid_materialize)
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes, opened)
     if self.num_importance == 0:
       return [coarse]
@@ -179,7 +179,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
                                    matmul_max_rows=self.grid_matmul_max_rows,
-                                   materialize_points=self.grid_materialize_points)
+                                   materialize=self.grid_materialize)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes, opened)
     return [coarse, fine]
 
@@ -225,7 +225,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
                        in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
         proposal_samples=tuple(self.proposal_samples), grid_matmul_max_rows=self.grid_matmul_max_rows,
-        grid_materialize_points=self.grid_materialize_points,
+        grid_materialize=self.grid_materialize,
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
 
@@ -263,7 +263,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
       points = self._points(origins, directions, t_mids)
       field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                          matmul_max_rows=self.grid_matmul_max_rows,
-                                         materialize_points=self.grid_materialize_points)
+                                         materialize=self.grid_materialize)
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
       proposals.append({"s_edges": s_edges, "weights": weights})
@@ -274,7 +274,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize_points=self.grid_materialize_points)
+                              materialize=self.grid_materialize)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
                        **self._footprints(origins, directions, t_mids), **_opened(opened))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
@@ -300,7 +300,7 @@ class RegionRenderer(nn.Module):
   proposal_samples: tuple
   grid_matmul_max_rows: int
   near_gradient_distance: float
-  grid_materialize_points: bool = False
+  grid_materialize: bool = False
 
   @nn.compact
   def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
@@ -323,7 +323,7 @@ class RegionRenderer(nn.Module):
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                            matmul_max_rows=self.grid_matmul_max_rows,
-                                           materialize_points=self.grid_materialize_points)
+                                           materialize=self.grid_materialize)
         sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
@@ -338,7 +338,7 @@ class RegionRenderer(nn.Module):
     points = points_of(t_points)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize_points=self.grid_materialize_points)
+                              materialize=self.grid_materialize)
     rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
                                 self.near_gradient_distance)
@@ -448,7 +448,7 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
               proposal_samples=tuple(render.proposal_samples),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
               grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
-              grid_materialize_points=backend == "cpu", num_frames=int(num_frames),
+              grid_materialize=backend == "cpu", num_frames=int(num_frames),
               pose_refine=bool(config.train.pose_refine),
               near_gradient_distance=float(config.train.near_gradient_distance),
               pixel_angle=float(pixel_angle) if scale_aware else 0.0,
