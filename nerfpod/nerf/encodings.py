@@ -126,10 +126,7 @@ def materialized(x_NxD):
   into its consumers, so they read it instead. A float array's gradient, the same product with the
   cotangents, is exact too; an integer array (a row number) has none."""
   eye = jnp.eye(x_NxD.shape[-1], dtype=x_NxD.dtype)
-  if jnp.issubdtype(x_NxD.dtype, jnp.integer):
-    return jax.lax.dot_general(x_NxD, eye, (((x_NxD.ndim - 1,), (0,)), ((), ())),
-                               preferred_element_type=x_NxD.dtype)
-  return jnp.dot(x_NxD, eye, precision=jax.lax.Precision.HIGHEST)
+  return jnp.dot(x_NxD, eye, precision=jax.lax.Precision.HIGHEST, preferred_element_type=x_NxD.dtype)
 
 
 def level_weights(scales_N, resolution: int):
