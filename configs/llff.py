@@ -23,10 +23,10 @@ def get_config(arg: str | None = None):
   c.data.downscale = 8            # images_8/, the original's default factor
   c.data.space = "forward_facing"
   c.render.space = "ndc"          # near/far default to the NDC cube's 0 and 1
-  # The default's eight levels and 32-unit MLPs, proposal sampling in NDC and 20,000 steps of 512 rays
-  # (for_real_capture): horns 27.57 dB, the whole job in about 18 minutes on a 2-core CPU (docs/results.md;
-  # 16,000 steps gave 27.27 dB before the CPU step got a fifth faster).
-  c.train.num_steps = 20_000
+  # The default's eight levels and 32-unit MLPs, proposal sampling in NDC and 19,500 steps of 512 rays
+  # (for_real_capture): horns 27.53 dB, the whole job in 17 minutes on a 2-core CPU (docs/results.md; 20,000
+  # steps gave 27.57 dB in 18 min 03 s, 16,000 27.27 dB before the CPU step got a fifth faster).
+  c.train.num_steps = 19_500
   c.model.appearance_dim = 0      # per-frame appearance codes and pose refinement: off (not measured on
   c.train.pose_refine = False     # forward-facing captures; on 360 ones they cost PSNR: docs/results.md)
   c.orbit.path = "spiral"         # the original's: two turns, 120 frames, looking at the focus depth
