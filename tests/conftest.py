@@ -156,66 +156,68 @@ LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 75, 
 SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view", "test_eval_protocols")
 
 
-# The gate and the extended set. The README's test command, which CI runs (.ci/run), is the gate:
-# `-m "not extended"`, every quick test and the slow ones not named here, about 9 minutes on the 2-core machine.
-# The slow tests of each entry below (a file, or a file's test function with all its cases; an entry's quick
-# tests stay in the gate) are also marked `extended`: checks of whole programs whose claim the gate checks
-# more cheaply elsewhere (named beside each) or that guard one feature's long path. `-m extended` runs them
-# alone; the whole suite (no -m) runs everything, about 21 to 32 minutes on that machine (docs/results.md).
-# Run it before landing a change to what they guard: the run loop, checkpoints, storage, the pod tool,
-# the regions, prepare or the viewer. An entry that names no test fails the collection (a renamed test would
-# otherwise drop back into the gate unnoticed).
-EXTENDED = {
+# The gate and the extended set. The README's test command, which CI runs (.ci/run), is the gate,
+# `-m "not extended"`: every quick test and the slow ones that no entry below names (8 minutes on the 2-core
+# Xeon, about 12 on the EPYC; docs/results.md). The slow tests of each entry (a file, or one test function with
+# all its cases; the entry's quick tests stay in the gate) are marked `extended`: checks of whole programs whose
+# claim the gate checks more cheaply elsewhere (said beside each) or that guard one feature's long path.
+# `-m extended` runs them; no -m runs everything (21 to 32 minutes there). Run them before landing a change to
+# what they guard: the run loop, checkpoints, storage, the pod tool, the regions, prepare or the viewer. An
+# entry that names no slow test fails the collection (a renamed test would otherwise drop back into the gate).
+EXTENDED = (
     # The whole default job (1,500 steps) and the two tests that read its model. The gate checks the smoke
     # job's recorded losses and metrics bit for bit, in-process and under users' own XLA flags (test_golden).
-    "test_golden.py::test_the_default_job_gives_the_readmes_headline_metrics": "README headline",
-    "test_export.py": "surfaces of the default job's model",
-    "test_eval_protocols.py": "the pose fit on the default job's model",
+    "test_golden.py::test_the_default_job_gives_the_readmes_headline_metrics",
+    "test_export.py",  # its surfaces (the exports' quick tests stay)
+    "test_eval_protocols.py",  # the pose fit on its model (the protocols' quick tests stay)
     # Exactness across topologies and kills: the gate keeps 2 x 4 (as two slices) = 1 x 8 with multi-host
     # evaluation, one SIGKILL and restart, and the preemptions (test_multiprocess); these repeat them under
-    # XLA's default flags, at random moments, on another topology or for one host's death.
+    # XLA's default flags, at random moments, on another topology, or for one host's death.
     "test_multiprocess.py::test_under_xlas_default_flags_two_hosts_and_a_killed_then_resumed_run_end_at_one_"
-    "processs_bits": "users' flags",
-    "test_multiprocess.py::test_sigterm_to_one_host_saves_an_agreed_step_then_resumes_on_another_topology": "",
-    "test_multiprocess.py::test_a_dead_process_stops_the_others_within_the_heartbeat_timeout": "",
-    "test_chaos.py": "kills at random moments",
-    "test_orbit_multiprocess.py": "the orbit over 2 processes (test_whole_slice renders one in the gate)",
-    "test_shards.py": "image shards over 2 processes",
-    "test_wandb.py::test_a_killed_and_resumed_run_continues_one_wandb_run_and_its_steps_never_go_back": "",
-    "test_wandb.py::test_a_two_process_run_writes_one_wandb_run_from_process_0": "",
-    # Faults beyond a kill, each with quick unit tests of its path in the gate.
-    "test_workdir_lock.py": "a second writer at random moments",
+    "processs_bits",
+    "test_multiprocess.py::test_sigterm_to_one_host_saves_an_agreed_step_then_resumes_on_another_topology",
+    "test_multiprocess.py::test_a_dead_process_stops_the_others_within_the_heartbeat_timeout",
+    "test_chaos.py",
+    "test_orbit_multiprocess.py",  # (test_whole_slice renders an orbit over 2 processes in the gate)
+    "test_shards.py",  # image shards over 2 processes
+    "test_wandb.py::test_a_killed_and_resumed_run_continues_one_wandb_run_and_its_steps_never_go_back",
+    "test_wandb.py::test_a_two_process_run_writes_one_wandb_run_from_process_0",  # (the offline run stays)
+    # Faults beyond a kill, each with quick tests of its path in the gate: a second writer at random moments,
+    # a full RAM disk, the smoke job killed and resumed in the emulator's bucket, a bucket that goes silent.
+    "test_workdir_lock.py",
     "test_resilience.py::test_a_full_disk_is_one_sentence_naming_the_safe_checkpoint_and_a_rerun_with_space_"
-    "resumes": "a RAM disk",
-    "test_bucket.py": "the smoke job in the emulator's bucket, killed and resumed",
+    "resumes",
+    "test_bucket.py",
     "test_storage_away.py::test_a_bucket_that_stops_answering_stops_the_run_in_one_sentence_and_the_rerun_"
-    "resumes_exactly": "",
-    "test_storage_away.py::test_a_sigterm_while_the_bucket_does_not_answer_ends_the_run_within_the_bound": "",
-    # Whole TPU compiles (the gate compiles v4-8 and two v5e-4 slices in test_aot's quick tests).
-    "test_pod_sweep.py::test_every_program_compiles_for_a_pod_of_every_generation_and_host_class": "7 pods",
-    "test_aot.py::test_two_slices_of_v5e_256_compile_every_program_of_the_default_config": "512 chips",
-    "test_aot.py::test_a_cpu_run_with_libtpu_installed_behaves_as_without_it": "",
-    "test_aot.py::test_the_launchers_preflight_refuses_a_job_too_large_for_the_chips_with_the_figures": "",
-    "test_aot_regions.py": "",
-    # The region model's 2-process runs and its other layouts (the gate keeps its (2, 4) step and composites).
-    "test_region_multiprocess.py": "", "test_region_step.py": "", "test_regions.py": "",
-    # Real photos through pycolmap (prepare's quick tests run it on synthetic photos), the fox through the
-    # command line (test_real_configs trains the cup and the horns in the gate).
-    "test_prepare.py": "", "test_captures.py::test_a_distorted_capture_trains_evaluates_and_renders_through_the_"
-    "command_line": "",
+    "resumes_exactly",
+    "test_storage_away.py::test_a_sigterm_while_the_bucket_does_not_answer_ends_the_run_within_the_bound",
+    # Whole TPU compiles: 7 pods, 512 chips, the launcher's preflight, libtpu beside a CPU run, the region
+    # step (the gate compiles v4-8's evaluation and two v5e-4 slices' step, and the sweep's refusals).
+    "test_pod_sweep.py::test_every_program_compiles_for_a_pod_of_every_generation_and_host_class",
+    "test_aot.py::test_two_slices_of_v5e_256_compile_every_program_of_the_default_config",
+    "test_aot.py::test_a_cpu_run_with_libtpu_installed_behaves_as_without_it",
+    "test_aot.py::test_the_launchers_preflight_refuses_a_job_too_large_for_the_chips_with_the_figures",
+    "test_aot_regions.py",
+    # The region model's 2-process runs and other layouts (the gate keeps its (2, 4) step and two composites).
+    "test_region_multiprocess.py", "test_region_step.py", "test_regions.py",
+    # pycolmap on the cup's photos and the horns' video (prepare's quick tests run it on synthetic photos and
+    # the horns' photos), the fox through the command line (test_real_configs trains the cup and the horns).
+    "test_prepare.py",
+    "test_captures.py::test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_line",
     # The browser's other pages (the gate keeps the page's rendering and a drag, and the Ctrl-C exit).
-    "test_view.py::test_camera_set_through_viser_gives_that_view_and_the_other_channels": "",
-    "test_view.py::test_a_checkpoint_written_while_the_page_is_open_appears": "",
-    "test_view.py::test_a_path_saved_from_the_page_holds_the_keyframes_path": "",
-    "test_view.py::test_bad_workdirs_and_a_busy_port_are_one_sentence": "",
-    "test_view.py::test_the_viewer_builds_every_scene_kind_from_config_json_alone[tiny]": "",
-    "test_view.py::test_the_viewer_builds_every_scene_kind_from_config_json_alone[blender]": "",
-    # Second layouts and variants of steps whose first the quick loop checks.
-    "test_step.py": "", "test_per_frame.py": "", "test_lpips.py": "VGG's distances (AlexNet's stay)",
-    "test_benchmark.py::test_throughput_report_and_flops_that_count_every_micro_batch": "",
-    "test_benchmark.py::test_mixed_precision_is_also_measured_against_the_bfloat16_peak": "",
-    "test_benchmark.py::test_quality_mode_reports_thresholds_and_the_samples_that_matter": "",
-}
+    "test_view.py::test_camera_set_through_viser_gives_that_view_and_the_other_channels",
+    "test_view.py::test_a_checkpoint_written_while_the_page_is_open_appears",
+    "test_view.py::test_a_path_saved_from_the_page_holds_the_keyframes_path",
+    "test_view.py::test_bad_workdirs_and_a_busy_port_are_one_sentence",
+    "test_view.py::test_the_viewer_builds_every_scene_kind_from_config_json_alone[tiny]",
+    "test_view.py::test_the_viewer_builds_every_scene_kind_from_config_json_alone[blender]",
+    # Second layouts and variants of steps whose first the quick loop checks; VGG's LPIPS (AlexNet's stays);
+    # the benchmark's modes (the device check in the gate runs `nerfpod bench`).
+    "test_step.py", "test_per_frame.py", "test_lpips.py",
+    "test_benchmark.py::test_throughput_report_and_flops_that_count_every_micro_batch",
+    "test_benchmark.py::test_mixed_precision_is_also_measured_against_the_bfloat16_peak",
+    "test_benchmark.py::test_quality_mode_reports_thresholds_and_the_samples_that_matter",
+)
 
 
 def _extended_entry(item) -> str | None:
