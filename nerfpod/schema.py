@@ -141,6 +141,13 @@ def fraction_range() -> Field:
                ((0.5, 0.1), (0.0, 2.0), (0.1, 0.2, 0.3)))
 
 
+def pose_noise() -> Field:
+  """() (off) or (degrees, units): two numbers >= 0."""
+  return Field(lambda v: isinstance(v, (tuple, list)) and (len(v) == 0 or (
+      len(v) == 2 and all(_is_number(i) and i >= 0 for i in v))),
+               "() or (degrees, units): two numbers >= 0", (1.0, 0.03), ((-1.0, 0.0), (1.0,), (1.0, 0.0, 0.0)))
+
+
 def _declare(table: dict) -> dict[str, Field]:
   """{name: (default, field, doc)} -> {name: the field with its default and doc}."""
   return {name: dataclasses.replace(field, default=default, doc=doc)
@@ -177,6 +184,11 @@ FIELDS: dict[str, Field] = _declare({
         "multiple of every host count the run may use"),
     "data.host_memory_gib": (0.0, number(0.0, example=64.0),
         "images a host may hold (its shards + held-out), GiB; 0: half its memory"),
+    "data.pose_noise": ((), pose_noise(),
+        "(degrees, units): every training camera turned by this angle about a random axis through its centre "
+        "and shifted this far in a random direction (held-out cameras exact), to measure pose refinement where "
+        "the truth is known, as BARF does; (): the given poses"),
+    "data.pose_noise_seed": (0, integer(0), "the NumPy seed of data.pose_noise's axes and directions"),
 
     "model.field": ("hashgrid", choice("mlp", "hashgrid"),
         "'mlp' (NeRF's) or 'hashgrid' (Instant-NGP's encoding + small MLPs)"),
@@ -296,6 +308,11 @@ FIELDS: dict[str, Field] = _declare({
         "the corrections' own learning rate at the last step (log-linear decay, as train.lr_*)"),
     "train.pose_weight_decay": (0.0, number(0.0, example=0.01),
         "decoupled weight decay of the corrections (AdamW), pulls them to zero"),
+    "train.pose_b1": (0.9, number(0.0, 0.9999, example=0.99),
+        "the corrections' Adam's first-moment decay (its momentum); the optimiser's second-moment decay is 0.999"),
+    "train.pose_gate": (0.0, number(0.0, example=3.0),
+        "> 0: each correction's Adam step is scaled by max(0, 1 - gate / |z|), z its gradient's mean over the "
+        "spread that noise alone would give it, so a correction whose gradient is noise does not walk; 0: Adam"),
     "train.pose_pin_mean": (False, boolean(),
         "keep the corrections' mean (over the training frames) at zero: a common shift or turn of every camera, "
         "which no training pixel sees, is taken out of each update (held-out cameras keep their given poses)"),

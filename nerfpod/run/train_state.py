@@ -104,6 +104,53 @@ def scale_by_sparse_adam(b1: float, b2: float, eps: float) -> optax.GradientTran
   return optax.GradientTransformation(init, update)
 
 
+def noise_variance(b1: float, t):
+  """The variance of Adam's bias-corrected first moment after t steps of independent gradients of unit
+  variance and zero mean: m_t = (1 - b1) sum_i b1^(t-i) g_i over (1 - b1^t) has variance
+  (1 - b1) (1 + b1^t) / ((1 + b1) (1 - b1^t)); 1 at t = 1, (1 - b1) / (1 + b1) in the limit."""
+  power = jnp.power(jnp.float32(b1), t)
+  return (1 - b1) * (1 + power) / ((1 + b1) * (1 - power))
+
+
+def scale_by_gated_adam(b1: float, b2: float, eps: float, threshold: float) -> optax.GradientTransformation:
+  """Adam whose step of each entry is kept only as far as its gradient's mean is told apart from noise
+  (train.pose_gate): z = m / sqrt(v c_t), with m and v Adam's bias-corrected moments and c_t the variance
+  of m for gradients of zero mean and unit variance (noise_variance), is about a standard normal where the
+  gradient is noise (v estimates E[g^2] >= the noise's variance, so |z| is smaller where there is a mean),
+  and Adam's step m / (sqrt(v) + eps) is scaled by max(0, 1 - threshold / |z|): 0 inside the threshold,
+  Adam's step far outside it, continuous between (a soft threshold on z).
+
+  What it is for: Adam's normalised step moves an entry whose gradient is pure noise by about the learning
+  rate times sqrt((1 - b1) / (1 + b1)) at every step, a random walk that nothing pulls back (pose
+  corrections of exact cameras, docs/results.md). Gated at 3, such an entry moves at about one step in a
+  thousand; a correction whose pixels keep pushing one way still takes Adam's steps. threshold = 0 is
+  Adam's step (the factor is 1)."""
+  def init(params):
+    zeros = lambda: jax.tree.map(lambda p: jnp.zeros(p.shape, jnp.float32), params)  # noqa: E731
+    return SparseAdamState(count=jnp.zeros((), jnp.int32), mu=zeros(), nu=zeros())
+
+  def update(updates, state, params=None):
+    del params
+    count = optax.safe_int32_increment(state.count)
+    t = count.astype(jnp.float32)
+    correct1, correct2 = 1 - jnp.power(jnp.float32(b1), t), 1 - jnp.power(jnp.float32(b2), t)
+    spread = jnp.sqrt(noise_variance(b1, t))
+
+    def entry(g, mu, nu):
+      mu = b1 * mu + (1 - b1) * g
+      nu = b2 * nu + (1 - b2) * g * g
+      mean, rms = mu / correct1, jnp.sqrt(nu / correct2)
+      z = jnp.abs(mean) / (rms * spread + 1e-30)
+      gate = jnp.maximum(0.0, 1.0 - threshold / jnp.maximum(z, 1e-30))
+      return (gate * mean / (rms + eps)).astype(g.dtype), mu, nu
+
+    out = jax.tree.map(entry, updates, state.mu, state.nu)
+    pick = lambda i: jax.tree.map(lambda _, o: o[i], updates, out)  # noqa: E731
+    return pick(0), SparseAdamState(count=count, mu=pick(1), nu=pick(2))
+
+  return optax.GradientTransformation(init, update)
+
+
 def pinned_mean() -> optax.GradientTransformation:
   """Updates of the pose corrections (N frames, 6) less their mean over the frames: corrections that start
   at zero keep a zero mean, so the cameras cannot drift together by a common shift or turn (a motion of
@@ -148,8 +195,13 @@ def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -
     transforms["table"] = optax.chain(scale_by_sparse_adam(tc.adam_b1, tc.adam_b2, tc.adam_eps),
                                       optax.scale_by_learning_rate(schedule))
   if tc.pose_refine:
-    pose = optax.adamw(learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final), eps=tc.adam_eps,
-                       weight_decay=tc.pose_weight_decay)
+    pose_schedule = learning_rate_schedule(tc, tc.pose_lr_init, tc.pose_lr_final)
+    if tc.pose_gate > 0:
+      pose = optax.chain(scale_by_gated_adam(tc.pose_b1, 0.999, tc.adam_eps, tc.pose_gate),
+                         optax.add_decayed_weights(tc.pose_weight_decay),
+                         optax.scale_by_learning_rate(pose_schedule))
+    else:
+      pose = optax.adamw(pose_schedule, b1=tc.pose_b1, eps=tc.adam_eps, weight_decay=tc.pose_weight_decay)
     if pose_preconditioners is not None:
       pose = preconditioned(pose, pose_preconditioners)
     if tc.pose_pin_mean:

@@ -20,7 +20,7 @@ from absl import logging
 
 from nerfpod import storage
 from nerfpod.errors import UserError
-from nerfpod.scenes.base import SPACES, Scene, Shards, Split
+from nerfpod.scenes.base import SPACES, Scene, Shards, Split, with_pose_noise
 
 __all__ = ["CAPTURE_KINDS", "KINDS", "LOADERS", "Loader", "SPACES", "Scene", "Shards", "Split", "detect", "load"]
 
@@ -108,6 +108,8 @@ def load(data_config, shards: Shards | None = None) -> Scene:
   data.path may be local or a URL (gs://bucket/scene): every format is read through nerfpod.storage."""
   storage.forget_listings()  # a bucket's folders as they are now
   scene = _load(data_config, shards)
+  if data_config.pose_noise:
+    scene = with_pose_noise(scene, *data_config.pose_noise, data_config.pose_noise_seed)
   if shards is None or scene.kind not in IN_MEMORY_KINDS:
     return scene
   train = scene.split("train")  # made in memory: check and cut it now

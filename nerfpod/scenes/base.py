@@ -260,6 +260,24 @@ class Scene:
             "far": float(self.far), "capture_to_scene": np.asarray(self.transform, np.float64).tolist()}
 
 
+def with_pose_noise(scene: Scene, degrees: float, units: float, seed: int) -> Scene:
+  """The scene with every training camera moved by a known error (data.pose_noise), as BARF measures pose
+  refinement on synthetic scenes: each camera-to-world pose [R | o] becomes [exp(w) R | o + t], turned by
+  `degrees` about a random axis through its centre (world axes) and shifted by `units` (scene units) in a random
+  direction, axes and directions uniform on the sphere from NumPy's generator with `seed`. The held-out splits
+  keep their poses (a split that is also the training split's object keeps them too: it is the truth)."""
+  from nerfpod.nerf import pose_correction  # noqa: PLC0415 (the one place scenes turn cameras)
+  train = scene.split("train")
+  rng = np.random.default_rng(seed)
+  unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
+  axes, directions = unit(rng.normal(size=(len(train), 3))), unit(rng.normal(size=(len(train), 3)))
+  poses = np.array(train.poses, np.float64)
+  poses[:, :3, :3] = pose_correction.so3_exp_numpy(axes * np.deg2rad(degrees)) @ poses[:, :3, :3]
+  poses[:, :3, 3] += directions * units
+  moved = dataclasses.replace(train, poses=poses.astype(train.poses.dtype))
+  return dataclasses.replace(scene, splits={k: moved if k == "train" else v for k, v in scene.splits.items()})
+
+
 MIB = 2**20
 
 

@@ -32,18 +32,23 @@ def incompatible_fields(saved: dict, current: dict) -> list[str]:
                                           for p in RESUMABLE_CHANGES)]
 
 
+# Fields added after workdirs were written whose default is not what those runs did: what a workdir's
+# config.json without the field ran with (a resume keeps its optimiser; the tools read the run it was).
+WHEN_ABSENT = {"train": {"pose_gate": 0.0, "pose_b1": 0.9}}
+
+
 def with_defaults(saved: dict) -> dict:
   """`saved` (a workdir's config.json, as JSON loads it) with each field it lacks at its schema default, in
   the same JSON form (a tuple is the list config.json holds): a field added after the workdir was written
   (train.pose_pin_mean, say) is one whose default is what that run did, for a resume and for the tools that
-  read the workdir alike. What `saved` holds wins, fields this version does not know included (the schema
+  read the workdir alike; where it is not, WHEN_ABSENT says what the run did. What `saved` holds wins, fields this version does not know included (the schema
   refuses those)."""
   def merge(defaults: dict, given: dict) -> dict:
     out = dict(defaults)
     for key, value in given.items():
       out[key] = merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
     return out
-  return merge(json.loads(schema.defaults().to_json_best_effort()), saved)
+  return merge(merge(json.loads(schema.defaults().to_json_best_effort()), WHEN_ABSENT), saved)
 
 
 def check_workdir(workdir: str, writable: bool) -> None:

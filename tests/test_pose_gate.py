@@ -1,0 +1,127 @@
+"""Pose refinement's noise gate (train.pose_gate, train_state.scale_by_gated_adam) and the known pose error
+that measures it (data.pose_noise, scenes.base.with_pose_noise): the first moment's noise variance against
+a Monte Carlo estimate, the gate off as Adam to the last bit, a pure-noise gradient held still while a
+gradient with a mean still moves, and every training camera moved by exactly the angle and distance asked.
+NumPy and a few jitted updates: seconds."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+from conftest import smoke_config
+from nerfpod import scenes
+from nerfpod.nerf import pose_correction
+from nerfpod.run import train_state
+
+
+@pytest.mark.parametrize("b1", [0.9, 0.99])
+def test_the_first_moments_noise_variance_matches_a_monte_carlo_estimate(b1):
+  rng = np.random.default_rng(0)
+  g = rng.normal(size=(200_000, 60))  # 200,000 sequences of 60 steps of unit noise
+  m = np.zeros(g.shape[0])
+  for t in range(1, 61):
+    m = b1 * m + (1 - b1) * g[:, t - 1]
+    if t in (1, 2, 5, 20, 60):
+      estimate = np.var(m / (1 - b1**t))
+      np.testing.assert_allclose(float(train_state.noise_variance(b1, jnp.float32(t))), estimate, rtol=0.02)
+
+
+def _run(transform, grads):
+  """The sum of a transform's updates over a sequence of gradients (T, ...)."""
+  state = transform.init(jnp.zeros(grads.shape[1:]))
+  update = jax.jit(transform.update)
+  total = np.zeros(grads.shape[1:])
+  steps = []
+  for g in grads:
+    u, state = update(jnp.asarray(g, jnp.float32), state)
+    steps.append(np.asarray(u))
+    total += np.asarray(u)
+  return total, np.stack(steps)
+
+
+def test_the_gate_at_zero_is_adams_step():
+  grads = np.random.default_rng(1).normal(size=(30, 8, 6)) * 1e-3 + 2e-4
+  _, gated = _run(train_state.scale_by_gated_adam(0.9, 0.999, 1e-8, 0.0), grads)
+  _, adam = _run(optax.scale_by_adam(0.9, 0.999, 1e-8), grads)
+  np.testing.assert_allclose(gated, adam, rtol=1e-5, atol=1e-7)
+
+
+def test_a_noise_gradient_stays_put_under_the_gate_while_a_mean_still_moves():
+  rng = np.random.default_rng(2)
+  steps, entries = 1500, 400
+  noise = rng.normal(size=(steps, entries))
+  # Pure noise: Adam walks each entry about sqrt(steps) x sqrt((1 - b1) / (1 + b1)); the gate holds it.
+  adam_walk, _ = _run(optax.scale_by_adam(0.99, 0.999, 1e-8), noise)
+  gated_walk, _ = _run(train_state.scale_by_gated_adam(0.99, 0.999, 1e-8, 3.0), noise)
+  assert np.median(np.abs(adam_walk)) > 1.0
+  assert np.median(np.abs(gated_walk)) < 0.05 * np.median(np.abs(adam_walk))
+  # A gradient with a mean moves every entry the mean's way, with Adam's step times 1 - 3 / z: at a mean of a
+  # third of the noise's spread (z about 4.5 at b1 = 0.99) a third of Adam's progress, at a mean as large as
+  # the spread (z about 10) seven tenths.
+  for mean, kept in ((1.0 / 3.0, 0.25), (1.0, 0.6)):
+    signal = noise + mean
+    adam_move, _ = _run(optax.scale_by_adam(0.99, 0.999, 1e-8), signal)
+    gated_move, _ = _run(train_state.scale_by_gated_adam(0.99, 0.999, 1e-8, 3.0), signal)
+    assert np.all(gated_move > 0)
+    assert kept * np.median(adam_move) < np.median(gated_move) < np.median(adam_move)
+
+
+def test_make_optimizer_gates_the_pose_corrections_only():
+  tc = smoke_config(**{"train.pose_refine": True, "train.pose_gate": 3.0, "train.pose_b1": 0.99,
+                       "train.lr_warmup_steps": 0}).train
+  params = {"params": {pose_correction.PARAM: jnp.zeros((4, 6)), "w": jnp.zeros((3,))}}
+  optimizer = train_state.make_optimizer(tc)
+  state = optimizer.init(params)
+  rng = np.random.default_rng(3)
+  for _ in range(20):  # noise on the corrections, a steady gradient on the field
+    grads = {"params": {pose_correction.PARAM: jnp.asarray(rng.normal(size=(4, 6)) * 1e-3, jnp.float32),
+                        "w": jnp.full((3,), 1e-3)}}
+    updates, state = optimizer.update(grads, state, params)
+    params = optax.apply_updates(params, updates)
+  assert np.all(np.asarray(params["params"][pose_correction.PARAM]) == 0)
+  assert np.all(np.asarray(params["params"]["w"]) < 0)
+
+
+@pytest.mark.parametrize("degrees, units", [(1.0, 0.03), (5.0, 0.0)])
+def test_pose_noise_moves_every_training_camera_by_the_angle_and_distance_asked(degrees, units):
+  config = smoke_config()
+  exact = scenes.load(config.data)
+  config.data.pose_noise = (degrees, units)
+  moved = scenes.load(config.data)
+  given, noisy = exact.split("train").poses.astype(np.float64), moved.split("train").poses.astype(np.float64)
+  turn = noisy[:, :3, :3] @ np.swapaxes(given[:, :3, :3], 1, 2)
+  angles = np.degrees(np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+  np.testing.assert_allclose(angles, degrees, atol=2e-3)
+  np.testing.assert_allclose(np.linalg.norm(noisy[:, :3, 3] - given[:, :3, 3], axis=-1), units, atol=1e-5)
+  # Axes spread over the sphere (not one shared axis), rotations still rotations, held-out views exact.
+  if degrees:
+    axes = np.stack([turn[:, 2, 1] - turn[:, 1, 2], turn[:, 0, 2] - turn[:, 2, 0], turn[:, 1, 0] - turn[:, 0, 1]], -1)
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    assert np.linalg.norm(axes.mean(0)) < 0.5
+  np.testing.assert_allclose(np.linalg.det(noisy[:, :3, :3]), 1.0, atol=1e-5)
+  for name in ("val", "test"):
+    if name in exact.splits:
+      np.testing.assert_array_equal(moved.split(name).poses, exact.split(name).poses)
+  # The same seed gives the same draw, another seed another.
+  np.testing.assert_array_equal(scenes.load(config.data).split("train").poses, moved.split("train").poses)
+  config.data.pose_noise_seed = 1
+  assert not np.array_equal(scenes.load(config.data).split("train").poses, moved.split("train").poses)
+
+
+def test_a_pose_refined_workdir_written_before_the_gate_resumes_with_the_plain_adam_it_ran():
+  """config.json of a run from before train.pose_gate and train.pose_b1 reads as what that run did (gate 0,
+  b1 0.9: optax's AdamW), whatever their defaults are now: the same optimiser state to resume into, and a
+  resume that asks for the gate is refused as any other change of the optimiser would be."""
+  import json
+
+  from nerfpod.workdir import files as workdir_files
+  saved = json.loads(smoke_config(**{"train.pose_refine": True}).to_json_best_effort())
+  del saved["train"]["pose_gate"], saved["train"]["pose_b1"]
+  read = workdir_files.with_defaults(saved)["train"]
+  assert (read["pose_gate"], read["pose_b1"]) == (0.0, 0.9)
+  then = smoke_config(**{"train.pose_refine": True, "train.pose_gate": 0.0, "train.pose_b1": 0.9})
+  assert workdir_files.incompatible_fields(saved, json.loads(then.to_json_best_effort())) == []
+  gated = smoke_config(**{"train.pose_refine": True, "train.pose_gate": 5.0, "train.pose_b1": 0.99})
+  assert workdir_files.incompatible_fields(saved, json.loads(gated.to_json_best_effort())) == [
+      "train.pose_b1", "train.pose_gate"]
