@@ -125,3 +125,15 @@ def test_a_pose_refined_workdir_written_before_the_gate_resumes_with_the_plain_a
   gated = smoke_config(**{"train.pose_refine": True, "train.pose_gate": 5.0, "train.pose_b1": 0.99})
   assert workdir_files.incompatible_fields(saved, json.loads(gated.to_json_best_effort())) == [
       "train.pose_b1", "train.pose_gate"]
+
+
+def test_a_gradient_without_noise_takes_adams_step_times_one_less_the_gate_over_its_ceiling():
+  """A constant gradient: z is its ceiling 1 / sqrt(c_t), so the factor is max(0, 1 - gate sqrt(c_t)): shut
+  for the first steps, then rising to 1 - 5 sqrt(0.01 / 1.99) = 0.65 at b1 = 0.99."""
+  grads = np.full((400, 3), 0.02)
+  _, gated = _run(train_state.scale_by_gated_adam(0.99, 0.999, 1e-8, 5.0), grads)
+  _, adam = _run(optax.scale_by_adam(0.99, 0.999, 1e-8), grads)
+  t = np.arange(1, 401, dtype=np.float64)
+  factor = np.maximum(0.0, 1.0 - 5.0 * np.sqrt(np.asarray(train_state.noise_variance(0.99, jnp.asarray(t, jnp.float32)))))
+  np.testing.assert_allclose(gated[:, 0], factor * adam[:, 0], rtol=1e-4, atol=1e-7)
+  assert factor[:20].max() == 0.0 and 0.6 < factor[-1] < 0.66

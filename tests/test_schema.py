@@ -96,6 +96,9 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "model.regions=4 renders each region's segment with proposal or stratified samples"),
     ({"train.coarse_to_fine": (0.1, 0.5), "model.field": "mlp"},
      "train.coarse_to_fine='(0.1,0.5)' opens the hash grid's levels one by one, and this run has model.field=mlp"),
+    ({"train.pose_refine": True, "train.pose_b1": 0.9},
+     "train.pose_gate=5 would never open at train.pose_b1=0.9: the gate's statistic stays under sqrt((1 + b1) / "
+     "(1 - b1)) = 4.4; lower the gate or raise train.pose_b1 (e.g. --config.train.pose_b1=0.99)."),
     ({"train.interlevel_blur": (0.03, 0.003)},
      "train.interlevel_blur='(0.03,0.003)' blurs the interlevel loss of each proposal round, and "
      "render.proposal_samples='(16,)' has 1: give one radius per round (e.g. "

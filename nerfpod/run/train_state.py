@@ -112,22 +112,34 @@ def noise_variance(b1: float, t):
   return (1 - b1) * (1 + power) / ((1 + b1) * (1 - power))
 
 
+class GatedAdamState(NamedTuple):
+  count: jax.Array  # scalar int32: steps taken, for the bias corrections
+  mu: Any  # the first moment (decay b1)
+  nu: Any  # the second moment of Adam's step (decay b2)
+  sq: Any  # the second moment over the first moment's window (decay b1), for the gate
+
+
 def scale_by_gated_adam(b1: float, b2: float, eps: float, threshold: float) -> optax.GradientTransformation:
-  """Adam whose step of each entry is kept only as far as its gradient's mean is told apart from noise
-  (train.pose_gate): z = m / sqrt(v c_t), with m and v Adam's bias-corrected moments and c_t the variance
-  of m for gradients of zero mean and unit variance (noise_variance), is about a standard normal where the
-  gradient is noise (v estimates E[g^2] >= the noise's variance, so |z| is smaller where there is a mean),
-  and Adam's step m / (sqrt(v) + eps) is scaled by max(0, 1 - threshold / |z|): 0 inside the threshold,
-  Adam's step far outside it, continuous between (a soft threshold on z).
+  """Adam whose step of each entry is kept only as far as its gradient's mean stands out of noise
+  (train.pose_gate). Over the first moment's window (decay b1, about 1 / (1 - b1) steps) m and s are the
+  bias-corrected means of g and g^2, and z = m / sqrt(s c_t), c_t the variance of m for gradients of zero mean
+  and unit variance (noise_variance). Where the gradient is noise of any size, z is about a standard normal
+  (s estimates its variance); where it has a mean mu beside noise sigma, z is about mu / sqrt((mu^2 +
+  sigma^2) c_t), never more than 1 / sqrt(c_t) (sqrt((1 + b1) / (1 - b1)) in the limit: 14.1 at b1 = 0.99,
+  4.4 at 0.9, so a gate of 5 needs b1 > 0.92; at the first steps c_t is near 1 and the gate stays shut until
+  the window holds enough gradients to tell). Adam's step m / (sqrt(v) + eps), v at decay b2, is scaled by
+  max(0, 1 - threshold / |z|): 0 inside the threshold, continuous, up to 1 - threshold sqrt(c_t) for a
+  gradient without noise (0.65 at b1 = 0.99 and 5). s is measured over m's own window, not Adam's longer
+  one, so a gradient that keeps its sign while it shrinks (a correction nearing its answer) keeps its z.
 
   What it is for: Adam's normalised step moves an entry whose gradient is pure noise by about the learning
-  rate times sqrt((1 - b1) / (1 + b1)) at every step, a random walk that nothing pulls back (pose
-  corrections of exact cameras, docs/results.md). Gated at 3, such an entry moves at about one step in a
-  thousand; a correction whose pixels keep pushing one way still takes Adam's steps. threshold = 0 is
-  Adam's step (the factor is 1)."""
+  rate times sqrt((1 - b1) / (1 + b1)) at every step, a random walk that nothing pulls back (the pose
+  corrections of exact cameras, docs/results.md); gated at 5, such an entry almost never moves, while a
+  correction that its pixels keep pushing one way still takes most of Adam's step. threshold = 0 is Adam's
+  step (the factor is 1)."""
   def init(params):
     zeros = lambda: jax.tree.map(lambda p: jnp.zeros(p.shape, jnp.float32), params)  # noqa: E731
-    return SparseAdamState(count=jnp.zeros((), jnp.int32), mu=zeros(), nu=zeros())
+    return GatedAdamState(count=jnp.zeros((), jnp.int32), mu=zeros(), nu=zeros(), sq=zeros())
 
   def update(updates, state, params=None):
     del params
@@ -136,17 +148,18 @@ def scale_by_gated_adam(b1: float, b2: float, eps: float, threshold: float) -> o
     correct1, correct2 = 1 - jnp.power(jnp.float32(b1), t), 1 - jnp.power(jnp.float32(b2), t)
     spread = jnp.sqrt(noise_variance(b1, t))
 
-    def entry(g, mu, nu):
+    def entry(g, mu, nu, sq):
       mu = b1 * mu + (1 - b1) * g
       nu = b2 * nu + (1 - b2) * g * g
-      mean, rms = mu / correct1, jnp.sqrt(nu / correct2)
-      z = jnp.abs(mean) / (rms * spread + 1e-30)
+      sq = b1 * sq + (1 - b1) * g * g
+      mean = mu / correct1
+      z = jnp.abs(mean) / (jnp.sqrt(sq / correct1) * spread + 1e-30)
       gate = jnp.maximum(0.0, 1.0 - threshold / jnp.maximum(z, 1e-30))
-      return (gate * mean / (rms + eps)).astype(g.dtype), mu, nu
+      return (gate * mean / (jnp.sqrt(nu / correct2) + eps)).astype(g.dtype), mu, nu, sq
 
-    out = jax.tree.map(entry, updates, state.mu, state.nu)
+    out = jax.tree.map(entry, updates, state.mu, state.nu, state.sq)
     pick = lambda i: jax.tree.map(lambda _, o: o[i], updates, out)  # noqa: E731
-    return pick(0), SparseAdamState(count=count, mu=pick(1), nu=pick(2))
+    return pick(0), GatedAdamState(count=count, mu=pick(1), nu=pick(2), sq=pick(3))
 
   return optax.GradientTransformation(init, update)
 
