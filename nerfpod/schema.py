@@ -300,10 +300,10 @@ FIELDS: dict[str, Field] = _declare({
     "train.pose_refine": (False, boolean(),
         "learn an SE(3) correction of each training frame's pose (nerfacto's camera optimiser); held-out frames "
         "keep their given poses"),
-    "train.pose_lr_init": (1e-4, number(above=0.0, example=1e-4),
-        "the corrections' own learning rate at the start (after warm-up); with the gate at 5, 1e-4 cost 0.14 dB "
-        "on exact poses and gained 3 dB with every camera a degree off, 3e-4 0.43 and 4.9 (docs/results.md)"),
-    "train.pose_lr_final": (1e-5, number(above=0.0, example=1e-5),
+    "train.pose_lr_init": (3e-4, number(above=0.0, example=3e-4),
+        "the corrections' own learning rate at the start (after warm-up); with the gate at 5, 3e-4 cost 0.13 dB "
+        "on exact poses and gained 3.1 dB with every camera a degree off, 1e-3 0.49 and 3.4 (docs/results.md)"),
+    "train.pose_lr_final": (3e-5, number(above=0.0, example=3e-5),
         "the corrections' own learning rate at the last step (log-linear decay, as train.lr_*)"),
     "train.pose_weight_decay": (0.0, number(0.0, example=0.01),
         "decoupled weight decay of the corrections (AdamW), pulls them to zero"),

@@ -5,6 +5,7 @@ the shapes a restore fills, and the streams of randomness.
     learning_rate_schedule  warm-up, then log-linear decay (the original NeRF's)
     make_optimizer          Adam (and AdamW for pose corrections), after gradient clipping
     scale_by_sparse_adam    Adam that skips hash-table entries without a gradient (train.sparse_table_updates)
+    scale_by_gated_adam     Adam whose steps wait for a gradient's mean to stand out of noise (train.pose_gate)
     initial_state           the state from the seed, laid over the mesh (state_shardings)
     state_shapes            its ShapeDtypeStructs, without computing anything
     state_specs             where each leaf lives: a region's fields on the region axis, the rest replicated
@@ -196,7 +197,9 @@ def make_optimizer(train_config, clip: bool = True, pose_preconditioners=None) -
   known; each device's optimiser sees its own regions' only). With train.sparse_table_updates, the hash grids'
   tables have an Adam that skips entries without a gradient (scale_by_sparse_adam, the same schedule and
   decays). With train.pose_refine, the pose corrections have their own: AdamW on the same schedule's shape
-  from train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser);
+  from train.pose_lr_init to train.pose_lr_final, with train.pose_weight_decay (nerfacto's camera optimiser),
+  its first-moment decay train.pose_b1 and, where train.pose_gate > 0, each step gated by how far its
+  gradient's mean stands out of noise (scale_by_gated_adam);
   with train.pose_pin_mean, each of its updates less its mean over the frames (pinned_mean); with
   `pose_preconditioners` (N, 6, 6: train.pose_precondition), AdamW steps the preconditioned corrections
   (preconditioned)."""
