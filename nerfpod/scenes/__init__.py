@@ -108,8 +108,8 @@ def load(data_config, shards: Shards | None = None) -> Scene:
   data.path may be local or a URL (gs://bucket/scene): every format is read through nerfpod.storage."""
   storage.forget_listings()  # a bucket's folders as they are now
   scene = _load(data_config, shards)
-  if data_config.pose_noise:
-    scene = with_pose_noise(scene, *data_config.pose_noise, data_config.pose_noise_seed)
+  if data_config.get("pose_noise"):  # a data config made by hand may lack the field
+    scene = with_pose_noise(scene, *data_config.pose_noise, data_config.get("pose_noise_seed", 0))
   if shards is None or scene.kind not in IN_MEMORY_KINDS:
     return scene
   train = scene.split("train")  # made in memory: check and cut it now
