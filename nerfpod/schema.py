@@ -530,11 +530,11 @@ def _rules(c: dict) -> list[str]:
     out.append(f"train.coarse_to_fine={_show(c['train.coarse_to_fine'])} opens the hash grid's levels one by one, "
                f"and this run has model.field={c['model.field']}, model.regions={c['model.regions']}; use it "
                f"with model.field=hashgrid and one region (or --config.train.coarse_to_fine='()').")
-  if c["train.pose_refine"] and c["train.pose_gate"] >= math.sqrt((1 + c["train.pose_b1"]) / (1 - c["train.pose_b1"])):
+  ceiling = math.sqrt((1 + c["train.pose_b1"]) / (1 - c["train.pose_b1"]))  # the gate's statistic stays under it
+  if c["train.pose_refine"] and c["train.pose_gate"] >= ceiling:
     out.append(f"train.pose_gate={c['train.pose_gate']:g} would never open at train.pose_b1={c['train.pose_b1']:g}: "
-               f"the gate's statistic stays under sqrt((1 + b1) / (1 - b1)) = "
-               f"{math.sqrt((1 + c['train.pose_b1']) / (1 - c['train.pose_b1'])):.1f}; lower the gate or raise "
-               f"train.pose_b1 (e.g. --config.train.pose_b1=0.99).")
+               f"the gate's statistic stays under sqrt((1 + b1) / (1 - b1)) = {ceiling:.1f}; lower the gate or "
+               f"raise train.pose_b1 (e.g. --config.train.pose_b1=0.99).")
   if c["model.hashgrid.max_resolution"] < c["model.hashgrid.base_resolution"]:
     out.append(f"model.hashgrid.max_resolution={c['model.hashgrid.max_resolution']} must be at least "
                f"model.hashgrid.base_resolution={c['model.hashgrid.base_resolution']}.")

@@ -41,8 +41,8 @@ def with_defaults(saved: dict) -> dict:
   """`saved` (a workdir's config.json, as JSON loads it) with each field it lacks at its schema default, in
   the same JSON form (a tuple is the list config.json holds): a field added after the workdir was written
   (train.pose_pin_mean, say) is one whose default is what that run did, for a resume and for the tools that
-  read the workdir alike; where it is not, WHEN_ABSENT says what the run did. What `saved` holds wins, fields this version does not know included (the schema
-  refuses those)."""
+  read the workdir alike; where it is not, WHEN_ABSENT says what the run did. What `saved` holds wins, fields
+  this version does not know included (the schema refuses those)."""
   def merge(defaults: dict, given: dict) -> dict:
     out = dict(defaults)
     for key, value in given.items():
