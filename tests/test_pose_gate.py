@@ -11,7 +11,7 @@ import pytest
 
 from conftest import smoke_config
 from nerfpod import scenes
-from nerfpod.nerf import pose_correction
+from nerfpod.nerf import alignment, pose_correction
 from nerfpod.run import train_state
 
 
@@ -91,7 +91,7 @@ def test_pose_noise_moves_every_training_camera_by_the_angle_and_distance_asked(
   moved = scenes.load(config.data)
   given, noisy = exact.split("train").poses.astype(np.float64), moved.split("train").poses.astype(np.float64)
   turn = noisy[:, :3, :3] @ np.swapaxes(given[:, :3, :3], 1, 2)
-  angles = np.degrees(np.arccos(np.clip((np.trace(turn, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+  angles = np.array([alignment.rotation_angle_deg(r) for r in turn])
   np.testing.assert_allclose(angles, degrees, atol=2e-3)
   np.testing.assert_allclose(np.linalg.norm(noisy[:, :3, 3] - given[:, :3, 3], axis=-1), units, atol=1e-5)
   # Axes spread over the sphere (not one shared axis), rotations still rotations, held-out views exact.

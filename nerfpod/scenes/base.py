@@ -265,15 +265,15 @@ def with_pose_noise(scene: Scene, degrees: float, units: float, seed: int) -> Sc
   refinement on synthetic scenes: each camera-to-world pose [R | o] becomes [exp(w) R | o + t], turned by
   `degrees` about a random axis through its centre (world axes) and shifted by `units` (scene units) in a random
   direction, axes and directions uniform on the sphere from NumPy's generator with `seed`. The held-out splits
-  keep their poses (a split that is also the training split's object keeps them too: it is the truth)."""
-  from nerfpod.nerf import pose_correction  # noqa: PLC0415 (the one place scenes turn cameras)
+  keep their poses (a split that is also the training split's object keeps them too: it is the truth). The
+  error is a pose correction's (t, w) form, applied as pose refinement applies one."""
+  from nerfpod.nerf import pose_correction  # noqa: PLC0415 (it imports JAX; the schema reads this module without)
   train = scene.split("train")
   rng = np.random.default_rng(seed)
   unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)  # noqa: E731
   axes, directions = unit(rng.normal(size=(len(train), 3))), unit(rng.normal(size=(len(train), 3)))
-  poses = np.array(train.poses, np.float64)
-  poses[:, :3, :3] = pose_correction.so3_exp_numpy(axes * np.deg2rad(degrees)) @ poses[:, :3, :3]
-  poses[:, :3, 3] += directions * units
+  error = np.concatenate([directions * units, axes * np.deg2rad(degrees)], -1)
+  poses = pose_correction.corrected_poses(train.poses, error)
   moved = dataclasses.replace(train, poses=poses.astype(train.poses.dtype))
   return dataclasses.replace(scene, splits={k: moved if k == "train" else v for k, v in scene.splits.items()})
 
