@@ -470,6 +470,10 @@ class Monitor:
     self.writer.add_scalar("train/learning_rate", lr, step)
     line = (f"step {step:>6d}/{self.num_steps} | loss {float(metrics['loss']):.5f} | "
             f"psnr {float(metrics['psnr']):6.2f} dB | lr {lr:.2e}")
+    if "interlevel" in metrics:  # (a collapsing proposal sampler drives it to 0: docs/training.md)
+      line += f" | interlevel {float(metrics['interlevel']):.2e}"
+    if "window" in metrics:
+      line += f" | window {float(metrics['window']):.3f}"
     if rays_per_s is not None:
       self.writer.add_scalar("train/rays_per_sec", rays_per_s, step)
       line += f" | {rays_per_s:,.0f} rays/s | ETA {duration(eta)}"

@@ -199,6 +199,9 @@ FIELDS: dict[str, Field] = _declare({
     "model.appearance_dim": (0, integer(0, example=16),
         "width of a learned appearance code per training frame (GLO, NeRF-W), fed to the colour head; held-out "
         "views get the codes' mean; 0: off"),
+    "model.trunc_exp": (False, boolean(),
+        "the hash-grid fields' density exp(min(h, 15)) keeps its gradient above the clamp (nerfacto's trunc_exp), "
+        "so a saturated density can come down; false: zero gradient there"),
     "model.regions": (1, integer(1, 4096, example=4),
         "fields, one per convex region of space, parameters sharded over the mesh's region axis (NeRF-XL, "
         "docs/scale.md#scenes-bigger-than-one-chip); a divisor of the device count; 1: one field everywhere"),
@@ -255,6 +258,10 @@ FIELDS: dict[str, Field] = _declare({
         "intervals per ray of each proposal round, e.g. (64, 32): the NeRF field then gets render.num_samples "
         "intervals drawn from the last; (): no proposals, render.num_samples stratified samples "
         "(docs/training.md, Speed settings)"),
+    "render.proposal_padding": (0.0, number(0.0, example=0.01),
+        "added to every interval's weight of a proposal histogram before the next round draws from it "
+        "(nerfacto: 0.01): some samples always follow the previous round's intervals, so resampling cannot trap "
+        "the NeRF's window in one interval (docs/training.md); 0: the raw histogram"),
     "render.last_delta": (0.0, number(0.0, example=1e10),
         "length of the last sample's interval, world units (the paper: 1e10, opaque at the far end: use it only "
         "with a fixed background colour)"),
@@ -292,6 +299,9 @@ FIELDS: dict[str, Field] = _declare({
         "Zip-NeRF's anti-aliased interlevel loss: one box half-width per proposal round, in normalised ray "
         "distance (Zip-NeRF: (0.03, 0.003)), the NeRF's weights blurred by it before the proposals bound "
         "them; (): mip-NeRF 360's loss (no better on the cup and the fox: docs/results.md)"),
+    "train.proposal_anneal_steps": (0, integer(0, example=1000),
+        "the proposal weights are raised to a power rising from 0 to 1 over this many steps before resampling "
+        "(nerfacto: 1,000, slope 10): early samples spread over the whole ray; 0: no annealing"),
     "train.distortion_weight": (0.0, number(0.0, example=0.002),
         "proposal sampling: weight of the distortion loss (eq. 15); 0: off"),
     "train.near_gradient_distance": (0.0, number(0.0, example=1.0),
@@ -520,6 +530,16 @@ def _rules(c: dict) -> list[str]:
                f"{c['render.space']}, model.regions={c['model.regions']}; use it with model.field=hashgrid, "
                f"render.space euclidean or contract and one region (or --config.model.hashgrid.scale_aware=false).")
   rounds = len(c["render.proposal_samples"])
+  for name, value in (("render.proposal_padding", c["render.proposal_padding"]),
+                      ("train.proposal_anneal_steps", c["train.proposal_anneal_steps"])):
+    if value and not rounds:
+      out.append(f"{name}={_show(value)} shapes the proposal rounds' histograms, and render.proposal_samples='()' "
+                 f"has none: leave it at 0 (--config.{name}=0) or give proposal rounds.")
+  if c["train.proposal_anneal_steps"] > c["train.num_steps"]:
+    out.append(f"train.proposal_anneal_steps={c['train.proposal_anneal_steps']} is longer than the run "
+               f"(train.num_steps={c['train.num_steps']}): its proposals would be resampled annealed to the end; "
+               f"use at most the run's length (e.g. --config.train.proposal_anneal_steps="
+               f"{min(1000, c['train.num_steps'] // 10)}).")
   if c["train.interlevel_blur"] and len(c["train.interlevel_blur"]) != rounds:
     fix = (f"give one radius per round (e.g. --config.train.interlevel_blur={_show((0.03,) * rounds)}) or "
            if rounds else "")

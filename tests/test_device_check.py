@@ -20,7 +20,7 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
   assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:] + log[-3000:]
   report = json.loads((out / "device_check.json").read_text())
   stages = report["stages"]
-  assert list(stages) == ["env", "bench_64", "bench_128", "default", "capture_lr_3e-3", "quality", "pod"]
+  assert list(stages) == ["env", "bench_64", "bench_128", "default", "capture_padded", "quality", "pod"]
   assert all(stage["status"] == "ok" for stage in stages.values()), stages
   env_stage = stages["env"]
   assert env_stage["backend"] == "cpu" and env_stage["device_count"] >= 1 and env_stage["jax"]
@@ -35,12 +35,19 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
   assert default["step"] == 20 and default["views"] == 2 and math.isfinite(default["psnr"])
   assert default["first_line"].startswith("nerfpod: JAX ") and " on cpu: " in default["first_line"]
   assert "orbit.zarr" in default["renders"] and "orbit_sheet.png" in default["renders"]
-  # The capture stage on the tiny config: the default stage's job with a lower learning rate.
-  lower = stages["capture_lr_3e-3"]
-  assert lower["overrides"] == ["--config.train.num_steps=20", "--config.train.lr_init=3e-3"] and lower["step"] == 20
-  assert sorted(map(int, lower["losses"])) == [1, 5, 10, 15, 20] and lower["views"] == 2  # log_every 5
-  assert math.isfinite(lower["psnr"]) and lower["psnr"] != default["psnr"]  # the override reached the run
-  assert math.isfinite(lower["train_psnr"]) and lower["loss_spikes"] == []
+  # The capture stage on the tiny config: the default stage's job with its proposal histogram padded.
+  padded = stages["capture_padded"]
+  assert padded["overrides"] == ["--config.train.num_steps=20", "--config.render.proposal_padding=0.01"]
+  assert padded["step"] == 20 and padded["views"] == 2
+  assert sorted(map(int, padded["losses"])) == [1, 5, 10, 15, 20]  # log_every 5
+  assert math.isfinite(padded["psnr"]) and padded["psnr"] != default["psnr"]  # the override reached the run
+  assert math.isfinite(padded["train_psnr"]) and padded["loss_spikes"] == []
+  assert sorted(map(int, padded["window"])) == [1, 5, 10, 15, 20] and sorted(padded["interlevel"]) == sorted(
+      padded["window"])
+  assert all(0.0 < w <= 1.0 for w in padded["window"].values()) and padded["collapse_warning"] is False
+  kept = out / "capture_padded"  # what comes back from the machine: events (scalars, previews) and metrics
+  assert "metrics.json" in padded["kept"] and any(k.startswith("events.out.tfevents") for k in padded["kept"])
+  assert json.loads((kept / "metrics.json").read_text())["mean"]["psnr"] == pytest.approx(padded["psnr"])
   quality = stages["quality"]
   best = max(h["psnr"] for h in quality["history"])
   for target in (8.0, 9.0, 20.0):  # reached exactly where the held-out PSNR got there
@@ -77,6 +84,6 @@ def test_stages_the_budget_leaves_no_room_for_are_skipped_not_started(tmp_path):
                         capture_output=True, text=True, timeout=120)
   assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
   stages = json.loads((out / "device_check.json").read_text())["stages"]
-  assert list(stages) == ["capture_lr_3e-3", "quality", "pod"]
+  assert list(stages) == ["capture_padded", "quality", "pod"]
   for stage in stages.values():
     assert stage["status"] == "skipped" and "--budget_s=20" in stage["reason"], stage

@@ -73,6 +73,9 @@ def test_unknown_config_key_is_refused_clearly(tmp_path):
     (["--config.data.kind=blender", "--config.data.path=/nonexistent/lego"], "not found"),
     (["--config.data.kind=tiny", "--config.data.path=/nonexistent/tiny.npz"], "not found"),
     (["--config.train.batch_size=100", "--config.data.image_size=8"], None),
+    (["--config.render.proposal_padding=-0.01"], "render.proposal_padding=-0.01 is not valid: it must be a finite "
+                                                 "number >= 0"),
+    (["--config.train.proposal_anneal_steps=1000"], "train.proposal_anneal_steps=1000 is longer than the run"),
 ])
 def test_bad_input_exits_non_zero_with_one_sentence(tmp_path, args, message):
   result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *args,

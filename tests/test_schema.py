@@ -105,6 +105,14 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "--config.train.interlevel_blur='(0.03,)') or use --config.train.interlevel_blur='()'."),
     ({"train.interlevel_blur": (0.03,), "render.proposal_samples": ()},
      "render.proposal_samples='()' has 0: use --config.train.interlevel_blur='()'."),
+    ({"train.proposal_anneal_steps": 30},
+     "train.proposal_anneal_steps=30 is longer than the run (train.num_steps=20): its proposals would be "
+     "resampled annealed to the end; use at most the run's length (e.g. --config.train.proposal_anneal_steps=2)."),
+    ({"render.proposal_padding": 0.01, "render.proposal_samples": ()},
+     "render.proposal_padding=0.01 shapes the proposal rounds' histograms, and render.proposal_samples='()' has "
+     "none: leave it at 0 (--config.render.proposal_padding=0) or give proposal rounds."),
+    ({"train.proposal_anneal_steps": 10, "render.proposal_samples": ()},
+     "train.proposal_anneal_steps=10 shapes the proposal rounds' histograms"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))

@@ -12,9 +12,11 @@ each a process of its own with a time limit, so that one that fails or overruns 
   quality    time to 30 / 32 / 33 dB held-out PSNR on lego_400's val split at 400x400 (`nerfpod bench
              --quality`), with whatever budget is left after the other stages' reserve
   capture    a real capture at the accelerator size (configs/capture.py:path=DIR,big; the cup, exported by
-             tools/device_wheels.sh as a transforms.json) for 8,000 steps, as it is and with each change that
-             could explain what an H200 showed on it (docs/results.md: a loss spike, then held-out PSNR 18.5 dB
-             against 29.2 dB on a CPU): held-out PSNR, the training PSNR and the loss spikes of each
+             tools/device_wheels.sh as a transforms.json) for 8,000 steps: as it is (with the proposal
+             sampler's guards), as it was before them (what an H200 showed: a loss spike, then held-out PSNR
+             18.5 dB against 29.2 dB on a CPU), at 512 rays a step, then older candidates where time is left:
+             held-out PSNR, training PSNR, loss spikes, the interlevel term and the NeRF's window of each, and
+             its events (scalars, depth previews) and metrics.json kept in DIR/capture_NAME/
   pod        a pod-shaped run: launch/local.py's 2 processes, each on one GPU where there are two, else on
              simulated CPU devices (a one-GPU machine cannot give two processes a GPU each)
 
@@ -231,15 +233,25 @@ def stage_quality(check: Check, config: list[str], max_seconds: float, eval_ever
 
 # The capture stage's variants: (name, overrides, environment). On an H200 the cup at `big` spiked (loss x10 at
 # step 2,000-2,900), after which its proposal and distortion losses were gone and held-out PSNR fell to 18.5 dB
-# (the same grid on a CPU, 512 rays a step: 29.2 dB). Candidates: TF32 matmuls (a GPU's float32 default),
-# Adam's b2 = 0.99 on a 2^19-row table (nerfacto keeps 0.999), the peak learning rate.
+# (the same grid on a CPU, 512 rays a step: 29.2 dB): proposal resampling's trap (stepfun.resampling_weights).
+# `big` now pads and anneals its resampling and keeps the density's gradient above its clamp: the cup at `big`
+# as it is, as it was before those guards, and at the CPU's 512 rays a step on the same schedule; then the
+# older candidates (TF32 matmuls, Adam's b2), where time is left.
+AS_WAS = ("--config.render.proposal_padding=0", "--config.train.proposal_anneal_steps=0",
+          "--config.model.trunc_exp=false")
 CAPTURE_VARIANTS = (
-    ("as_is", (), {}),
-    ("matmul_highest", (), {"JAX_DEFAULT_MATMUL_PRECISION": "highest"}),
-    ("adam_b2_0.999", ("--config.train.adam_b2=0.999",), {}),
-    ("lr_3e-3", ("--config.train.lr_init=3e-3",), {}),
+    ("fixed", (), {}),
+    ("as_was", AS_WAS, {}),
+    ("rays_512", ("--config.train.batch_size=512",), {}),
+    ("as_was_matmul_highest", AS_WAS, {"JAX_DEFAULT_MATMUL_PRECISION": "highest"}),
+    ("as_was_adam_b2_0.999", AS_WAS + ("--config.train.adam_b2=0.999",), {}),
 )
+# --tiny: the stage's mechanics on the procedural scene, with one override (as it is, the variant would be the
+# default stage's job again)
+TINY_CAPTURE_VARIANTS = (("padded", ("--config.render.proposal_padding=0.01",), {}),)
 STEP_LINE = re.compile(r"^step\s+(\d+)/\d+ \| loss ([-+.\deE]+) \| psnr\s+([-+.\deE]+) dB")
+# The proposal diagnostics of the same line (monitor.Monitor.scalars): the interlevel term and the NeRF's window.
+PROPOSAL_LINE = re.compile(r"^step\s+(\d+)/.*\| interlevel ([-+.\deE]+) \| window ([-+.\deE]+)")
 
 
 def loss_spikes(steps: list[int], losses: list[float], factor: float = 4.0, window: int = 5) -> list[int]:
@@ -249,9 +261,14 @@ def loss_spikes(steps: list[int], losses: list[float], factor: float = 4.0, wind
 
 
 def stage_capture(check: Check, config: str, overrides: tuple, env: dict, workdir: str, timeout: float,
-                  backend: str | None) -> dict:
+                  backend: str | None, keep: str, image_every: int) -> dict:
+  """One capture variant: its held-out metrics, training PSNR, losses and spikes, and per logged step the
+  interlevel term and the NeRF's sampling window; its TensorBoard events (every scalar, and the held-out
+  preview's colour and depth every `image_every` steps) and eval/metrics.json copied into `keep`."""
   result, output = _job(check, config, workdir, timeout, backend, ("--config.orbit.render_after_training=False",
-                                                                    "--config.eval.lpips_net=none", *overrides), env)
+                                                                    "--config.eval.lpips_net=none",
+                                                                    f"--config.train.image_every={image_every}",
+                                                                    *overrides), env)
   result.update(overrides=list(overrides), env=env)
   logged = [STEP_LINE.match(line) for line in output.splitlines()]
   logged = [(int(m[1]), float(m[2]), float(m[3])) for m in logged if m]
@@ -259,6 +276,21 @@ def stage_capture(check: Check, config: str, overrides: tuple, env: dict, workdi
     steps, losses, psnrs = zip(*logged)
     result.update(train_psnr=psnrs[-1], loss_spikes=loss_spikes(list(steps), list(losses)),
                   losses={str(k): v for k, v in zip(steps, losses)})
+  proposal = [PROPOSAL_LINE.match(line) for line in output.splitlines()]
+  proposal = [m for m in proposal if m]
+  if proposal:
+    result.update(interlevel={m[1]: float(m[2]) for m in proposal}, window={m[1]: float(m[3]) for m in proposal})
+  result["collapse_warning"] = any("proposal sampling has collapsed" in line for line in output.splitlines())
+  os.makedirs(keep, exist_ok=True)
+  kept = []
+  for name in sorted(os.listdir(workdir)) if os.path.isdir(workdir) else []:
+    if name.startswith("events.out.tfevents"):
+      shutil.copy(os.path.join(workdir, name), keep)
+      kept.append(name)
+  if os.path.exists(os.path.join(workdir, "eval", "metrics.json")):
+    shutil.copy(os.path.join(workdir, "eval", "metrics.json"), keep)
+    kept.append("metrics.json")
+  result["kept"] = kept
   return result
 
 
@@ -334,7 +366,9 @@ def markdown(report: dict) -> str:
       figures = (f"{' '.join(r['overrides'] + [f'{k}={v}' for k, v in r['env'].items()]) or 'as it is'}: "
                  f"held-out PSNR {_fmt(r['psnr'], 2)} dB, SSIM {_fmt(r.get('ssim'), 4)} at step {r.get('step')}; "
                  f"training PSNR {_fmt(r.get('train_psnr'), 2)} dB; loss spikes at steps "
-                 f"{', '.join(map(str, r.get('loss_spikes', []))) or 'none'}; {_fmt(r['seconds'], 1)} s")
+                 f"{', '.join(map(str, r.get('loss_spikes', []))) or 'none'}; NeRF window at the end "
+                 f"{_fmt(list(r.get('window', {}).values() or [None])[-1], 3)}"
+                 f"{'; collapse warned' if r.get('collapse_warning') else ''}; {_fmt(r['seconds'], 1)} s")
     elif name == "pod" and r.get("status") == "ok":
       figures = f"{r['how']}: {_fmt(r['seconds'], 1)} s, PSNR {_fmt(r.get('psnr'), 2)} dB"
     else:
@@ -387,7 +421,7 @@ def main(argv=None) -> int:
     default_config = TINY_CONFIG
     # the capture stage's mechanics on the procedural scene: one variant with an override (as it is, the
     # variant would be the default stage's job again)
-    capture_config, capture_steps, variants = TINY_CONFIG, 20, CAPTURE_VARIANTS[3:]
+    capture_config, capture_steps, variants, image_every = TINY_CONFIG, 20, TINY_CAPTURE_VARIANTS, 10
     # seconds each stage may take at most, and what later stages keep in reserve
     limits = {"env": 120, "bench": 120, "default": 180, "capture": 120, "quality": 120, "pod": 240}
   else:
@@ -396,8 +430,8 @@ def main(argv=None) -> int:
     quality_config, quality_targets, eval_every = bench_config, "32,33", 2000
     default_config = "configs/default.py"
     capture_config = f"configs/capture.py:path={capture},big" if capture else None
-    capture_steps, variants = 8000, CAPTURE_VARIANTS
-    limits = {"env": 120, "bench": 120, "default": 200, "capture": 120, "quality": 300, "pod": 60}
+    capture_steps, variants, image_every = 8000, CAPTURE_VARIANTS, 2000
+    limits = {"env": 120, "bench": 120, "default": 200, "capture": 150, "quality": 300, "pod": 60}
 
   env = {}
   if "env" in stages:
@@ -427,7 +461,7 @@ def main(argv=None) -> int:
       check.record(stage, stage_capture(check, capture_config, (f"--config.train.num_steps={capture_steps}",
                                                                 *overrides), variant_env,
                                         os.path.join(work, stage), min(limits["capture"], left()),
-                                        env.get("backend")))
+                                        env.get("backend"), os.path.join(out, stage), image_every))
   if "quality" in stages:
     if quality_config is None:
       check.record("quality", {"status": "skipped", "seconds": 0, "reason": "lego_400 not found (--data)"})

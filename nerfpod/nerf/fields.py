@@ -9,6 +9,35 @@ from nerfpod.nerf import encodings
 
 _ACTIVATIONS = {"relu": nn.relu, "softplus": nn.softplus, "exp": jnp.exp}
 
+# The raw density output above which the hash-grid fields' exp is clamped: exp(15) = 3.3e6 per unit length.
+DENSITY_CLAMP = 15.0
+
+
+def clamped_exp(h):
+  """exp(min(h, DENSITY_CLAMP)), whose gradient is 0 above the clamp: a density saturated there gets no
+  signal to come down (the hash-grid fields' activation before model.trunc_exp)."""
+  return jnp.exp(jnp.minimum(h, DENSITY_CLAMP))
+
+
+@jax.custom_jvp
+def trunc_exp(h):
+  """exp(min(h, DENSITY_CLAMP)) with the gradient exp(min(h, DENSITY_CLAMP)) everywhere: above the clamp the
+  gradient keeps the clamp's value instead of 0, so a saturated wall can still be brought down. The gradient
+  is nerfacto's (and torch-ngp's) trunc_exp; their forward is exp(h) unclamped, this one keeps the clamp, so
+  that the forward is the same as clamped_exp's to the bit."""
+  return clamped_exp(h)
+
+
+@trunc_exp.defjvp
+def _trunc_exp_jvp(primals, tangents):
+  value = clamped_exp(primals[0])
+  return value, value * tangents[0]
+
+
+def density(h, truncated: bool):
+  """The hash-grid fields' density from their raw output: trunc_exp (`truncated`) or clamped_exp."""
+  return trunc_exp(h) if truncated else clamped_exp(h)
+
 
 class MLPField(nn.Module):
   """NeRF's MLP (Mildenhall et al. 2020, fig. 7), sized by config.
@@ -59,7 +88,8 @@ class HashGridField(nn.Module):
   """Instant-NGP's field: a hash-grid encoding of the point, a small density MLP, a small colour MLP.
 
   Points are mapped from the box [-bound, bound]^3 into the unit cube (outside it the density is zero).
-  Density is exp of the first output of the density MLP (Instant-NGP's "trunc_exp" forward); the colour MLP
+  Density is exp of the first output of the density MLP, clamped at DENSITY_CLAMP (Instant-NGP's "trunc_exp"
+  forward; its gradient too with `trunc_exp`, else 0 above the clamp); the colour MLP
   takes the remaining features and, with view directions, their degree-4 spherical-harmonic encoding, and
   with appearance codes (`codes_NxA`, each point's ray's frame's), the code (nerfacto's colour head).
   With `scale_aware` and each point's footprint (`scales_N`, a standard deviation in world units of the
@@ -79,6 +109,7 @@ class HashGridField(nn.Module):
   use_viewdirs: bool
   dtype: jnp.dtype
   scale_aware: bool = False
+  trunc_exp: bool = False  # model.trunc_exp: the density's gradient survives its clamp (fields.trunc_exp)
   matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
   materialize: bool = False  # the encoding's points and rows kept in memory (encodings.materialized: CPUs)
 
@@ -96,7 +127,7 @@ class HashGridField(nn.Module):
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
     h = dense(1 + self.geo_features, "density_out")(h).astype(jnp.float32)
-    sigma = jnp.where(inside, jnp.exp(jnp.minimum(h[..., 0], 15.0)), 0.0)
+    sigma = jnp.where(inside, density(h[..., 0], self.trunc_exp), 0.0)
     colour_in = [h[..., 1:]]
     if self.use_viewdirs:
       colour_in.append(encodings.spherical_harmonics_deg4(viewdirs_Nx3))
@@ -123,6 +154,7 @@ class ProposalField(nn.Module):
   max_resolution: int
   hidden_width: int
   dtype: jnp.dtype
+  trunc_exp: bool = False  # as HashGridField's
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
   materialize: bool = False  # as HashGridField's
 
@@ -135,7 +167,7 @@ class ProposalField(nn.Module):
         self.max_resolution, self.matmul_max_rows, self.materialize, name="grid")(jnp.clip(unit, 0.0, 1.0))
     h = nn.relu(nn.Dense(self.hidden_width, dtype=self.dtype, name="hidden")(features))
     raw = nn.Dense(1, dtype=self.dtype, name="density")(h).astype(jnp.float32)[..., 0]
-    return jnp.where(inside, jnp.exp(jnp.minimum(raw, 15.0)), 0.0)
+    return jnp.where(inside, density(raw, self.trunc_exp), 0.0)
 
 
 def make_proposal_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0,
@@ -144,7 +176,8 @@ def make_proposal_field(model_config, dtype, name: str | None = None, matmul_max
   `matmul_max_rows` and `materialize` as for make_field."""
   return ProposalField(bound=model_config.hashgrid.bound,
                        features_per_level=model_config.hashgrid.features_per_level,
-                       **dict(model_config.proposal), dtype=dtype, matmul_max_rows=matmul_max_rows,
+                       **dict(model_config.proposal), dtype=dtype, trunc_exp=bool(model_config.trunc_exp),
+                       matmul_max_rows=matmul_max_rows,
                        materialize=materialize, name=name)
 
 
@@ -159,5 +192,6 @@ def make_field(model_config, dtype, name: str | None = None, matmul_max_rows: in
                     name=name)
   if model_config.field == "hashgrid":
     return HashGridField(**dict(model_config.hashgrid), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
-                         matmul_max_rows=matmul_max_rows, materialize=materialize, name=name)
+                         trunc_exp=bool(model_config.trunc_exp), matmul_max_rows=matmul_max_rows,
+                         materialize=materialize, name=name)
   raise ValueError(f"unknown model.field {model_config.field!r}")  # nerfpod.schema refuses it first

@@ -68,6 +68,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
   spacing: str = "linear"
   ndc_camera: tuple[float, float, float, float] | None = None  # (fx, fy, width, height) defining the NDC cube
   proposal_samples: tuple = ()
+  proposal_padding: float = 0.0  # render.proposal_padding: added to each proposal interval's weight (stepfun)
   num_frames: int = 0        # training frames: rows of the appearance codes and pose corrections
   pose_refine: bool = False  # learn a pose correction per training frame
   near_gradient_distance: float = 0.0  # > 0: the field's gradients scaled by min(1, (distance / this)^2)
@@ -129,19 +130,21 @@ renders every region and composites: one device holding the whole model. K = 1 i
 
   @nn.compact
   def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None,
-               region_ids=None, opened=None):
+               region_ids=None, opened=None, anneal=None):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
     near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
     (R, n) array of numbers in [0, 1) per entry of `sample_counts()`, or none at all (evaluation); frames:
     (R,) int32 training-frame index of each ray (training), or None; opened: the hash grid's levels'
-    coarse-to-fine weights (num_levels,) for the NeRF field (training with train.coarse_to_fine), or None.
+    coarse-to-fine weights (num_levels,) for the NeRF field (training with train.coarse_to_fine), or None;
+    anneal: the exponent the proposal weights are raised to before resampling (training with
+    train.proposal_anneal_steps: stepfun.anneal_exponent), or None (1: evaluation).
     """
     if self.regions > 1:
       # render_partials' (with `region_ids`), or every region here, composited: uniforms (K, R, n) per round.
       partials, local = self._region_partials(origins_Rx3, directions_Rx3, near, far,
                                               jnp.arange(self.regions) if region_ids is None else region_ids,
-                                              uniforms or None, frames)
+                                              uniforms or None, frames, anneal)
       if region_ids is not None:
         return partials, local
       out = nerf_regions.composite_regions(partials, background)
@@ -158,7 +161,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
                                        self.model_config.hashgrid.bound)
     if self.proposal_samples:
       return [self._proposal_render(origins_Rx3, directions_Rx3, viewdirs, near, far, background, uniforms,
-                                    codes, opened)]
+                                    codes, opened, anneal)]
     t = self._distances(near, far, self.num_samples, uniforms[0])
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
@@ -199,7 +202,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     count = len(self.region_planes[0])
     return np.zeros((count, 3), np.float32), np.full((count, 3), bound, np.float32)
 
-  def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None):
+  def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None,
+                      anneal=None):
     """(partials, local) of the L regions `region_ids_L` (L,) int32 (with parameters for those L only, the
     first axis of params['regions'], e.g. one device's share): `partials`, what crosses devices, a dict of
     (L, R, ...) arrays (nerf_regions.GATHERED: each ray's segment start and partial sums); `local`, what stays
@@ -207,9 +211,10 @@ renders every region and composites: one device holding the whole model. K = 1 i
     `proposals`, per round its (s_edges, weights). `uniforms`: per entry of sample_counts() an (L, R, n)
     array (each region its own numbers), or () (evaluation). Needs `regions` > 1. (Through __call__, flax's one
     compact method.)"""
-    return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L)
+    return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L,
+                anneal=anneal)
 
-  def _region_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms, frames):
+  def _region_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms, frames, anneal):
     origins_Rx3, directions_Rx3, codes = self._per_frame(origins_Rx3, directions_Rx3, frames)
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
     if self.model_config.field == "hashgrid":  # bounded (space is euclidean with regions: schema rule)
@@ -222,12 +227,12 @@ renders every region and composites: one device holding the whole model. K = 1 i
     if uniforms is None:
       uniforms = (None,) * len(self.sample_counts())
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                       in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None), out_axes=0)(
+                       in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None, None), out_axes=0)(
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
-        proposal_samples=tuple(self.proposal_samples), grid_matmul_max_rows=self.grid_matmul_max_rows,
-        grid_materialize=self.grid_materialize,
+        proposal_samples=tuple(self.proposal_samples), proposal_padding=self.proposal_padding,
+        grid_matmul_max_rows=self.grid_matmul_max_rows, grid_materialize=self.grid_materialize,
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
-    return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far)
+    return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far, anneal)
 
   def _footprints(self, origins, directions, t_RxS) -> dict:
     """{} without `pixel_angle`, else {"scales_N": ...}: each sample's pixel footprint (R * S,) in the field's
@@ -247,7 +252,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     points = _ray_points(origins, directions, t_RxS)
     return coord.contract(points) if self.space == "contract" else points
 
-  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms, codes, opened=None):
+  def _proposal_render(self, origins, directions, viewdirs, near, far, background, uniforms, codes, opened=None,
+                       anneal=None):
     if self.spacing == "linear":
       warp = sampling.linear_warp(near, far)
     else:  # even in s is even in inverse distance
@@ -257,7 +263,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     weights = jnp.ones(rays + (1,))
     proposals = []
     for i, count in enumerate(self.proposal_samples):
-      s_edges = stepfun.sample_intervals(s_edges, weights, count, uniforms[i])
+      s_edges = stepfun.sample_intervals(s_edges, self._resampling(weights, i, anneal), count, uniforms[i])
       t_edges = warp(s_edges)
       t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
       points = self._points(origins, directions, t_mids)
@@ -266,8 +272,9 @@ renders every region and composites: one device holding the whole model. K = 1 i
                                          materialize=self.grid_materialize)
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
-      proposals.append({"s_edges": s_edges, "weights": weights})
-    s_edges = stepfun.sample_intervals(s_edges, weights, self.num_samples, uniforms[-1])
+      proposals.append({"s_edges": s_edges, "weights": weights, "saturated": saturated_share(sigma)})
+    s_edges = stepfun.sample_intervals(s_edges, self._resampling(weights, len(self.proposal_samples), anneal),
+                                       self.num_samples, uniforms[-1])
     t_edges = warp(s_edges)
     t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     points = self._points(origins, directions, t_mids)
@@ -280,8 +287,15 @@ renders every region and composites: one device holding the whole model. K = 1 i
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
                                 self.near_gradient_distance)
     out = compositing.composite_intervals(rgb, sigma, t_edges, directions, background=background)
-    out.update(t=t_mids, s_edges=s_edges, proposals=proposals)
+    out.update(t=t_mids, s_edges=s_edges, proposals=proposals, saturated=saturated_share(sigma))
     return self._in_world_units(out, t_mids)
+
+  def _resampling(self, weights, round_index: int, anneal):
+    """The histogram round `round_index` draws from, the previous proposal's weights (stepfun.resampling_weights:
+    padded by render.proposal_padding, annealed by `anneal`); round 0 draws from the whole ray as it is."""
+    if round_index == 0:
+      return weights
+    return stepfun.resampling_weights(weights, self.proposal_padding, anneal)
 
 
 class RegionRenderer(nn.Module):
@@ -301,10 +315,11 @@ class RegionRenderer(nn.Module):
   grid_matmul_max_rows: int
   near_gradient_distance: float
   grid_materialize: bool = False
+  proposal_padding: float = 0.0
 
   @nn.compact
   def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
-               far):
+               far, anneal=None):
     partition = nerf_regions.Partition(normals_Px3[None], offsets_P[None], closed_P[None])
     bound = self.model_config.hashgrid.bound
     local = lambda points: nerf_regions.to_box(points, *box, bound)  # noqa: E731  (the region's own box)
@@ -317,8 +332,10 @@ class RegionRenderer(nn.Module):
     out_local = {"proposals": []}
     if self.proposal_samples:
       s_edges, weights = jnp.concatenate([s_in, s_out], axis=-1), jnp.ones(rays + (1,))
+      resampling = lambda weights: stepfun.resampling_weights(weights, self.proposal_padding, anneal)  # noqa: E731
       for i, count in enumerate(self.proposal_samples):
-        s_edges = stepfun.sample_intervals(s_edges, weights, count, uniforms[i], domain=(s_in, s_out))
+        s_edges = stepfun.sample_intervals(s_edges, resampling(weights) if i else weights, count, uniforms[i],
+                                           domain=(s_in, s_out))
         t_edges = warp(s_edges)
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
@@ -327,7 +344,8 @@ class RegionRenderer(nn.Module):
         sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
-      s_edges = stepfun.sample_intervals(s_edges, weights, self.num_samples, uniforms[-1], domain=(s_in, s_out))
+      s_edges = stepfun.sample_intervals(s_edges, resampling(weights), self.num_samples, uniforms[-1],
+                                         domain=(s_in, s_out))
       t_edges = warp(s_edges)
       t_points = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     else:
@@ -347,6 +365,16 @@ class RegionRenderer(nn.Module):
     partials["t_in"] = t_in[..., 0]
     out_local.update(s_edges=s_edges, weights=sums["weights"])
     return partials, out_local
+
+
+def saturated_share(sigma_RxS):
+  """Per ray (R,), the share of its samples whose density sits at the hash-grid fields' clamp (exp(15)): a
+  wall the field can only raise (no gradient above the clamp without model.trunc_exp)."""
+  return jnp.mean((sigma_RxS >= SATURATED_DENSITY).astype(jnp.float32), axis=-1)
+
+
+# Densities at the clamp: exp(15) as float32 computes it, less a hair.
+SATURATED_DENSITY = float(np.exp(np.float32(fields.DENSITY_CLAMP))) * (1.0 - 1e-6)
 
 
 def near_gradients(rgb_RxSx3, sigma_RxS, t_RxS, directions_Rx3, near_distance: float):
@@ -445,7 +473,7 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
   render = config.render
   return NeRF(model_config=config.model, num_samples=render.num_samples, num_importance=render.num_importance,
               last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
-              proposal_samples=tuple(render.proposal_samples),
+              proposal_samples=tuple(render.proposal_samples), proposal_padding=float(render.proposal_padding),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
               grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
               grid_materialize=backend == "cpu", num_frames=int(num_frames),

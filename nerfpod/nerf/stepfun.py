@@ -77,6 +77,34 @@ def sample_intervals(edges_RxB1, weights_RxB, num: int, jitter_RxN=None, domain=
   return jax.lax.stop_gradient(edges)
 
 
+def resampling_weights(weights_RxB, padding: float = 0.0, anneal=None):
+  """The histogram the next round draws its intervals from (R, B): the proposal's weights raised to `anneal`
+  (a number in [0, 1], or None for 1) plus `padding` in every interval (nerfacto's ProposalNetworkSampler and
+  PDFSampler: w^a + padding).
+
+  Without either, resampling has an absorbing state: once a proposal puts nearly all its mass in one interval,
+  every next sample lands inside it, every next interval overlaps it, `outer` is about 1 everywhere and the
+  interlevel loss is 0 with no gradient whatever the next field's weights are, so the proposal never learns
+  again (tests/test_proposal_trap.py). `padding` keeps that much of every interval of this round reachable (a
+  share of the samples follows this round's own intervals, so the next window spans the whole ray); `anneal`
+  below 1 flattens the histogram early in training (w^0 = 1: the intervals alike), before the proposal has
+  learnt where matter is.
+  """
+  if anneal is not None:
+    weights_RxB = jnp.power(weights_RxB, anneal)
+  return weights_RxB + padding if padding else weights_RxB
+
+
+def anneal_exponent(step, anneal_steps: int, slope: float = 10.0):
+  """nerfacto's annealing of the proposal weights' exponent at `step`: x = min(step / anneal_steps, 1), then
+  slope x / ((slope - 1) x + 1), rising from 0 to 1 (fast at first: 0.53 at a tenth of the way); 1 where
+  `anneal_steps` is 0."""
+  if not anneal_steps:
+    return jnp.ones((), jnp.float32)
+  x = jnp.clip(jnp.asarray(step, jnp.float32) / anneal_steps, 0.0, 1.0)
+  return slope * x / ((slope - 1.0) * x + 1.0)
+
+
 def outer(edges_RxB1, env_edges_RxK1, env_weights_RxK):
   """For each interval of `edges`, the summed weight of every interval of the envelope histogram that
   overlaps it, (R, B): the smallest value a histogram on the envelope's intervals may hold there if its

@@ -50,6 +50,8 @@ class Options:
   # train.interlevel_blur: one box half-width per proposal round (Zip-NeRF's anti-aliased interlevel loss);
   # (): mip-NeRF 360's
   interlevel_blur: tuple = ()
+  # train.proposal_anneal_steps: the proposal weights' exponent rises from 0 to 1 over these steps; 0: off
+  proposal_anneal_steps: int = 0
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -61,7 +63,8 @@ class Options:
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
                comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
                coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine),
-               interlevel_blur=tuple(float(r) for r in tc.interlevel_blur))
+               interlevel_blur=tuple(float(r) for r in tc.interlevel_blur),
+               proposal_anneal_steps=int(tc.proposal_anneal_steps))
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -86,6 +89,10 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   interlevel loss of every proposal round (with `interlevel_blur`, one radius per round: Zip-NeRF's
   anti-aliased form, stepfun.blurred_interlevel_loss) and `distortion_weight` times the distortion loss of the
   NeRF's weights; both are also returned as metrics.
+  With `proposal_anneal_steps`, the proposal weights are raised to stepfun.anneal_exponent of the state's step
+  before each resampling (nerfacto's annealing); evaluation resamples them as they are.
+  With proposals, the metrics also carry the diagnostics of proposal_diagnostics (a collapse of the NeRF's
+  sampling window shows there before it costs a run: docs/training.md).
   With `coarse_to_fine` (start, end) steps, the NeRF field's hash-grid levels open one after another between
   them (encodings.coarse_to_fine_weights of the state's step; BARF's schedule); the held-out views, the orbit
   and the exports render every level whole, as the step does from `end` on.
@@ -107,6 +114,9 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       return None
     return encodings.coarse_to_fine_weights(step, *options.coarse_to_fine, model.model_config.hashgrid.num_levels)
 
+  def annealed(step):
+    return stepfun.anneal_exponent(step, options.proposal_anneal_steps) if options.proposal_anneal_steps else None
+
   def loss_fn(params, batch, key, step):
     # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
     uniforms = [per_ray_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count)
@@ -117,7 +127,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
     levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms,
                          frames=batch.get("frame"),  # per-frame appearance and pose corrections, where on
-                         opened=opened(step))
+                         opened=opened(step), anneal=annealed(step))
     mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
     loss = jnp.sum(mses)
     extra = {}
@@ -132,6 +142,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
                                 for radius, p in zip(radii, final["proposals"]))
       extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
       loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
+      extra.update(proposal_diagnostics(final))
     return loss, (mses, extra)
 
   # Parameters made device-varying (below), the gradients' and metrics' reduction, the gradients' norm.
@@ -202,6 +213,28 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   return jax.jit(step, donate_argnums=0, compiler_options=options.compiler_options)
 
 
+# A proposal interval holding more than this share of its ray's proposal weight counts as heavy.
+HEAVY_SHARE = 0.99
+
+
+def proposal_diagnostics(final) -> dict:
+  """What shows a proposal sampler collapsing, from a proposal rendering (NeRF.__call__'s last level), each a
+  mean over the rays (metrics train/window, ...: docs/training.md):
+  window, the span in normalised distance s of the NeRF's sampling window (its intervals' first to last edge:
+  1 for the whole ray); heavy, the share of rays whose last proposal round puts more than HEAVY_SHARE of its
+  weight in one interval; saturated and proposal_saturated, the share of the NeRF's and of the last proposal's
+  samples whose density sits at the clamp (fields.DENSITY_CLAMP). A trapped sampler (stepfun.resampling_weights)
+  has a window of a few hundredths, most rays heavy, and interlevel and distortion terms of about 0."""
+  s_edges, last = jax.lax.stop_gradient(final["s_edges"]), final["proposals"][-1]
+  weights = jax.lax.stop_gradient(last["weights"])
+  total = jnp.sum(weights, axis=-1)
+  heavy = jnp.max(weights, axis=-1) > HEAVY_SHARE * jnp.maximum(total, stepfun.EPS)
+  return {"window": jnp.mean(s_edges[..., -1] - s_edges[..., 0]),
+          "heavy": jnp.mean(heavy.astype(jnp.float32)),
+          "saturated": jax.lax.stop_gradient(jnp.mean(final["saturated"])),
+          "proposal_saturated": jax.lax.stop_gradient(jnp.mean(last["saturated"]))}
+
+
 def _region_loss_fn(model, mesh, near: float, far: float, background, options: Options):
   """loss_fn(params, batch, key, step) of a model of K regions (model.regions > 1) on `mesh`, whose region axis
   (of size K / L, or none: L = K) gives each device L regions: it renders each ray through its own regions
@@ -226,8 +259,8 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
     return x if axis_size == 1 else distributed.gather_regions(x)
 
-  def loss_fn(params, batch, key, step):  # (step: the schema refuses train.coarse_to_fine with regions)
-    del step
+  def loss_fn(params, batch, key, step):  # (the schema refuses train.coarse_to_fine with regions)
+    anneal = stepfun.anneal_exponent(step, options.proposal_anneal_steps) if options.proposal_anneal_steps else None
     first = jax.lax.axis_index(distributed.REGION_AXIS) * local if axis_size > 1 else 0
     ids = first + jnp.arange(local)
     # Region r's numbers of round i: stream i (as the one-field model's), then r folded in.
@@ -240,7 +273,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
       ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
     partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
-                                frames=batch.get("frame"), method="render_partials")
+                                frames=batch.get("frame"), anneal=anneal, method="render_partials")
     out = regions.composite_regions(gather(partials), ray_background)
     mse = jnp.mean((out["rgb"] - target)**2)
     mses, loss, extra = mse[None], mse, {}

@@ -101,6 +101,38 @@ class SkipCount:
     return dict(metrics, skipped=self.total)
 
 
+class CollapseWatch:
+  """One warning line when proposal sampling has collapsed (stepfun.resampling_weights' trap) over a log
+  window: at two log steps in a row, the NeRF's sampling window spans under WINDOW of the ray and more than
+  HEAVY of the rays' last proposal round holds nearly all its weight in one interval (step.proposal_diagnostics).
+  A healthy run of the cup reads a window of about 0.43 and no heavy rays (docs/training.md)."""
+  WINDOW, HEAVY = 0.05, 0.5
+
+  def __init__(self):
+    self.since = None  # the first log step of the present collapse
+    self.warned = False
+
+  def check(self, step: int, metrics: dict) -> str | None:
+    """The warning at this log step, or None."""
+    if "window" not in metrics:
+      return None
+    collapsed = float(metrics["window"]) < self.WINDOW and float(metrics["heavy"]) > self.HEAVY
+    if not collapsed:
+      self.since = None
+      return None
+    if self.since is None:
+      self.since = step
+      return None
+    if self.warned:
+      return None
+    self.warned = True
+    return (f"step {step}: proposal sampling has collapsed since step {self.since}: the NeRF's samples span "
+            f"{float(metrics['window']):.3f} of each ray, {float(metrics['heavy']):.0%} of the rays' last proposal "
+            f"holds over 99% of its weight in one interval and the interlevel loss reads "
+            f"{float(metrics['interlevel']):.1e}, so the proposals no longer learn; resume with "
+            f"--config.render.proposal_padding=0.01 (docs/training.md, proposal sampling's diagnostics).")
+
+
 class StepLog:
   """The log line and scalars of the first step, every train.log_every-th and the last: one call site,
   monitor.scalars. A step's metrics are fetched one step late, once the next step is dispatched, so that
@@ -111,6 +143,7 @@ class StepLog:
     self.learning_rate = jax.jit(train_state.learning_rate_schedule(train_config))  # of a step on the device
     self.every, self.last, self.first = train_config.log_every, train_config.num_steps, start_step + 1
     self.pending = None  # (step, metrics on the device)
+    self.collapse = CollapseWatch()
 
   def dispatched(self, step: int, metrics) -> None:
     self.flush()
@@ -122,7 +155,11 @@ class StepLog:
       step, metrics = self.pending
       self.pending = None
       lr = float(jax.device_get(self.learning_rate(jax.device_put(step - 1))))
-      self.monitor.scalars(step, self.skips.with_total(jax.device_get(metrics)), lr)
+      metrics = jax.device_get(metrics)
+      self.monitor.scalars(step, self.skips.with_total(metrics), lr)
+      warning = self.collapse.check(step, metrics)
+      if warning and jax.process_index() == 0:
+        print(f"nerfpod: warning: {warning}", file=sys.stderr, flush=True)
 
 
 def _restore_or_init(comps: components.Components, ckpt) -> tuple[TrainState, int, dict | None]:

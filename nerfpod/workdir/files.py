@@ -17,10 +17,13 @@ import ml_collections
 from nerfpod import schema, storage
 from nerfpod.errors import UserError
 
-# Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs.
+# Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs; and
+# the proposal sampler's guards, which change no state, only where samples go from the resume on: a run whose
+# sampling collapsed is resumed with them (docs/training.md).
 RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
                      "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "mesh.", "monitor.",
-                     "data.host_memory_gib", "render.eval_samples")
+                     "data.host_memory_gib", "render.eval_samples", "render.proposal_padding",
+                     "train.proposal_anneal_steps", "model.trunc_exp")
 
 
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
