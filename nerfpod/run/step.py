@@ -224,15 +224,17 @@ def proposal_diagnostics(final) -> dict:
   1 for the whole ray); heavy, the share of rays whose last proposal round puts more than HEAVY_SHARE of its
   weight in one interval; saturated and proposal_saturated, the share of the NeRF's and of the last proposal's
   samples whose density sits at the clamp (fields.DENSITY_CLAMP). A trapped sampler (stepfun.resampling_weights)
-  has a window of a few hundredths, most rays heavy, and interlevel and distortion terms of about 0."""
-  s_edges, last = jax.lax.stop_gradient(final["s_edges"]), final["proposals"][-1]
-  weights = jax.lax.stop_gradient(last["weights"])
+  has a window of a few hundredths, most rays heavy, and interlevel and distortion terms of about 0.
+  The values are read through an optimisation barrier: without it XLA fuses these reductions with the
+  rendering's own and the step's float bits change (the default job held out 28.76 dB instead of its 28.82)."""
+  last = final["proposals"][-1]
+  s_edges, weights, saturated, proposal_saturated = jax.lax.optimization_barrier(jax.lax.stop_gradient(
+      (final["s_edges"], last["weights"], final["saturated"], last["saturated"])))
   total = jnp.sum(weights, axis=-1)
   heavy = jnp.max(weights, axis=-1) > HEAVY_SHARE * jnp.maximum(total, stepfun.EPS)
   return {"window": jnp.mean(s_edges[..., -1] - s_edges[..., 0]),
           "heavy": jnp.mean(heavy.astype(jnp.float32)),
-          "saturated": jax.lax.stop_gradient(jnp.mean(final["saturated"])),
-          "proposal_saturated": jax.lax.stop_gradient(jnp.mean(last["saturated"]))}
+          "saturated": jnp.mean(saturated), "proposal_saturated": jnp.mean(proposal_saturated)}
 
 
 def _region_loss_fn(model, mesh, near: float, far: float, background, options: Options):
