@@ -269,3 +269,29 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   np.testing.assert_allclose(metrics_8[0]["grad_norm"], metrics_1[0]["grad_norm"], rtol=2e-5)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
                jax.device_get(state_8.params), jax.device_get(state_1.params))
+
+
+def test_each_regions_resampling_is_padded_and_annealed_inside_its_segment():
+  """render.proposal_padding and the annealing exponent reach every region's rounds: the NeRF's intervals move
+  (wider windows with padding, or with the weights annealed to w^0) and stay inside each region's segment."""
+  origins, directions = _rays()
+  plain = nerf_model.from_config(_config())
+  padded = nerf_model.from_config(_config(**{"render.proposal_padding": 0.05}))
+  params = plain.init(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
+  ids = jnp.arange(4)
+  edges = lambda model, **kw: model.apply(params, origins, directions, 2.0, 6.0, ids, method="render_partials",  # noqa: E731
+                                          **kw)[1]["s_edges"]
+  base, wide, flat = edges(plain), edges(padded), edges(plain, anneal=jnp.float32(0.0))
+  np.testing.assert_array_equal(edges(plain, anneal=jnp.float32(1.0)), base)  # w^1: the raw histogram
+  # Each region's segment [s_in, s_out] of the ray, as the model cuts it (the box, then the region's planes).
+  from nerfpod.nerf import coord, sampling
+  near, far = sampling.clip_to_box(origins, directions, 2.0, 6.0, plain.model_config.hashgrid.bound)
+  t_in, t_out = regions.segments(origins, directions, near, far, plain.partition)  # (K, R)
+  to_s = lambda t: jnp.clip(coord.t_to_s(t[..., None], near, far, "linear"), 0.0, 1.0)  # noqa: E731
+  s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))  # (K, R, 1)
+  for moved in (base, wide, flat):
+    assert bool(jnp.all((moved >= s_in - 1e-6) & (moved <= s_out + 1e-6)))
+  for moved in (wide, flat):
+    assert not np.array_equal(np.asarray(moved), np.asarray(base))
+  span = lambda e: float(jnp.mean(e[..., -1] - e[..., 0]))  # noqa: E731
+  assert span(wide) >= span(base)

@@ -169,6 +169,9 @@ def test_proposal_step_is_compiled_once_and_reports_its_losses():
     assert float(metrics["distortion"]) > 0.0
     np.testing.assert_allclose(float(metrics["loss"]), float(metrics["mse"]) + float(metrics["interlevel"])
                                + 0.01 * float(metrics["distortion"]), rtol=1e-5)
+    # The sampler's diagnostics (step.proposal_diagnostics): a young proposal spreads the NeRF's window wide.
+    assert 0.5 < float(metrics["window"]) <= 1.0 and float(metrics["heavy"]) == 0.0
+    assert float(metrics["saturated"]) == 0.0 and float(metrics["proposal_saturated"]) == 0.0
     programs.append(step_fn._cache_size())
   assert programs == [1, 1, 1, 1], programs  # one program for every step: no shape depends on the data
 
@@ -283,3 +286,29 @@ def test_the_blurred_interlevel_loss_trains_the_proposals_alone_and_options_take
   jax.tree.map(np.testing.assert_array_equal, plain["coarse"], blurred["coarse"])
   proposal = [k for k in plain if k.startswith("proposal")][0]
   assert any(np.any(a != b) for a, b in zip(jax.tree.leaves(plain[proposal]), jax.tree.leaves(blurred[proposal])))
+
+
+def test_annealing_changes_the_first_steps_and_is_the_plain_step_to_the_bit_once_over():
+  """train.proposal_anneal_steps (Options.proposal_anneal_steps, here 10): at step 0 the proposal weights are
+  resampled as w^0 (the NeRF's samples move: another loss); from step 10 on the step is the plain one, to the
+  bit; Options take the length from the config."""
+  config = smoke_config(**{"train.batch_size": 64})
+  scene = scenes.load(config.data)
+  model = nerf_model.from_config(config)
+  optimizer = train_state.make_optimizer(config.train)
+  mesh = distributed.make_mesh()
+  batch = dict(data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 1)[0])
+  batch.pop("step")
+  batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
+  key = jax.random.key(3)
+  make = lambda steps: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
+                                            step.Options(proposal_anneal_steps=steps))
+  annealed, plain = make(10), make(0)
+  trained = lambda s: plain(train_state.initial_state(model, optimizer, 0, mesh), batch, key)[0].replace(  # noqa: E731
+      step=jax.device_put(jnp.int32(s), distributed.replicated(mesh)))  # (a proposal that learnt one step)
+  early = [jax.device_get(fn(trained(0), batch, key)[1]["loss"]) for fn in (annealed, plain)]
+  assert early[0] != early[1]
+  late = [jax.device_get(fn(trained(10), batch, key)) for fn in (annealed, plain)]
+  jax.tree.map(np.testing.assert_array_equal, late[0], late[1])
+  comps = types.SimpleNamespace(config=smoke_config(**{"train.proposal_anneal_steps": 7}), compiler_options=None)
+  assert step.Options.of(comps, 1, backend="cpu").proposal_anneal_steps == 7

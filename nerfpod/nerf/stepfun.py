@@ -90,8 +90,8 @@ def resampling_weights(weights_RxB, padding: float = 0.0, anneal=None):
   below 1 flattens the histogram early in training (w^0 = 1: the intervals alike), before the proposal has
   learnt where matter is.
   """
-  if anneal is not None:
-    weights_RxB = jnp.power(weights_RxB, anneal)
+  if anneal is not None:  # (w at 1 itself, not pow's rounding of it: annealing over, the step is the plain one)
+    weights_RxB = jnp.where(anneal < 1.0, jnp.power(weights_RxB, anneal), weights_RxB)
   return weights_RxB + padding if padding else weights_RxB
 
 
