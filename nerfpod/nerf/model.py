@@ -263,7 +263,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
     weights = jnp.ones(rays + (1,))
     proposals = []
     for i, count in enumerate(self.proposal_samples):
-      s_edges = stepfun.sample_intervals(s_edges, self._resampling(weights, i, anneal), count, uniforms[i])
+      s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, i, self.proposal_padding, anneal), count,
+                                         uniforms[i])
       t_edges = warp(s_edges)
       t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
       points = self._points(origins, directions, t_mids)
@@ -273,7 +274,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
       proposals.append({"s_edges": s_edges, "weights": weights, "saturated": saturated_share(sigma)})
-    s_edges = stepfun.sample_intervals(s_edges, self._resampling(weights, len(self.proposal_samples), anneal),
+    s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, -1, self.proposal_padding, anneal),
                                        self.num_samples, uniforms[-1])
     t_edges = warp(s_edges)
     t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
@@ -289,13 +290,6 @@ renders every region and composites: one device holding the whole model. K = 1 i
     out = compositing.composite_intervals(rgb, sigma, t_edges, directions, background=background)
     out.update(t=t_mids, s_edges=s_edges, proposals=proposals, saturated=saturated_share(sigma))
     return self._in_world_units(out, t_mids)
-
-  def _resampling(self, weights, round_index: int, anneal):
-    """The histogram round `round_index` draws from, the previous proposal's weights (stepfun.resampling_weights:
-    padded by render.proposal_padding, annealed by `anneal`); round 0 draws from the whole ray as it is."""
-    if round_index == 0:
-      return weights
-    return stepfun.resampling_weights(weights, self.proposal_padding, anneal)
 
 
 class RegionRenderer(nn.Module):
@@ -332,10 +326,9 @@ class RegionRenderer(nn.Module):
     out_local = {"proposals": []}
     if self.proposal_samples:
       s_edges, weights = jnp.concatenate([s_in, s_out], axis=-1), jnp.ones(rays + (1,))
-      resampling = lambda weights: stepfun.resampling_weights(weights, self.proposal_padding, anneal)  # noqa: E731
       for i, count in enumerate(self.proposal_samples):
-        s_edges = stepfun.sample_intervals(s_edges, resampling(weights) if i else weights, count, uniforms[i],
-                                           domain=(s_in, s_out))
+        s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, i, self.proposal_padding, anneal), count,
+                                           uniforms[i], domain=(s_in, s_out))
         t_edges = warp(s_edges)
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
@@ -344,8 +337,8 @@ class RegionRenderer(nn.Module):
         sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
-      s_edges = stepfun.sample_intervals(s_edges, resampling(weights), self.num_samples, uniforms[-1],
-                                         domain=(s_in, s_out))
+      s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, -1, self.proposal_padding, anneal),
+                                         self.num_samples, uniforms[-1], domain=(s_in, s_out))
       t_edges = warp(s_edges)
       t_points = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     else:
@@ -365,6 +358,13 @@ class RegionRenderer(nn.Module):
     partials["t_in"] = t_in[..., 0]
     out_local.update(s_edges=s_edges, weights=sums["weights"])
     return partials, out_local
+
+
+def _drawn_from(weights, round_index: int, padding: float, anneal):
+  """The histogram sampling round `round_index` draws from (-1: the NeRF's): round 0 the whole ray (or segment)
+  as it is; every later one the previous proposal's weights, padded by render.proposal_padding and annealed by
+  `anneal` (stepfun.resampling_weights)."""
+  return weights if round_index == 0 else stepfun.resampling_weights(weights, padding, anneal)
 
 
 def saturated_share(sigma_RxS):

@@ -114,9 +114,6 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       return None
     return encodings.coarse_to_fine_weights(step, *options.coarse_to_fine, model.model_config.hashgrid.num_levels)
 
-  def annealed(step):
-    return stepfun.anneal_exponent(step, options.proposal_anneal_steps) if options.proposal_anneal_steps else None
-
   def loss_fn(params, batch, key, step):
     # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
     uniforms = [per_ray_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count)
@@ -127,7 +124,7 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
     levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms,
                          frames=batch.get("frame"),  # per-frame appearance and pose corrections, where on
-                         opened=opened(step), anneal=annealed(step))
+                         opened=opened(step), anneal=_anneal(options, step))
     mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
     loss = jnp.sum(mses)
     extra = {}
@@ -213,6 +210,11 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   return jax.jit(step, donate_argnums=0, compiler_options=options.compiler_options)
 
 
+def _anneal(options: Options, step):
+  """The proposal weights' exponent at `step` (train.proposal_anneal_steps), None where there is no annealing."""
+  return stepfun.anneal_exponent(step, options.proposal_anneal_steps) if options.proposal_anneal_steps else None
+
+
 # A proposal interval holding more than this share of its ray's proposal weight counts as heavy.
 HEAVY_SHARE = 0.99
 
@@ -262,7 +264,6 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     return x if axis_size == 1 else distributed.gather_regions(x)
 
   def loss_fn(params, batch, key, step):  # (the schema refuses train.coarse_to_fine with regions)
-    anneal = stepfun.anneal_exponent(step, options.proposal_anneal_steps) if options.proposal_anneal_steps else None
     first = jax.lax.axis_index(distributed.REGION_AXIS) * local if axis_size > 1 else 0
     ids = first + jnp.arange(local)
     # Region r's numbers of round i: stream i (as the one-field model's), then r folded in.
@@ -275,7 +276,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
       ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
       target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
     partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
-                                frames=batch.get("frame"), anneal=anneal, method="render_partials")
+                                frames=batch.get("frame"), anneal=_anneal(options, step), method="render_partials")
     out = regions.composite_regions(gather(partials), ray_background)
     mse = jnp.mean((out["rgb"] - target)**2)
     mses, loss, extra = mse[None], mse, {}
