@@ -205,18 +205,23 @@ def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_b
   assert compilation.gradient_mean_is_ordered(config, "tpu")
 
 
+def _one_batch(config):
+  """(scene, model, optimizer, mesh, the first training batch of train.batch_size rays placed on the mesh)."""
+  scene = scenes.load(config.data)
+  mesh = distributed.make_mesh()
+  size = config.train.batch_size
+  batch = dict(data.ray_batches(scene.split("train"), 0, size, slice(0, size), 0.5, 1)[0])
+  batch.pop("step")
+  batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
+  return scene, nerf_model.from_config(config), train_state.make_optimizer(config.train), mesh, batch
+
+
 def test_coarse_to_fine_shuts_the_finer_levels_until_its_start_and_is_the_plain_step_from_its_end():
   """train.coarse_to_fine (Options.coarse_to_fine, here steps (5, 10)): before step 5, only the NeRF field's
   coarsest hash-grid level learns (a shut level's gradient is 0, so Adam leaves its table as it was) and the
   proposal field is untouched by it; from step 10 on the step is the plain step's, to the bit."""
   config = smoke_config(**{"train.batch_size": 128})
-  scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
-  optimizer = train_state.make_optimizer(config.train)
-  mesh = distributed.make_mesh()
-  batch = dict(data.ray_batches(scene.split("train"), 0, 128, slice(0, 128), 0.5, 1)[0])
-  batch.pop("step")
-  batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
+  scene, model, optimizer, mesh, batch = _one_batch(config)
   key = jax.random.key(7)
   make = lambda steps: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
                                             step.Options(coarse_to_fine=steps))
@@ -292,14 +297,7 @@ def test_annealing_changes_the_first_steps_and_is_the_plain_step_to_the_bit_once
   """train.proposal_anneal_steps (Options.proposal_anneal_steps, here 10): at step 0 the proposal weights are
   resampled as w^0 (the NeRF's samples move: another loss); from step 10 on the step is the plain one, to the
   bit; Options take the length from the config."""
-  config = smoke_config(**{"train.batch_size": 64})
-  scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
-  optimizer = train_state.make_optimizer(config.train)
-  mesh = distributed.make_mesh()
-  batch = dict(data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 1)[0])
-  batch.pop("step")
-  batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
+  scene, model, optimizer, mesh, batch = _one_batch(smoke_config(**{"train.batch_size": 64}))
   key = jax.random.key(3)
   make = lambda steps: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
                                             step.Options(proposal_anneal_steps=steps))
