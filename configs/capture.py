@@ -39,8 +39,9 @@ def get_config(arg: str | None = None):
   c.train.pose_refine = False
   # The proposal sampler's guards stay off here (render.proposal_padding, train.proposal_anneal_steps,
   # model.trunc_exp: `big` has them): with one round of 64 intervals the cup never neared the trap, and each
-  # guard cost held-out PSNR (8,000 steps: 28.20 dB without; padding 0.01 27.89, 0.001 28.00, all three 28.05,
-  # docs/results.md). A run whose console warns of a collapse resumes with --config.render.proposal_padding=0.01.
+  # guard cost held-out PSNR (8,000 steps: 28.20 dB without; padding 0.01 27.89, 0.001 28.00, all three 28.05;
+  # the fox 29.98 without, 29.42 with all three: docs/results.md). A run whose console warns of a collapse
+  # resumes with --config.render.proposal_padding=0.01.
   if args["big"]:
     default.for_accelerator(c)
   if args["smoke"]:
