@@ -440,7 +440,7 @@ def duration(seconds: float) -> str:
 
 class Monitor:
   """Training's scalars and images (TensorBoard, and W&B where config.monitor.wandb asks) and its console
-  lines (step, loss, PSNR, lr, rays/s, ETA).
+  lines (step, loss, PSNR, lr, with proposal sampling the interlevel term and the NeRF's window, rays/s, ETA).
 
   Every process makes one and calls it alike; only process 0's writes anything. `writer` (a Writer; None
   elsewhere) is shared with evaluation and the orbit, so that all of a run's events go to one file and one

@@ -419,8 +419,6 @@ def main(argv=None) -> int:
     batch_sizes, steps = (64, 128), 3
     quality_config, quality_targets, eval_every = [f"--config={TINY_CONFIG}", "--config.train.num_steps=40"], "8,9", 10
     default_config = TINY_CONFIG
-    # the capture stage's mechanics on the procedural scene: one variant with an override (as it is, the
-    # variant would be the default stage's job again)
     capture_config, capture_steps, variants, image_every = TINY_CONFIG, 20, TINY_CAPTURE_VARIANTS, 10
     # seconds each stage may take at most, and what later stages keep in reserve
     limits = {"env": 120, "bench": 120, "default": 180, "capture": 120, "quality": 120, "pod": 240}
