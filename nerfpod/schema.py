@@ -270,8 +270,9 @@ FIELDS: dict[str, Field] = _declare({
     "render.space": ("euclidean", choice("euclidean", "ndc", "contract"),
         "where the field lives: 'euclidean' (the world), 'ndc' (forward-facing scenes: NDC rays, near/far in "
         "[0, 1]), 'contract' (unbounded: mip-NeRF 360's contraction into the ball of radius 2)"),
-    "render.spacing": ("linear", choice("linear", "inverse"),
-        "samples even in distance ('linear') or in 1/distance ('inverse')"),
+    "render.spacing": ("linear", choice("linear", "inverse", "piecewise"),
+        "samples even in distance ('linear'), in 1/distance ('inverse'), or in distance up to 1 and in "
+        "1/distance beyond ('piecewise', nerfacto's initial sampler)"),
 
     "train.num_steps": (1500, integer(0, example=1000), "optimiser steps"),
     "train.batch_size": (1024, integer(1, example=4096), "rays per step, over all devices of all hosts"),
@@ -302,6 +303,9 @@ FIELDS: dict[str, Field] = _declare({
     "train.proposal_anneal_steps": (0, integer(0, example=1000),
         "the proposal weights are raised to a power rising from 0 to 1 over this many steps before resampling "
         "(nerfacto: 1,000, slope 10): early samples spread over the whole ray; 0: no annealing"),
+    "train.single_jitter": (False, boolean(),
+        "one random offset per ray and sampling round, shared by all its strata (nerfacto's single jitter), "
+        "rather than one per stratum"),
     "train.distortion_weight": (0.0, number(0.0, example=0.002),
         "proposal sampling: weight of the distortion loss (eq. 15); 0: off"),
     "train.near_gradient_distance": (0.0, number(0.0, example=1.0),
@@ -535,6 +539,11 @@ def _rules(c: dict) -> list[str]:
     if value and not rounds:
       out.append(f"{name}={_show(value)} shapes the proposal rounds' histograms, and render.proposal_samples='()' "
                  f"has none: leave it at 0 (--config.{name}=0) or give proposal rounds.")
+  if c["train.single_jitter"] and c["render.num_importance"]:
+    out.append(f"train.single_jitter=true cannot be used with render.num_importance={c['render.num_importance']}: "
+               f"the fine round draws its samples from unsorted random numbers, and one per ray would put them "
+               f"all at one point; use proposal sampling or stratified samples (--config.render.num_importance=0) "
+               f"or --config.train.single_jitter=false.")
   if c["train.proposal_anneal_steps"] > c["train.num_steps"]:
     out.append(f"train.proposal_anneal_steps={c['train.proposal_anneal_steps']} is longer than the run "
                f"(train.num_steps={c['train.num_steps']}): its proposals would be resampled annealed to the end; "

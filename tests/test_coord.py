@@ -123,9 +123,9 @@ def test_inverse_contraction_undoes_the_contraction():
   np.testing.assert_allclose(coord.contract(_uncontract(ball)), ball, atol=1e-5)
 
 
-@pytest.mark.parametrize("spacing", ["linear", "inverse"])
+@pytest.mark.parametrize("spacing", ["linear", "inverse", "piecewise"])
 def test_warps_are_inverse_pairs_that_map_the_bounds_to_0_and_1(spacing):
-  near, far = (0.2, 1e6) if spacing == "inverse" else (2.0, 6.0)
+  near, far = (2.0, 6.0) if spacing == "linear" else (0.2, 1e6)
   s = jnp.linspace(0.0, 1.0, 101)
   t = coord.s_to_t(s, near, far, spacing)
   np.testing.assert_allclose([t[0], t[-1]], [near, far], rtol=1e-5)
@@ -146,3 +146,27 @@ def test_linear_warp_is_even_in_distance_and_inverse_warp_even_in_disparity():
   np.testing.assert_allclose(np.diff(1.0 / t), np.full(8, (1e-6 - 5.0) / 8), rtol=1e-4)
   # Half the samples lie within twice the near bound: the foreground gets them.
   assert t[4] < 0.41
+
+
+def test_piecewise_warp_is_linear_to_distance_1_and_even_in_disparity_beyond():
+  """nerfacto's UniformLinDispPiecewiseSampler, from its spacing function g(t) = t / 2 (t < 1), 1 - 1 / (2 t)
+  (t >= 1), written here in float64 numpy as the reference: the samples even in g between near and far."""
+  def reference(s, near, far):
+    g = lambda t: np.where(t < 1, t / 2, 1 - 1 / (2 * np.maximum(t, 1)))  # noqa: E731
+    y = g(near) + s * (g(far) - g(near))
+    return np.where(y < 0.5, 2 * y, 1 / (2 * (1 - np.minimum(y, 1 - 1e-12))))
+  s = np.linspace(0.0, 1.0, 201)
+  for near, far in ((0.2, 1e6), (0.05, 1000.0), (0.0, 5.0)):
+    t = np.asarray(coord.s_to_t(jnp.asarray(s, jnp.float32), near, far, "piecewise"), np.float64)
+    np.testing.assert_allclose(t, reference(s, near, far), rtol=2e-5, atol=1e-6)
+  t = np.asarray(coord.s_to_t(jnp.asarray(s, jnp.float32), 0.2, 1e6, "piecewise"), np.float64)
+  inside = t < 1.0
+  np.testing.assert_allclose(np.diff(t[inside]), np.diff(t[inside])[0], rtol=1e-3)  # even in distance
+  beyond = t >= 1.0
+  np.testing.assert_allclose(np.diff(1.0 / t[beyond]), np.diff(1.0 / t[beyond])[1], rtol=1e-3)
+  assert 0.43 < inside.mean() < 0.46  # (g(1) - g(0.2)) / (g(1e6) - g(0.2)) = 0.4 / 0.9 of the samples
+  # Inside distance 1 it is the linear warp, beyond it the inverse one.
+  np.testing.assert_allclose(coord.s_to_t(jnp.asarray(s), 0.1, 0.9, "piecewise"),
+                             coord.s_to_t(jnp.asarray(s), 0.1, 0.9, "linear"), rtol=1e-5)
+  np.testing.assert_allclose(coord.s_to_t(jnp.asarray(s), 1.0, 1e6, "piecewise"),
+                             coord.s_to_t(jnp.asarray(s), 1.0, 1e6, "inverse"), rtol=1e-4)

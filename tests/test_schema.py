@@ -113,6 +113,9 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "none: leave it at 0 (--config.render.proposal_padding=0) or give proposal rounds."),
     ({"train.proposal_anneal_steps": 10, "render.proposal_samples": ()},
      "train.proposal_anneal_steps=10 shapes the proposal rounds' histograms"),
+    ({"train.single_jitter": True, "render.proposal_samples": (), "render.num_importance": 8},
+     "train.single_jitter=true cannot be used with render.num_importance=8: the fine round draws its samples "
+     "from unsorted random numbers"),
 ])
 def test_fields_that_must_agree_are_one_sentence(overrides, message):
   found = schema.problems(smoke_config(**overrides))

@@ -310,3 +310,22 @@ def test_annealing_changes_the_first_steps_and_is_the_plain_step_to_the_bit_once
   jax.tree.map(np.testing.assert_array_equal, late[0], late[1])
   comps = types.SimpleNamespace(config=smoke_config(**{"train.proposal_anneal_steps": 7}), compiler_options=None)
   assert step.Options.of(comps, 1, backend="cpu").proposal_anneal_steps == 7
+
+
+def test_single_jitter_shifts_each_rays_strata_alike_and_changes_the_step():
+  """train.single_jitter (nerfacto's): one number per ray in every column of a round (distinct rays, distinct
+  numbers, the same for a ray wherever it is rendered); the step trains on other samples; Options take it."""
+  key, ids = jax.random.key(5), jnp.asarray([7, 3, 11, 7], jnp.int32)
+  u = np.asarray(step.round_uniforms(key, ids, 6, single_jitter=True))
+  assert u.shape == (4, 6) and (u >= 0).all() and (u < 1).all()
+  np.testing.assert_array_equal(u, np.repeat(u[:, :1], 6, axis=1))
+  assert len(set(u[:3, 0])) == 3 and u[0, 0] == u[3, 0]
+  np.testing.assert_array_equal(step.round_uniforms(key, ids, 6), step.per_ray_uniforms(key, ids, 6))
+  scene, model, optimizer, mesh, batch = _one_batch(smoke_config(**{"train.batch_size": 64}))
+  make = lambda single: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
+                                             step.Options(single_jitter=single))
+  losses = [jax.device_get(make(single)(train_state.initial_state(model, optimizer, 0, mesh), batch,
+                                        jax.random.key(3))[1]["loss"]) for single in (True, False)]
+  assert np.isfinite(losses).all() and losses[0] != losses[1]
+  comps = types.SimpleNamespace(config=smoke_config(**{"train.single_jitter": True}), compiler_options=None)
+  assert step.Options.of(comps, 1, backend="cpu").single_jitter

@@ -11,8 +11,12 @@ of ray distance that decide how samples are spaced.
 - Ray-distance warps: samples are placed evenly in a normalised s in [0, 1] and mapped to distances t by
   s_to_t. 'linear' is t = near + s (far - near); 'inverse' (mip-NeRF 360's spacing) is even in 1 / t,
   s = (1/t - 1/near) / (1/far - 1/near), which spends samples on the foreground and still reaches a far
-  bound of 1e6. Each warp is a (t_to_s, s_to_t) pair of pure functions, so any sampler (stratified, the
-  fine network's inverse CDF, a proposal sampler) can work in s and hand back t.
+  bound of 1e6; 'piecewise' (nerfacto's UniformLinDispPiecewiseSampler) is even in t up to t = 1 and even
+  in 1 / t beyond, through g(t) = t / 2 (t < 1), 1 - 1 / (2 t) (t >= 1): s = (g(t) - g(near)) /
+  (g(far) - g(near)), so a capture scaled to distance 1 (its cameras within 1 of the centre) gets evenly
+  spread samples where its object is and inverse-distance ones in the background. Each warp is a
+  (t_to_s, s_to_t) pair of pure functions, so any sampler (stratified, the fine network's inverse CDF, a
+  proposal sampler) can work in s and hand back t.
 
 All functions are pure jnp and differentiable, and work on any leading shape.
 """
@@ -65,12 +69,27 @@ def contraction_scale(points_Nx3):
   return jnp.where(norm <= 1.0, 1.0, (2.0 * safe - 1.0) ** (2.0 / 3.0) / safe ** 2)
 
 
+def _piecewise_rest(t):
+  """1 - g(t) of nerfacto's lin-disp map g (t / 2 below 1, 1 - 1 / (2 t) from 1 on): 1 - t / 2, then 1 / (2 t).
+  Kept as what remains to 1, so that far bounds of 1e6 keep their digits (1 - g would round them away)."""
+  return jnp.where(t < 1.0, 1.0 - 0.5 * t, 0.5 / jnp.maximum(t, 1.0))
+
+
+def _piecewise_rest_inverse(h):
+  """The t whose _piecewise_rest is h in (0, 1]."""
+  return jnp.where(h > 0.5, 2.0 * (1.0 - h), 0.5 / jnp.clip(h, 1e-30, 0.5))
+
+
 def t_to_s(t, near, far, spacing: str):
-  """Ray distance t in [near, far] -> normalised s in [0, 1] under `spacing` ('linear' or 'inverse')."""
+  """Ray distance t in [near, far] -> normalised s in [0, 1] under `spacing` ('linear', 'inverse' or
+  'piecewise')."""
   if spacing == "linear":
     return (t - near) / (far - near)
   if spacing == "inverse":
     return (1.0 / t - 1.0 / near) / (1.0 / far - 1.0 / near)
+  if spacing == "piecewise":
+    h_near = _piecewise_rest(near)
+    return (h_near - _piecewise_rest(t)) / (h_near - _piecewise_rest(far))
   raise ValueError(f"unknown spacing {spacing!r}")  # nerfpod.schema refuses it first
 
 
@@ -81,4 +100,6 @@ def s_to_t(s, near, far, spacing: str):
     return near * (1.0 - s) + far * s
   if spacing == "inverse":
     return 1.0 / (s / far + (1.0 - s) / near)
+  if spacing == "piecewise":
+    return _piecewise_rest_inverse((1.0 - s) * _piecewise_rest(near) + s * _piecewise_rest(far))
   raise ValueError(f"unknown spacing {spacing!r}")

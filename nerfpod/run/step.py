@@ -31,6 +31,15 @@ def per_ray_uniforms(key, ray_ids, count: int):
   return jax.vmap(lambda i: jax.random.uniform(jax.random.fold_in(key, i), (count,)))(ray_ids)
 
 
+def round_uniforms(key, ray_ids, count: int, single_jitter: bool = False):
+  """A sampling round's numbers (R, count) (per_ray_uniforms); with `single_jitter` (train.single_jitter,
+  nerfacto's) one number per ray in every column: each stratum offset alike, the round's samples evenly spaced
+  in its CDF with one random shift."""
+  if not single_jitter:
+    return per_ray_uniforms(key, ray_ids, count)
+  return jnp.broadcast_to(per_ray_uniforms(key, ray_ids, 1), (ray_ids.shape[0], count))
+
+
 @dataclasses.dataclass(frozen=True)
 class Options:
   """How the step trains, beyond its model and data: the loss's settings (train.random_background,
@@ -52,6 +61,8 @@ class Options:
   interlevel_blur: tuple = ()
   # train.proposal_anneal_steps: the proposal weights' exponent rises from 0 to 1 over these steps; 0: off
   proposal_anneal_steps: int = 0
+  # train.single_jitter: one random offset per ray and round, shared by its strata (step.round_uniforms)
+  single_jitter: bool = False
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -64,7 +75,7 @@ class Options:
                comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
                coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine),
                interlevel_blur=tuple(float(r) for r in tc.interlevel_blur),
-               proposal_anneal_steps=int(tc.proposal_anneal_steps))
+               proposal_anneal_steps=int(tc.proposal_anneal_steps), single_jitter=bool(tc.single_jitter))
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -116,7 +127,8 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
 
   def loss_fn(params, batch, key, step):
     # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
-    uniforms = [per_ray_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count)
+    uniforms = [round_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count,
+                               options.single_jitter)
                 for i, count in enumerate(model.sample_counts())]
     target, ray_background = batch["rgb"], background
     if random_background and "alpha" in batch:
@@ -269,7 +281,8 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     # Region r's numbers of round i: stream i (as the one-field model's), then r folded in.
     def region_uniforms(stream, n):
       stream_key = jax.random.fold_in(key, stream)
-      return jax.vmap(lambda r: per_ray_uniforms(jax.random.fold_in(stream_key, r), batch["ray_ids"], n))(ids)
+      return jax.vmap(lambda r: round_uniforms(jax.random.fold_in(stream_key, r), batch["ray_ids"], n,
+                                               options.single_jitter))(ids)
     uniforms = [region_uniforms(i if i < 2 else i + 1, n) for i, n in enumerate(model.sample_counts())]
     target, ray_background = batch["rgb"], background
     if options.random_background and "alpha" in batch:
