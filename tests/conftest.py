@@ -31,6 +31,14 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 import pytest  # noqa: E402
 
+
+def pytest_configure(config):
+  """NERFPOD_TEST_TIMINGS=PREFIX: each test's seconds in tracing, lowering, compiling and the rest, and the
+  compilation cache's hits, written to PREFIX.<worker>.jsonl (tests/timings.py, which also prints the table)."""
+  if os.environ.get("NERFPOD_TEST_TIMINGS"):
+    import timings
+    config.pluginmanager.register(timings.Recorder(os.environ["NERFPOD_TEST_TIMINGS"]), "nerfpod-timings")
+
 REPO = pathlib.Path(__file__).resolve().parent.parent
 DATA = pathlib.Path(os.environ.get("NERFPOD_TEST_DATA", REPO.parent / "shared" / "data"))
 TINY_NPZ = DATA / "tiny_nerf_data.npz"

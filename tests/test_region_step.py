@@ -277,10 +277,11 @@ def test_each_regions_resampling_is_padded_and_annealed_inside_its_segment():
   origins, directions = _rays()
   plain = nerf_model.from_config(_config())
   padded = nerf_model.from_config(_config(**{"render.proposal_padding": 0.05}))
-  params = plain.init(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
+  params = jax.jit(plain.init)(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
   ids = jnp.arange(4)
-  edges = lambda model, **kw: model.apply(params, origins, directions, 2.0, 6.0, ids, method="render_partials",  # noqa: E731
-                                          **kw)[1]["s_edges"]
+  # (Jitted: one program per model and annealing, not hundreds of operations compiled one by one.)
+  edges = lambda model, **kw: jax.jit(functools.partial(model.apply, method="render_partials"))(  # noqa: E731
+      params, origins, directions, 2.0, 6.0, ids, **kw)[1]["s_edges"]
   base, wide, flat = edges(plain), edges(padded), edges(plain, anneal=jnp.float32(0.0))
   np.testing.assert_array_equal(edges(plain, anneal=jnp.float32(1.0)), base)  # w^1: the raw histogram
   # Each region's segment [s_in, s_out] of the ray, as the model cuts it (the box, then the region's planes).
