@@ -206,8 +206,9 @@ def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_va
                                 use_viewdirs=True, dtype=jnp.float32, materialize=materialize)
   points = lambda: (origins[:, None] + t[..., None] * directions[:, None]).reshape(-1, 3)
   viewdirs = jnp.repeat(directions / jnp.linalg.norm(directions, axis=-1, keepdims=True), 16, axis=0)
-  params = field_of(False).init(jax.random.key(5), points(), viewdirs)
-  params = jax.tree.map(lambda p: p + 0.3 * jax.random.normal(jax.random.key(6), p.shape), params)  # tables too
+  params = jax.jit(field_of(False).init)(jax.random.key(5), points(), viewdirs)
+  params = jax.jit(lambda ps: jax.tree.map(lambda p: p + 0.3 * jax.random.normal(jax.random.key(6), p.shape),
+                                           ps))(params)  # tables too
   def loss(materialize):
     def f(p):
       rgb, sigma = field_of(materialize).apply(p, points(), viewdirs)

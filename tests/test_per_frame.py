@@ -256,7 +256,7 @@ def _model_and_params(overrides, num_frames=5):
   rng = np.random.default_rng(4)
   origins = jnp.asarray(rng.normal(size=(32, 3)) * 0.1 + [0.0, 0.0, 4.0], jnp.float32)
   directions = jnp.asarray(rng.normal(size=(32, 3)) * 0.1 + [0.0, 0.0, -1.0], jnp.float32)
-  params = model.init(jax.random.key(0), origins, directions, 2.0, 6.0, jnp.ones(3))
+  params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0, jnp.ones(3))
   return model, params, origins, directions
 
 
@@ -286,8 +286,9 @@ def test_zero_pose_corrections_render_exactly_what_the_model_without_them_render
   plain, plain_params, _, _ = _model_and_params({})
   assert set(params["params"]) - set(plain_params["params"]) == {"pose_correction"}
   frames = jnp.asarray(np.arange(32) % 5, jnp.int32)
-  with_corrections = model.apply(params, origins, directions, 2.0, 6.0, jnp.ones(3), frames=frames)[-1]
-  without = plain.apply(plain_params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
+  with_corrections = jax.jit(model.apply, static_argnums=(3, 4))(params, origins, directions, 2.0, 6.0, jnp.ones(3),
+                                                                 frames=frames)[-1]
+  without = jax.jit(plain.apply, static_argnums=(3, 4))(plain_params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
   for k in ("rgb", "depth", "acc"):
     np.testing.assert_array_equal(np.asarray(with_corrections[k]), np.asarray(without[k]))
 

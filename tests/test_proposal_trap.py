@@ -32,7 +32,8 @@ def _one_hot_proposal(mass: float = 0.999):
 def _nerf_intervals(env_edges, env_weights, padding: float, seed: int = 1):
   """The NeRF's 48 intervals drawn from the proposal as the model draws them (stratified, jittered)."""
   jitter = jax.random.uniform(jax.random.PRNGKey(seed), (1, SAMPLES))
-  return stepfun.sample_intervals(env_edges, stepfun.resampling_weights(env_weights, padding), SAMPLES, jitter)
+  draw = jax.jit(lambda e, w, u: stepfun.sample_intervals(e, stepfun.resampling_weights(w, padding), SAMPLES, u))
+  return draw(env_edges, env_weights, jitter)
 
 
 def _random_histograms(count: int, seed: int = 2):
@@ -46,7 +47,7 @@ def _loss_and_gradient(edges, nerf_weights, env_edges, env_weights):
   """Per histogram: the interlevel loss and the norm of its gradient with respect to the proposal's weights."""
   def loss(env_w, w):
     return stepfun.interlevel_loss(edges, w[None], env_edges, env_w)[0]
-  value_and_grad = jax.vmap(jax.value_and_grad(loss), in_axes=(None, 0))
+  value_and_grad = jax.jit(jax.vmap(jax.value_and_grad(loss), in_axes=(None, 0)))
   values, grads = value_and_grad(env_weights, nerf_weights)
   return np.asarray(values), np.asarray(jnp.linalg.norm(grads.reshape(len(nerf_weights), -1), axis=-1))
 
@@ -142,11 +143,11 @@ def test_a_saturated_hash_grid_field_gets_a_gradient_only_with_trunc_exp(truncat
                                max_resolution=8, hidden_width=8, geo_features=3, use_viewdirs=False,
                                dtype=jnp.float32, trunc_exp=truncated)
   points = jax.random.uniform(jax.random.PRNGKey(0), (64, 3), minval=-0.5, maxval=0.5)
-  params = field.init(jax.random.PRNGKey(1), points)
+  params = jax.jit(field.init)(jax.random.PRNGKey(1), points)
   params["params"]["density_out"]["bias"] = params["params"]["density_out"]["bias"].at[0].set(30.0)
   sigma_sum = lambda p: jnp.sum(field.apply(p, points)[1])  # noqa: E731
-  assert float(jnp.min(field.apply(params, points)[1])) >= nerf_model.SATURATED_DENSITY  # all at the clamp
-  bias_gradient = float(jax.grad(sigma_sum)(params)["params"]["density_out"]["bias"][0])
+  assert float(jnp.min(jax.jit(field.apply)(params, points)[1])) >= nerf_model.SATURATED_DENSITY  # all clamped
+  bias_gradient = float(jax.jit(jax.grad(sigma_sum))(params)["params"]["density_out"]["bias"][0])
   assert (bias_gradient > 1e8) if truncated else (bias_gradient == 0.0)
 
 
@@ -159,17 +160,18 @@ def _spiked_model(padding: float):
   key = jax.random.PRNGKey(0)
   origins = jnp.tile(jnp.array([[0.0, 0.0, 4.0]]), (rays, 1))
   directions = jnp.concatenate([0.2 * jax.random.normal(key, (rays, 2)), -jnp.ones((rays, 1))], -1)
-  params = model.init(jax.random.PRNGKey(1), origins, directions, 2.0, 6.0, jnp.zeros(3))
+  params = jax.jit(model.init)(jax.random.PRNGKey(1), origins, directions, 2.0, 6.0, jnp.zeros(3))
   bias = params["params"]["proposal_0"]["density"]["bias"]
   params["params"]["proposal_0"]["density"]["bias"] = bias + 8.0
-  return model.apply(params, origins, directions, 2.0, 6.0, jnp.zeros(3))[-1]
+  return jax.jit(model.apply)(params, origins, directions, 2.0, 6.0, jnp.zeros(3))[-1]
 
 
 def test_the_model_pads_its_resampling_and_the_step_reports_the_collapse():
   trapped, padded = _spiked_model(0.0), _spiked_model(0.05)
-  diagnostics = {k: float(v) for k, v in train_step.proposal_diagnostics(trapped).items()}
+  diagnose = jax.jit(train_step.proposal_diagnostics)
+  diagnostics = {k: float(v) for k, v in diagnose(trapped).items()}
   assert diagnostics["heavy"] > 0.9 and diagnostics["window"] < 0.1
-  padded_diagnostics = {k: float(v) for k, v in train_step.proposal_diagnostics(padded).items()}
+  padded_diagnostics = {k: float(v) for k, v in diagnose(padded).items()}
   assert padded_diagnostics["window"] > 0.8
   # The same proposal (padding changes only where the NeRF samples): as heavy as before.
   np.testing.assert_array_equal(np.asarray(trapped["proposals"][0]["weights"]),

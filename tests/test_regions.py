@@ -188,14 +188,16 @@ def test_interlevel_loss_per_segment_sums_to_the_whole_rays_where_the_prefixes_a
   hi = np.concatenate([bounds, np.ones((rays, 1))], -1).T
   prefix = np.cumprod(np.concatenate([np.ones((1, rays)), rng.uniform(0.2, 0.9, (count - 1, rays))]), 0)
   env, nerf, total = [], [], np.zeros(rays)
+  # (Jitted: a program per function, not each of their operations compiled one by one.)
+  sample_intervals = jax.jit(stepfun.sample_intervals, static_argnums=2)
+  segment_loss = jax.jit(regions.interlevel_loss, static_argnames="radius")
   for k in range(count):
     a, b = jnp.asarray(lo[k][:, None]), jnp.asarray(hi[k][:, None])
     env_edges = a + (b - a) * jnp.linspace(0, 1, 9)
     env_weights = jnp.asarray(rng.uniform(0, 0.2, (rays, 8)))
-    edges = stepfun.sample_intervals(env_edges, env_weights, 6, jnp.asarray(rng.uniform(size=(rays, 6))),
-                                     domain=(a, b))
+    edges = sample_intervals(env_edges, env_weights, 6, jnp.asarray(rng.uniform(size=(rays, 6))), domain=(a, b))
     weights = jnp.asarray(rng.uniform(0, 0.3, (rays, 6)))
-    total = total + regions.interlevel_loss(edges, weights, env_edges, env_weights, jnp.asarray(prefix[k]))
+    total = total + segment_loss(edges, weights, env_edges, env_weights, jnp.asarray(prefix[k]))
     env.append((env_edges, prefix[k][:, None] * env_weights))
     nerf.append((edges, prefix[k][:, None] * weights))
 
@@ -206,14 +208,15 @@ def test_interlevel_loss_per_segment_sums_to_the_whole_rays_where_the_prefixes_a
       weights += [jnp.zeros((rays, 1)), w]
     return jnp.concatenate(edges, -1), jnp.concatenate(weights, -1)
 
-  whole = stepfun.interlevel_loss(*union(nerf), *union(env))
+  whole = jax.jit(stepfun.interlevel_loss)(*union(nerf), *union(env))
   np.testing.assert_allclose(total, whole, rtol=1e-5, atol=1e-8)
   # Zip-NeRF's form (train.interlevel_blur) at radius 0, the NeRF's histogram resampled onto the proposal's
   # intervals: per segment it sums to the whole ray's too (a radius > 0 blurs weight across the segments'
   # ends, which no segment sees, so there the sum is the whole ray's less that).
-  blurred = sum(regions.interlevel_loss(nerf[k][0], nerf[k][1] / prefix[k][:, None], env[k][0],
-                                        env[k][1] / prefix[k][:, None], jnp.asarray(prefix[k]), radius=0.0)
+  blurred = sum(segment_loss(nerf[k][0], nerf[k][1] / prefix[k][:, None], env[k][0],
+                              env[k][1] / prefix[k][:, None], jnp.asarray(prefix[k]), radius=0.0)
                 for k in range(count))
-  np.testing.assert_allclose(blurred, stepfun.blurred_interlevel_loss(*union(nerf), *union(env), 0.0),
+  whole_blurred = jax.jit(stepfun.blurred_interlevel_loss, static_argnums=4)(*union(nerf), *union(env), 0.0)
+  np.testing.assert_allclose(blurred, whole_blurred,
                              rtol=1e-4, atol=1e-8)
   assert np.all(np.abs(np.asarray(blurred) - np.asarray(total)) > 0)  # another loss than mip-NeRF 360's
