@@ -117,7 +117,8 @@ def _tiny_model():
                            "render.num_samples": 8})
   model = nerf_model.from_config(config, num_frames=5)
   origins = jnp.asarray([[0.0, 0.0, 4.0]] * 2, jnp.float32)
-  params = model.init(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2), 2.0, 6.0, jnp.ones(3))
+  params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2),
+                                                       2.0, 6.0, jnp.ones(3))
   table = jnp.asarray(np.random.default_rng(5).normal(size=(5, 4)) * 0.3, jnp.float32)
   return model, {**params, "params": {**params["params"], "appearance": table}}
 
@@ -156,7 +157,8 @@ def test_the_pose_fit_finds_a_held_out_camera_again_and_never_changes_the_field(
   config = smoke_config(**{"render.proposal_samples": (), "render.num_samples": 16})
   model = nerf_model.from_config(config)
   origins = jnp.asarray([[0.0, 0.0, 4.0]] * 2, jnp.float32)
-  params = model.init(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2), 2.0, 6.0, jnp.ones(3))
+  params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2),
+                                                       2.0, 6.0, jnp.ones(3))
   rng = np.random.default_rng(0)
   grid = {name: jnp.asarray(rng.normal(size=table.shape) * 3.0 ** (1 - level), jnp.float32)
           for level, (name, table) in enumerate(sorted(params["params"]["coarse"]["grid"].items()))}
