@@ -261,9 +261,21 @@ def test_a_refused_resume_leaves_config_json_as_it_was(tmp_path):
   workdir_files.write_config(str(tmp_path), saved)
   _saved_steps(tmp_path, 10)
   before = (tmp_path / "config.json").read_bytes()
-  with pytest.raises(UserError, match=r"different config: model.hashgrid.hidden_width \(16 -> 8\)"):
+  with pytest.raises(UserError, match=r"different config: model.hashgrid.hidden_width \(16 -> 8\)") as refused:
     modes.train_and_evaluate(smoke_config(**{"model.hashgrid.hidden_width": 8}), str(tmp_path))
   assert (tmp_path / "config.json").read_bytes() == before
+  # The sentence names what may change, the proposal guards a collapse warning asks for among them.
+  assert "render.proposal_padding, train.proposal_anneal_steps, model.trunc_exp may change" in str(refused.value)
+
+
+def test_checkpoints_without_their_config_json_are_refused_and_left_as_they_were(tmp_path):
+  """A workdir whose config.json is gone (deleted while a run still saved into it) holds checkpoints of an unknown
+  config: a resume is one sentence, and nothing is written."""
+  _saved_steps(tmp_path, 10)
+  before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+  with pytest.raises(UserError, match=r"holds checkpoints but no config.json, the config they were trained with"):
+    modes.train_and_evaluate(smoke_config(), str(tmp_path))
+  assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
 
 
 def test_the_loop_moves_data_between_host_and_devices_only_explicitly(tmp_path, monkeypatch):

@@ -92,21 +92,24 @@ def saved_config(workdir: str) -> dict | None:
 
 def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> None:
   """Refuses to resume a workdir whose checkpoints (`has_checkpoint`) came from a config of another shape or
-  data."""
+  data, or whose config.json is gone (its checkpoints' config unknown)."""
   saved = saved_config(workdir)
-  if not has_checkpoint or saved is None:
+  if not has_checkpoint:
     return
+  if saved is None:  # (a run writes config.json before its first step: it was deleted, or never copied along)
+    raise UserError(f"workdir {workdir} holds checkpoints but no config.json, the config they were trained with, "
+                    f"so nothing can tell whether this run's config fits them; put that config.json back, or use a "
+                    f"new --workdir.")
   differing = incompatible_fields(saved, config_json)
   if differing:
     was, now = schema.flatten(saved), schema.flatten(config_json)
     shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
                       for k in differing[:6])
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
+    resumable = ", ".join(p + "*" if p.endswith(".") else p for p in RESUMABLE_CHANGES)
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
-                    f"--workdir, or the settings of the workdir's config.json (only train.num_steps, the "
-                    f"logging cadence, train.max_nonfinite_steps, train.profile_steps, checkpoint.*, eval.*, orbit.*, "
-                    f"compile.*, mesh.* and "
-                    f"monitor.* may change on resuming).")
+                    f"--workdir, or the settings of the workdir's config.json (only {resumable} may change on "
+                    f"resuming).")
 
 
 def write_json(path, value, sort_keys: bool = False) -> None:
