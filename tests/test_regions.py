@@ -7,6 +7,9 @@ import pytest
 
 from nerfpod.nerf import compositing, regions, stepfun
 
+# (Jitted: one program each per shape, not each of their operations compiled on its own.)
+_segments, _region_of = jax.jit(regions.segments), jax.jit(regions.region_of)
+
 NEAR, FAR, SAMPLES = 0.0, 6.0, 8
 
 
@@ -28,14 +31,14 @@ def _field(params, points_Nx3):
 
 def _stitched(params, points_Nx3, partition):
   """The field that is region k's inside region k."""
-  which = regions.region_of(points_Nx3, partition)
+  which = _region_of(points_Nx3, partition)
   picked = jax.tree.map(lambda p: p[which], params)
   return jax.vmap(_field)(picked, points_Nx3)
 
 
 def _segment_edges(origins, directions, partition):
   """(K, R, S + 1) edges in t of each region's S equal intervals of its segment."""
-  t_in, t_out = regions.segments(origins, directions, NEAR, FAR, partition)
+  t_in, t_out = _segments(origins, directions, NEAR, FAR, partition)
   u = jnp.linspace(0.0, 1.0, SAMPLES + 1)
   return t_in[..., None] + u * (t_out - t_in)[..., None], t_in
 
@@ -98,16 +101,16 @@ def test_grid_and_voronoi_cells_hold_every_point_once():
   points = jnp.asarray(np.random.default_rng(0).uniform(-3, 3, (2000, 3)), jnp.float32)
   partition = regions.grid(6, 1.5)
   assert regions.grid_shape(6) == (3, 2) and partition.size == 6
-  which = np.asarray(regions.region_of(points, partition))
+  which = np.asarray(_region_of(points, partition))
   column = np.clip(np.floor((np.asarray(points[:, 0]) + 1.5) / 1.0), 0, 2)
   row = np.clip(np.floor((np.asarray(points[:, 1]) + 1.5) / 1.5), 0, 1)
   np.testing.assert_array_equal(which, row * 3 + column)
   centres = np.array([[0.0, 1.0], [-1.0, -0.5], [1.2, -0.4]])
   nearest = np.argmin(np.sum((np.asarray(points)[:, None, :2] - centres[None])**2, -1), axis=1)
-  np.testing.assert_array_equal(np.asarray(regions.region_of(points, regions.voronoi(centres))), nearest)
+  np.testing.assert_array_equal(np.asarray(_region_of(points, regions.voronoi(centres))), nearest)
   # On a shared boundary exactly, one region only (the lower cell holds nothing of its upper cut).
   on_cut = jnp.array([[0.0, 0.2, 0.0], [-0.5, 0.0, 0.0]])
-  assert list(np.asarray(regions.region_of(on_cut, regions.grid(4, 1.0)))) == [3, 2]
+  assert list(np.asarray(_region_of(on_cut, regions.grid(4, 1.0)))) == [3, 2]
 
 
 def test_kmeans_finds_separated_clusters():
@@ -123,14 +126,14 @@ def test_kmeans_finds_separated_clusters():
 def test_segments_tile_each_ray_and_lie_in_their_regions(name, kind):
   partition = PARTITIONS[name]
   origins, directions = _rays(kind)
-  t_in, t_out = map(np.asarray, regions.segments(origins, directions, NEAR, FAR, partition))
+  t_in, t_out = map(np.asarray, _segments(origins, directions, NEAR, FAR, partition))
   assert np.all(t_in <= t_out)
   np.testing.assert_allclose(np.sum(t_out - t_in, axis=0), FAR - NEAR, rtol=1e-5)  # no gap, no overlap
   for k in range(partition.size):
     full = t_out[k] > t_in[k]
     mids = 0.5 * (t_in[k] + t_out[k])
     points = np.asarray(origins) + mids[:, None] * np.asarray(directions)
-    assert np.all(np.asarray(regions.region_of(jnp.asarray(points), partition))[full] == k)
+    assert np.all(np.asarray(_region_of(jnp.asarray(points), partition))[full] == k)
   if kind == "designed" and name == "grid4":
     crossed = np.sum(t_out > t_in, axis=0)
     assert list(crossed) == [1, 2, 3, 1, 2, 2]
