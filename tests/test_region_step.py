@@ -35,8 +35,21 @@ def _rays(count=64, seed=0):
 
 
 def test_regions_one_is_the_one_field_model():
-  model = nerf_model.from_config(_config(**{"model.regions": 1}))
-  assert model.regions == 1 and model.region_planes == ()  # NeRF's defaults: the model it always was
+  """model.regions=1, whatever the region settings say (a cut around the cameras, each region's own box), is the
+  one-field model: its parameters have no region axis and its renders are the plain config's, bit for bit."""
+  one = nerf_model.from_config(_config(**{"model.regions": 1, "model.region_cut": "cameras",
+                                          "model.region_box": "own"}))
+  plain = nerf_model.from_config(_config(**{"model.regions": 1}))
+  assert one.regions == 1 and one.region_planes == ()  # NeRF's defaults: the model it always was
+  origins, directions = _rays()
+  init = lambda model: jax.jit(model.init)(jax.random.key(0), origins, directions, 2.0, 6.0, jnp.zeros(3))  # noqa: E731
+  params = init(one)
+  assert nerf_model.REGIONS not in params["params"] and "coarse" in params["params"]
+  jax.tree.map(np.testing.assert_array_equal, params, init(plain))
+  render = lambda model: jax.jit(model.apply)(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]  # noqa: E731
+  out, expected = render(one), render(plain)
+  for key in ("rgb", "depth", "acc"):
+    np.testing.assert_array_equal(out[key], expected[key])
 
 
 @pytest.mark.slow  # (~15 s) the sharded step's equality below composites the device shares as well
