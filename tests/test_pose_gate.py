@@ -73,14 +73,21 @@ def test_make_optimizer_gates_the_pose_corrections_only():
   params = {"params": {pose_correction.PARAM: jnp.zeros((4, 6)), "w": jnp.zeros((3,))}}
   optimizer = train_state.make_optimizer(tc)
   state = optimizer.init(params)
+  # The field alone under plain Adam on the same schedule: what the gate must leave the field's updates.
+  adam = optax.adam(train_state.learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
+  field = params["params"]["w"]
+  field_state = adam.init(field)
   rng = np.random.default_rng(3)
-  for _ in range(20):  # noise on the corrections, a steady gradient on the field
+  for _ in range(20):  # noise on the corrections, a steady gradient with noise on the field
     grads = {"params": {pose_correction.PARAM: jnp.asarray(rng.normal(size=(4, 6)) * 1e-3, jnp.float32),
-                        "w": jnp.full((3,), 1e-3)}}
+                        "w": jnp.asarray(1e-3 * (1.0 + 0.5 * rng.uniform(size=3)), jnp.float32)}}
     updates, state = optimizer.update(grads, state, params)
     params = optax.apply_updates(params, updates)
+    field_updates, field_state = adam.update(grads["params"]["w"], field_state, field)
+    field = optax.apply_updates(field, field_updates)
   assert np.all(np.asarray(params["params"][pose_correction.PARAM]) == 0)
   assert np.all(np.asarray(params["params"]["w"]) < 0)
+  np.testing.assert_array_equal(params["params"]["w"], field)
 
 
 @pytest.mark.parametrize("degrees, units", [(1.0, 0.03), (5.0, 0.0)])
