@@ -1,6 +1,7 @@
 """The shared set-up: the learning-rate schedule and gradient clipping against hand-computed values, the
 state's shapes without an initialisation, and the renderer's chunking."""
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -267,16 +268,27 @@ def test_batches_the_host_cannot_hold_are_refused_before_any_work(tmp_path, monk
   components.check_batches_fit_host(smoke_config(**{"train.batch_size": 174760}))  # the size it names fits
 
 
-def test_a_step_no_device_could_hold_is_refused_before_the_workdir_holds_anything(tmp_path, monkeypatch):
+def test_a_step_no_device_could_hold_is_refused_before_the_workdir_holds_anything(tmp_path, monkeypatch, smoke):
   """A fixed train.microbatches whose step needs more than a device has (XLA's memory analysis of the very
   step compiled) is one sentence naming the fields and what to set, before config.json or any checkpoint."""
   from nerfpod.run import compilation, modes
   from nerfpod.errors import UserError
-  monkeypatch.setattr(compilation, "device_memory_bytes", lambda: 2**10)  # a 1 KiB device
+  from nerfpod.run import step as train_step
+  # The compiled step's own need (XLA's analysis), and a device one byte short of it, then one just enough.
+  analysed, memory = [], compilation.step_memory_bytes
+  monkeypatch.setattr(compilation, "step_memory_bytes", lambda compiled: analysed.append(memory(compiled)) or analysed[-1])
+  monkeypatch.setattr(compilation, "device_memory_bytes", lambda: 2**40)
+  train_step.compile_for_run(smoke)
+  need = analysed[-1]
+  assert 2**20 < need < 2**30  # (the smoke step: a few MiB, shown in MiB)
+  monkeypatch.setattr(compilation, "device_memory_bytes", lambda: need)
+  train_step.compile_for_run(smoke)  # exactly enough: no refusal
+  monkeypatch.setattr(compilation, "device_memory_bytes", lambda: need - 1)
+  figure = re.escape(f"needs {need / 2**20:,.1f} MiB per device by XLA's analysis, more than the "
+                     f"{(need - 1) / 2**20:,.1f} MiB a device has")
   with pytest.raises(UserError, match=r"^the train step of train.batch_size=256 \(32 rays per device\) in 1 "
-                                      r"micro-batch\(es\) needs [\d.]+ GiB per device by XLA's analysis, more than "
-                                      r"the 0.0 GiB a device has; set --config.train.microbatches=0 \(the fewest "
-                                      r"that fit, found at start-up\) or more than 1, or a smaller "
+                                      r"micro-batch\(es\) " + figure + r"; set --config.train.microbatches=0 "
+                                      r"\(the fewest that fit, found at start-up\) or more than 1, or a smaller "
                                       r"--config.train.batch_size\.$"):
     modes.train_and_evaluate(smoke_config(), str(tmp_path))
   written = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())

@@ -409,8 +409,8 @@ def compile_for_run(comps: Components):
             f"or a smaller --config.train.batch_size" if tc.microbatches else
             "set a smaller --config.train.batch_size")
     raise UserError(f"the train step of train.batch_size={tc.batch_size} ({per_device} rays per device) in "
-                    f"{count} micro-batch(es) needs {need / 2**30:,.1f} GiB per device by XLA's analysis, more "
-                    f"than the {capacity / 2**30:,.1f} GiB a device has; {more}.")
+                    f"{count} micro-batch(es) needs {compilation.size_text(need)} per device by XLA's analysis, "
+                    f"more than the {compilation.size_text(capacity)} a device has; {more}.")
   if comps.config.train.microbatches == 0 and jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"
