@@ -215,6 +215,17 @@ def test_evaluate_adds_each_protocols_numbers_and_leaves_the_plain_ones_as_they_
   assert half["protocol"] == protocols.APPEARANCE_HALF and half["cameras"] == "aligned" and half["steps"] == 2
   assert len(half["views"]) == 1 and set(half["views"][0]["mean_code"]) == {"psnr", "ssim", "lpips"}
   assert np.isfinite(half["mean"]["psnr"]) and np.isfinite(half["mean_code"]["psnr"])
+  # Recomputed here: the held-out camera moved by the drift (0.05 along x), rendered with the mean code (no
+  # frames), scored whole (poses_aligned) and on its right half (appearance_half's mean_code).
+  moved = np.array(split.poses[0], np.float64)
+  moved[:3, 3] += [0.05, 0.0, 0.0]
+  at_mean = np.clip(renderer.render_image(comps.renderer, params, comps.mesh, moved.astype(np.float32),
+                                          split.cameras[0], 0.5, 1024)["rgb"], 0, 1)
+  right = evaluate._right_half
+  np.testing.assert_allclose(aligned["views"][0]["psnr"], metrics.psnr(at_mean, split.image(0)), rtol=1e-4)
+  np.testing.assert_allclose(half["views"][0]["mean_code"]["psnr"],
+                             metrics.psnr(right(at_mean), right(split.image(0))), rtol=1e-4)
+  assert abs(half["views"][0]["mean_code"]["psnr"] - result["views"][0]["psnr"]) > 1e-3  # another image than plain
   fitted = result["poses_optimised"]
   assert fitted["protocol"] == protocols.POSES_OPTIMISED and fitted["cameras"] == "aligned"
   assert (fitted["steps"], fitted["rays_per_step"]) == (comps.config.eval.pose_steps, comps.config.eval.pose_rays)
