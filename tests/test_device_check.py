@@ -31,6 +31,10 @@ def test_the_tiny_device_check_runs_every_stage_and_reports_their_figures(tmp_pa
     assert bench["batch_size"] == size and bench["rays_per_s"] > 0 and bench["step_ms"] > 0
     assert bench["flops_per_step"] > 0 and 0 < bench["fraction_of_peak"]
     assert bench["machine"]["backend"] == env_stage["backend"]  # the run is on the machine's own backend
+  # The whole step's FLOPs, as nerfpod bench counts them: twice the rays, nearly twice the work (the update of
+  # the parameters does not grow with the rays); a count of one device's share or one micro-batch would not.
+  ratio = stages["bench_128"]["flops_per_step"] / stages["bench_64"]["flops_per_step"]
+  assert 1.6 < ratio <= 2.0, ratio
   default = stages["default"]
   assert default["step"] == 20 and default["views"] == 2 and math.isfinite(default["psnr"])
   assert default["first_line"].startswith("nerfpod: JAX ") and " on cpu: " in default["first_line"]
