@@ -285,3 +285,35 @@ def test_split_from_frames_reads_each_frame_into_its_slot_and_names_a_bad_one():
     np.testing.assert_array_equal(split.alpha(i), rgb[i][..., 0] / np.float32(255))
   with pytest.raises(UserError, match="the image of frame b is 4x3 pixels but its camera is 5x2"):
     base.Split.from_frames(lambda i: (rgb[0], None), np.tile(np.eye(4), (2, 1, 1)), cams, ["a", "b"], threads=2)
+
+
+@pytest.mark.parametrize("kind", ["blender", "nerfstudio", "colmap", "llff"])
+@pytest.mark.parametrize("damage", ["truncated", "not an image"])
+def test_a_damaged_image_is_one_sentence_naming_its_file(tmp_path, kind, damage):
+  """An image cut off (a copy that stopped) or not an image at all (a text file under an image's name): one
+  sentence naming the file, whichever loader reads it."""
+  path = _write(kind, tmp_path, _poses(6))
+  bad = sorted(p for p in tmp_path.rglob("03.png"))[0]
+  data = bad.read_bytes()
+  bad.write_bytes(data[:len(data) // 2] if damage == "truncated" else b"<html>404</html>")
+  with pytest.raises(UserError) as refused:
+    scenes.load(as_is(kind, path)).split("train").image(3)
+  message = str(refused.value)
+  reason = "image file is truncated" if damage == "truncated" else "not an image format it reads"
+  assert message.endswith(f"03.png is not a readable image ({reason}); copy it again, or remove the frame."), message
+  assert "\n" not in message and "BufferedReader" not in message
+
+
+def test_a_damaged_training_image_exits_2_with_one_sentence_and_no_workdir(tmp_path):
+  """Through the command line: the sentence, exit 2, and no workdir made."""
+  from procs import run_main
+  (tmp_path / "capture").mkdir()
+  path = _write("nerfstudio", tmp_path / "capture", _poses(6))
+  bad = path / "images" / "03.png"
+  bad.write_bytes(bad.read_bytes()[:40])
+  result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path / 'run'}", "--config.data.kind=auto",
+                    f"--config.data.path={path}")
+  assert result.returncode == 2, result.stderr[-2000:]
+  errors = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: error:")]
+  assert len(errors) == 1 and f"{bad} is not a readable image" in errors[0], result.stderr[-2000:]
+  assert "Traceback" not in result.stderr and not (tmp_path / "run").exists()

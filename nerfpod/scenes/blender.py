@@ -8,7 +8,7 @@ from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import Cameras, Intrinsics
 from nerfpod.scenes.base import Scene, Shards, Split, check_poses, check_split, read_json, to_uint8, unscaled
-from nerfpod.scenes.capture import READ_THREADS, image_size
+from nerfpod.scenes.capture import READ_THREADS, image_size, unreadable_image
 
 SPLITS = ("train", "val", "test")
 
@@ -39,7 +39,7 @@ def _read_image(path: str, name: str, downscale: int) -> np.ndarray:
     with Image.open(storage.open_binary(path) if storage.is_url(path) else path) as im:
       rgba = np.asarray(im.convert("RGBA"), np.float32) / 255.0
   except OSError as e:
-    raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
+    raise unreadable_image(name, path, e) from e
   rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])  # composite before filtering
   out = np.concatenate([rgb, rgba[..., 3:]], axis=-1)
   if downscale > 1:

@@ -52,6 +52,14 @@ def image_folder(root: str, downscale: int, base: str = "images") -> tuple[str, 
   raise UserError(f"{root} has no {wanted} folder for data.downscale={downscale}{hint}.")
 
 
+def unreadable_image(name: str, path: str, error: OSError) -> UserError:
+  """The one sentence for an image file that exists but does not decode: cut off (a copy that stopped) or not
+  an image at all (PIL's own words, less the file object it names)."""
+  reason = "not an image format it reads" if "cannot identify image file" in str(error) else str(error)
+  return UserError(f"frame {name!r}: {path} is not a readable image ({reason}); copy it again, or remove the "
+                   f"frame.")
+
+
 def read_image(path: str, name: str, downscale: int = 1) -> np.ndarray:
   """An image file as (H, W, 3) uint8, shrunk `downscale` times by averaging downscale^2 blocks (the image
   cropped to a multiple of it). An alpha channel is dropped: captures are opaque. A URL's file is fetched
@@ -66,7 +74,7 @@ def read_image(path: str, name: str, downscale: int = 1) -> np.ndarray:
   except FileNotFoundError as e:
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame.") from e
   except OSError as e:
-    raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
+    raise unreadable_image(name, path, e) from e
 
 
 def image_size(path: str, name: str, downscale: int = 1) -> tuple[int, int]:
@@ -78,7 +86,7 @@ def image_size(path: str, name: str, downscale: int = 1) -> tuple[int, int]:
   except FileNotFoundError as e:
     raise UserError(f"frame {name!r}: image file {path} not found; restore it or remove the frame.") from e
   except OSError as e:
-    raise UserError(f"frame {name!r}: {path} is not a readable image ({e}).") from e
+    raise unreadable_image(name, path, e) from e
   return (w // downscale, h // downscale) if downscale > 1 else (w, h)
 
 
