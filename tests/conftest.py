@@ -165,8 +165,8 @@ SMOKE_RUN_FILES = ("test_evaluate", "test_export", "test_golden", "test_view", "
 
 
 # The gate and the extended set. The README's test command, which CI runs (.ci/run), is the gate,
-# `-m "not extended"`: every quick test and the slow ones that no entry below names (8 minutes on the 2-core
-# Xeon, about 12 on the EPYC; docs/results.md). The slow tests of each entry (a file, or one test function with
+# `-m "not extended"`: every quick test and the slow ones that no entry below names (7 to 8 minutes on the
+# 2-core Xeon and the EPYC; docs/results.md). The slow tests of each entry (a file, or one test function with
 # all its cases; the entry's quick tests stay in the gate) are marked `extended`: checks of whole programs whose
 # claim the gate checks more cheaply elsewhere (said beside each) or that guard one feature's long path.
 # `-m extended` runs them; no -m runs everything (21 to 32 minutes there). Run them before landing a change to
