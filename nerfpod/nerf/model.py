@@ -37,9 +37,9 @@ class NeRF(nn.Module):
   scene's NDC cube (the rays are mapped there first, with the view directions taken from the world rays as
   the original does, and near/far are NDC parameters in [0, 1]); 'contract', mip-NeRF 360's contracted ball
   of radius 2 (sample points are contracted before the field; rays are not clipped, every point lands in
-  the ball). `spacing` places the samples evenly in distance ('linear') or in inverse distance ('inverse',
-  for unbounded scenes with a far bound of 1e6): samples are drawn in s in [0, 1] and mapped to t
-  (proposal rounds too).
+  the ball). `spacing` places the samples evenly in distance ('linear'), in inverse distance ('inverse',
+  for unbounded scenes with a far bound of 1e6) or in distance to 1 and inverse distance beyond ('piecewise',
+  nerfacto's): samples are drawn in s in [0, 1] and mapped to t (proposal rounds too; nerf/coord.py).
 
   A bounded field (the hash grid) has each ray's [near, far] clipped to its box first (not in contracted space).
   Real captures (NeRF-W, nerfacto): with `model_config.appearance_dim` > 0, an appearance code per training
