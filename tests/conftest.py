@@ -208,7 +208,10 @@ EXTENDED = (
     "test_aot.py::test_the_launchers_preflight_refuses_a_job_too_large_for_the_chips_with_the_figures",
     "test_aot_regions.py",
     # The region model's 2-process runs and other layouts (the gate keeps its (2, 4) step and two composites).
-    "test_region_multiprocess.py", "test_region_step.py", "test_regions.py",
+    "test_region_multiprocess.py", "test_regions.py",
+    "test_region_step.py::test_each_device_share_of_the_regions_composites_to_the_whole_model",
+    "test_region_step.py::test_sharded_regions_step_matches_the_whole_model_on_one_device",  # (its 2 x 4 is quick)
+    # (test_region_step's gradient clip over every region's gradients stays in the gate, 12 s.)
     # pycolmap on the cup's photos and the horns' video (prepare's quick tests run it on synthetic photos and
     # the horns' photos), the fox through the command line (test_real_configs trains the cup and the horns).
     "test_prepare.py",

@@ -282,6 +282,11 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   np.testing.assert_allclose(metrics_8[0]["grad_norm"], metrics_1[0]["grad_norm"], rtol=2e-5)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
                jax.device_get(state_8.params), jax.device_get(state_1.params))
+  # SGD at a learning rate of 1 moves the parameters by the clipped gradient: its global norm is the limit.
+  initial = jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params)
+  moved = jax.tree.map(lambda a, b: np.sum((np.asarray(a, np.float64) - b) ** 2), jax.device_get(state_8.params),
+                       initial)
+  np.testing.assert_allclose(np.sqrt(sum(jax.tree.leaves(moved))), 0.005, rtol=1e-3)
 
 
 def test_each_regions_resampling_is_padded_and_annealed_inside_its_segment():
