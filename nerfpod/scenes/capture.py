@@ -14,7 +14,7 @@ import dataclasses
 import os
 
 import numpy as np
-from PIL import Image
+from PIL import Image, UnidentifiedImageError
 
 from nerfpod import storage
 from nerfpod.errors import UserError
@@ -55,7 +55,7 @@ def image_folder(root: str, downscale: int, base: str = "images") -> tuple[str, 
 def unreadable_image(name: str, path: str, error: OSError) -> UserError:
   """The one sentence for an image file that exists but does not decode: cut off (a copy that stopped) or not
   an image at all (PIL's own words, less the file object it names)."""
-  reason = "not an image format it reads" if "cannot identify image file" in str(error) else str(error)
+  reason = "not an image format it reads" if isinstance(error, UnidentifiedImageError) else str(error)
   return UserError(f"frame {name!r}: {path} is not a readable image ({reason}); copy it again, or remove the "
                    f"frame.")
 
