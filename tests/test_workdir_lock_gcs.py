@@ -272,6 +272,37 @@ def _handler(fake):
   return Handler
 
 
+class WatchClock:
+  """The lock module's clock while it watches a lock that nobody beats: its `sleep` moves this clock's
+  `monotonic` on by the time asked (and yields the thread for a moment) instead of waiting, so a lease passes
+  in milliseconds. Only where nothing beats meanwhile: a holder's beats run on the real clock. `time.time` and
+  the rest are the real module's."""
+
+  def __init__(self):
+    self.offset = 0.0
+    self._lock = threading.Lock()
+
+  def monotonic(self) -> float:
+    return time.monotonic() + self.offset
+
+  def sleep(self, seconds: float) -> None:
+    with self._lock:
+      self.offset += seconds
+    time.sleep(0.0005)
+
+  def __getattr__(self, name):
+    return getattr(time, name)
+
+
+def _watch_clock(monkeypatch) -> WatchClock:
+  """A WatchClock for the lock module, and its beats every second as a run's are every few (a watch looks at
+  the lock every half beat: a few looks a lease rather than tens)."""
+  clock = WatchClock()
+  monkeypatch.setattr(workdir_lock, "time", clock)
+  monkeypatch.setattr(workdir_lock, "HEARTBEAT_SECONDS", 1.0)
+  return clock
+
+
 def _serve(monkeypatch, fake):
   monkeypatch.setenv("STORAGE_EMULATOR_HOST", fake.host)  # host:port, no scheme (tests/gcs.py's has http://)
   monkeypatch.setattr(workdir_lock, "HEARTBEAT_SECONDS", 0.1)
@@ -372,17 +403,18 @@ def test_another_hosts_gs_lock_is_refused_while_it_beats_and_taken_over_once_it_
     finally:
       stop.set()
       beating.join()
-    started = time.monotonic()
+    clock = _watch_clock(monkeypatch)  # nothing beats from here on: a lease passes on the watch's clock
+    started = clock.monotonic()
     with workdir_lock.WorkdirLock(WORKDIR):  # the holder stopped beating: it is taken over after a lease
       assert fake.holder()["pid"] == os.getpid()
-    assert 3.0 < time.monotonic() - started < 6.0
+    assert 3.0 < clock.monotonic() - started < 4.5  # the lease, a look's sleep past it and a second of real time
     # A lock whose `updated` says it beat a minute ago (by the server's clock) is watched for a lease all the
     # same: the server's clock is not this host's.
     fake.put({"host": "elsewhere-host", "pid": 1, "since": "x"}, age=60.0)
-    started = time.monotonic()
+    started = clock.monotonic()
     with workdir_lock.WorkdirLock(WORKDIR):
       assert fake.holder()["pid"] == os.getpid()
-    assert 3.0 < time.monotonic() - started < 6.0
+    assert 3.0 < clock.monotonic() - started < 4.5
   finally:
     fake.close()
 
@@ -413,6 +445,7 @@ def test_of_two_runs_racing_for_a_stale_gs_lock_exactly_one_takes_it(gcs, monkey
     remove_stale(self, look)
 
   monkeypatch.setattr(workdir_lock._GcsLock, "remove_stale", remove_when_both_judged)
+  clock = _watch_clock(monkeypatch)  # the stale lock's lease passes on the watch's clock (nothing beats it)
   for _ in range(3):
     deletes = gcs.count("delete", 204)
     gcs.put({"host": "elsewhere-host", "pid": 1, "since": "x"}, age=60.0)
@@ -430,10 +463,12 @@ def test_of_two_runs_racing_for_a_stale_gs_lock_exactly_one_takes_it(gcs, monkey
         outcomes[i] = str(e)
 
     threads = [threading.Thread(target=run, args=(i,), name=["early", "late"][i]) for i in range(2)]
+    slept = clock.offset
     for t in threads:
       t.start()
     for t in threads:
       t.join()
+    assert clock.offset - slept >= workdir_lock.LEASE_SECONDS  # watched for a lease (the two share the clock)
     assert outcomes.count("took it") == 1, outcomes
     refused = [o for o in outcomes if o != "took it"][0]
     assert f"is in use by another training run (process {os.getpid()} on host" in refused
@@ -564,16 +599,21 @@ def test_a_service_account_key_file_takes_the_lock(monkeypatch, cloud, tmp_path)
       f"pass a local --workdir.")
 
 
-def test_the_locks_calls_are_retried_and_a_lost_answer_is_its_own(gcs, capfd):
+def test_the_locks_calls_are_retried_and_a_lost_answer_is_its_own(gcs, capfd, monkeypatch):
   """A 503 is tried again (google-cloud-storage's retries, which the generation preconditions allow); a write or
   delete done whose answer was lost is found done on the retry (412 or 404): a create or beat finds the lock
-  there its own, a release is done."""
+  there its own, a release is done. (The retries wait 0.05-0.2 s here rather than the client's 1 s and more.)"""
+  retry = workdir_lock._GcsLock._retry
+  monkeypatch.setattr(workdir_lock._GcsLock, "_retry",
+                      staticmethod(lambda: retry().with_delay(initial=0.05, maximum=0.2, multiplier=2.0)))
   gcs.faults = {"upload": ["503", "lost"]}  # the create refused once, then done but its answer lost
   with workdir_lock.WorkdirLock(WORKDIR) as lock:
     assert gcs.holder()["pid"] == os.getpid() and _agreed(gcs, lock)
     assert gcs.count("upload", 412) == 1  # the create's retry
     gcs.faults = {"upload": ["lost"]}  # a beat done, its answer lost
-    time.sleep(1.5)
+    deadline = time.monotonic() + 5.0  # the beat (every 0.1 s), its answer lost, its retry
+    while gcs.count("upload", 412) < 2 and time.monotonic() < deadline:
+      time.sleep(0.01)
     assert gcs.count("upload", 412) == 2 and _agreed(gcs, lock)
     gcs.faults = {"delete": ["lost"]}
   assert gcs.holder() is None and gcs.count("delete", 503) == 1 and gcs.count("delete", 404) == 1
