@@ -64,7 +64,14 @@ def test_ndc_model_takes_view_directions_from_the_world_rays(monkeypatch):
   config = smoke_config(**{"render.space": "ndc", "render.num_samples": 4, "model.field": "mlp",
                            "render.proposal_samples": ()})
   camera = (intr.fx, intr.fy, intr.width, intr.height)
-  nerf_model.from_config(config, camera).apply({}, origins, directions, 0.0, 1.0, jnp.ones(3))
+  model = nerf_model.from_config(config, camera)
+
+  @jax.jit
+  def render(origins, directions):
+    model.apply({}, origins, directions, 0.0, 1.0, jnp.ones(3))
+    return seen["viewdirs"], seen["points"]  # what the field was asked about, out of the program
+
+  seen["viewdirs"], seen["points"] = render(origins, directions)
   world = np.asarray(directions) / np.linalg.norm(np.asarray(directions), axis=-1, keepdims=True)
   np.testing.assert_allclose(np.asarray(seen["viewdirs"]).reshape(8, 4, 3), np.repeat(world[:, None], 4, 1),
                              rtol=1e-6)
@@ -142,9 +149,15 @@ def test_proposal_sampling_in_contracted_space_with_inverse_spacing(monkeypatch)
   _, origins, directions = _camera_rays()
   model, seen = _proposal_model(monkeypatch, lambda p: jnp.linalg.norm(p, axis=-1) - 1.5, "contract", "inverse",
                                 (64,), 256)
-  out = model.apply({}, origins, directions, 0.2, 1e6, jnp.ones(3))[-1]
-  assert len(seen) == 1 and seen[0].shape == (64 * 64, 3)
-  assert float(jnp.max(jnp.linalg.norm(seen[0], axis=-1))) < 2.0
+
+  @jax.jit  # one program, not each operation compiled on its own
+  def render(origins, directions):
+    out = model.apply({}, origins, directions, 0.2, 1e6, jnp.ones(3))[-1]
+    assert len(seen) == 1 and seen[0].shape == (64 * 64, 3)
+    return out, jnp.max(jnp.linalg.norm(seen[0], axis=-1))
+
+  out, farthest = render(origins, directions)
+  assert float(farthest) < 2.0
   t = np.asarray(out["t"])
   assert t.shape == (64, 256) and (t >= 0.2).all() and (t <= 1e6).all()
   np.testing.assert_allclose(out["acc"], 1.0, atol=1e-4)
@@ -156,7 +169,7 @@ def test_proposal_sampling_in_ndc_space_gives_world_depth(monkeypatch):
   wall = 5.0
   model, _ = _proposal_model(monkeypatch, lambda p: p[:, 2] - (1.0 - 2.0 / wall), "ndc", "linear", (64,), 256,
                              ndc_camera=(intr.fx, intr.fy, intr.width, intr.height))
-  out = model.apply({}, origins, directions, 0.0, 1.0, jnp.ones(3))[-1]
+  out = jax.jit(model.apply)({}, origins, directions, 0.0, 1.0, jnp.ones(3))[-1]
   np.testing.assert_allclose(out["acc"], 1.0, atol=1e-4)
   np.testing.assert_allclose(out["disparity"], 1.0 / wall, atol=2.0 / 256)
   np.testing.assert_allclose(out["depth"], wall, rtol=0.05)

@@ -2,6 +2,7 @@
 one sentence naming the region and the fix; regions.unseen on designed rays."""
 import types
 
+import jax
 import numpy as np
 import pytest
 
@@ -15,7 +16,7 @@ from nerfpod.scenes.base import Split
 
 def test_unseen_lists_the_regions_no_ray_crosses():
   cut = regions.grid(4, 1.5)  # a 2 x 2 grid of the ground plane: x < 0 or > 0, y < 0 or > 0
-  ids = np.asarray(regions.region_of(np.float32([[1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0]]), cut))
+  ids = np.asarray(jax.jit(regions.region_of)(np.float32([[1, 1, 0], [-1, 1, 0], [1, -1, 0], [-1, -1, 0]]), cut))
   # One ray along +x at y = 0.5: it crosses the two cells of y > 0 only.
   along = (np.float32([[-3, 0.5, 0]]), np.float32([[1, 0, 0]]))
   assert regions.unseen(cut, *along, 0.0, 6.0) == sorted(ids[2:].tolist())

@@ -33,15 +33,16 @@ def test_the_encoding_with_footprints_is_each_levels_features_times_its_weight()
   params = jax.tree.map(lambda p: jax.random.normal(jax.random.key(1), p.shape), params)
   x = jax.random.uniform(jax.random.key(2), (50, 3))
   scales = jnp.exp(jax.random.uniform(jax.random.key(3), (50,), minval=-8.0, maxval=-1.0))
-  plain = np.asarray(module.apply(params, x))
-  weighted = np.asarray(module.apply(params, x, scales))
+  apply = jax.jit(module.apply)
+  plain = np.asarray(apply(params, x))
+  weighted = np.asarray(apply(params, x, scales))
   resolutions = encodings.level_resolutions(3, 4, 32)
   want = plain.copy()
   for level, n in enumerate(resolutions):
     w = np.array([math.erf(1.0 / math.sqrt(8.0 * float(s) ** 2 * n * n)) for s in scales])
     want[:, 2 * level:2 * level + 2] *= w[:, None]
   np.testing.assert_allclose(weighted, want, rtol=1e-5, atol=1e-7)
-  np.testing.assert_array_equal(np.asarray(module.apply(params, x, jnp.zeros(50))), plain)
+  np.testing.assert_array_equal(np.asarray(apply(params, x, jnp.zeros(50))), plain)
 
 
 def test_contraction_scale_is_the_cube_root_of_the_contractions_jacobian_determinant():
@@ -68,11 +69,16 @@ def test_a_vanishing_pixel_angle_renders_as_the_plain_model_and_a_large_one_blur
   no_proposals = {"render.proposal_samples": ()}  # the weighting is the NeRF field's grid's: a smaller program
   config, origins, directions = _model_and_rays(**no_proposals)
   plain = nerf_model.from_config(smoke_config(**no_proposals))
-  params = plain.init(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
-  # Tables of a trained field's magnitude (the initialisation's 1e-4 would hide any weighting).
-  params = jax.tree_util.tree_map_with_path(
-      lambda path, p: jax.random.normal(jax.random.key(1), p.shape) if "level_" in jax.tree_util.keystr(path)
-      else p, params)
+
+  @jax.jit  # one program, not each of the initialisation's operations compiled on its own
+  def init(key):
+    params = plain.init(key, origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
+    # Tables of a trained field's magnitude (the initialisation's 1e-4 would hide any weighting).
+    return jax.tree_util.tree_map_with_path(
+        lambda path, p: jax.random.normal(jax.random.key(1), p.shape) if "level_" in jax.tree_util.keystr(path)
+        else p, params)
+
+  params = init(jax.random.key(0))
   render = lambda model: jax.jit(model.apply)(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]  # noqa: E731
   want = render(plain)
   tiny = render(nerf_model.from_config(config, pixel_angle=1e-9))

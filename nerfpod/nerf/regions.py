@@ -191,8 +191,8 @@ def to_box(points_Nx3, centre_3, half_3, bound: float):
 def unseen(partition: Partition, origins_Rx3, directions_Rx3, near, far) -> list[int]:
   """The regions that none of the rays crosses over a positive length of its [near, far] (near/far: floats or
   (R, 1)): regions whose fields no training pixel could ever teach."""
-  t_in, t_out = segments(jnp.asarray(origins_Rx3, jnp.float32), jnp.asarray(directions_Rx3, jnp.float32),
-                         near, far, partition)
+  t_in, t_out = jax.jit(segments)(jnp.asarray(origins_Rx3, jnp.float32), jnp.asarray(directions_Rx3, jnp.float32),
+                                  near, far, partition)  # (one program, not each operation compiled on its own)
   crossed = np.asarray(jnp.any(t_out > t_in, axis=-1))
   return [int(k) for k in np.flatnonzero(~crossed)]
 
