@@ -461,8 +461,10 @@ def test_a_workdir_whose_every_checkpoint_is_damaged_is_one_sentence_and_nothing
     assert noise not in done.stderr, done.stderr[-3000:]
 
 
-def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_path):
-  """`nerfpod export KIND ...` as the console script runs it, in a process of its own (one CPU device)."""
+def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_path, capsys):
+  """`nerfpod export KIND ...` as the console script runs it, in a process of its own (one CPU device); each
+  kind's --help (one of them through the console script too, the others in this process: a process each costs
+  two seconds of imports)."""
   import os
   import subprocess
   import sys
@@ -475,10 +477,15 @@ def test_the_command_line_exports_and_prints_its_progress(smoke_workdir, tmp_pat
   assert done.returncode == 0, done.stderr[-2000:]
   assert "nerfpod: restored step 20 of" in done.stdout and "pointcloud 100/100 points" in done.stdout
   assert len(_read_ply(tmp_path / "cloud.ply")["vertex"]) == 100
-  for kind in ("pointcloud", "mesh", "cameras", "depth"):
-    done = run(kind, "--help")
-    # absl's help spells a yes/no flag --[no]NAME
-    assert done.returncode == 0 and "--[no]normalized" in done.stdout and "--workdir" in done.stdout, done.stderr
+  done = run("mesh", "--help")
+  # absl's help spells a yes/no flag --[no]NAME
+  assert done.returncode == 0 and "--[no]normalized" in done.stdout and "--resolution" in done.stdout, done.stderr
+  for kind, own in (("pointcloud", "--num_points"), ("mesh", "--resolution"), ("cameras", "--workdir"),
+                    ("depth", "--split")):
+    with pytest.raises(SystemExit) as done:
+      export_tool.run([kind, "--help"])
+    out = capsys.readouterr().out
+    assert done.value.code == 0 and "--[no]normalized" in out and "--workdir" in out and own in out, out
 
 
 def test_a_mesh_resolution_that_cannot_fit_in_memory_is_refused_before_any_work(smoke_workdir, tmp_path, capsys,
