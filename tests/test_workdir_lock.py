@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import procs
+from lock_clock import until, watch_clock
 from nerfpod.workdir import checkpoints, lock as workdir_lock
 from nerfpod.errors import UserError
 
@@ -64,7 +65,7 @@ def test_a_lock_whose_process_is_gone_is_taken_over_at_once(tmp_path):
     pass
 
 
-def test_another_hosts_lock_is_refused_while_it_beats_and_taken_over_once_it_stops(tmp_path, short_lease):
+def test_another_hosts_lock_is_refused_while_it_beats_and_taken_over_once_it_stops(tmp_path, short_lease, monkeypatch):
   _write_lock(tmp_path, host="elsewhere-host", pid=12345, since="2026-01-01T00:00:00")
   stop = threading.Event()
 
@@ -82,25 +83,28 @@ def test_another_hosts_lock_is_refused_while_it_beats_and_taken_over_once_it_sto
   finally:
     stop.set()
     beating.join()
-  started = time.monotonic()
+  stopped = time.monotonic()
+  clock = watch_clock(monkeypatch)  # nothing beats from here on: a lease passes on the watch's clock
   with workdir_lock.WorkdirLock(str(tmp_path)):  # the holder stopped beating: it is taken over after a lease
     assert json.loads((tmp_path / workdir_lock.NAME).read_text())["pid"] == os.getpid()
-  assert 1.0 < time.monotonic() - started < 3.0
-  # A heartbeat older than a lease is stale at once.
+  # Watched until a lease (1.5 s) had passed since its last beat (at most 0.1 s before it stopped), by the watch's
+  # clock and the real time since, and no look's sleep (0.5 s) longer.
+  assert clock.offset + (time.monotonic() - stopped) + 0.1 >= 1.5 and clock.offset <= 1.5 + 0.5
+  # A heartbeat older than a lease is stale at once: taken without watching it at all.
   _write_lock(tmp_path, host="elsewhere-host", pid=1, since="x")
   os.utime(tmp_path / workdir_lock.NAME, (time.time() - 60, time.time() - 60))
-  started = time.monotonic()
+  slept = clock.offset
   with workdir_lock.WorkdirLock(str(tmp_path)):
     pass
-  assert time.monotonic() - started < 0.5
+  assert clock.offset == slept
 
 
 def test_the_holder_beats_and_release_leaves_another_holders_lock(tmp_path, short_lease):
   lock = workdir_lock.WorkdirLock(str(tmp_path))
   lock.acquire()
   os.utime(lock.path, (0, 0))
-  time.sleep(0.5)
-  assert time.time() - os.stat(lock.path).st_mtime < 1.0  # touched by the heartbeat
+  until(lambda: os.stat(lock.path).st_mtime > 0)  # a beat every 0.1 s (a busy machine's 10 s)
+  assert time.time() - os.stat(lock.path).st_mtime < 10.0  # touched by the heartbeat, with this host's time
   _write_lock(tmp_path, host="elsewhere-host", pid=1, since="x")  # (someone replaced it by hand)
   lock.release()
   assert json.loads((tmp_path / workdir_lock.NAME).read_text())["host"] == "elsewhere-host"

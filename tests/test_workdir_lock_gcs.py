@@ -23,6 +23,7 @@ import urllib.parse
 import pytest
 
 from gcs import _multipart_related as multipart_related
+from lock_clock import until, watch_clock
 from nerfpod import storage
 from nerfpod.workdir import lock as workdir_lock
 from nerfpod.errors import UserError
@@ -272,37 +273,6 @@ def _handler(fake):
   return Handler
 
 
-class WatchClock:
-  """The lock module's clock while it watches a lock that nobody beats: its `sleep` moves this clock's
-  `monotonic` on by the time asked (and yields the thread for a moment) instead of waiting, so a lease passes
-  in milliseconds. Only where nothing beats meanwhile: a holder's beats run on the real clock. `time.time` and
-  the rest are the real module's."""
-
-  def __init__(self):
-    self.offset = 0.0
-    self._lock = threading.Lock()
-
-  def monotonic(self) -> float:
-    return time.monotonic() + self.offset
-
-  def sleep(self, seconds: float) -> None:
-    with self._lock:
-      self.offset += seconds
-    time.sleep(0.0005)
-
-  def __getattr__(self, name):
-    return getattr(time, name)
-
-
-def _watch_clock(monkeypatch) -> WatchClock:
-  """A WatchClock for the lock module, and its beats every second as a run's are every few (a watch looks at
-  the lock every half beat: a few looks a lease rather than tens)."""
-  clock = WatchClock()
-  monkeypatch.setattr(workdir_lock, "time", clock)
-  monkeypatch.setattr(workdir_lock, "HEARTBEAT_SECONDS", 1.0)
-  return clock
-
-
 def _serve(monkeypatch, fake):
   monkeypatch.setenv("STORAGE_EMULATOR_HOST", fake.host)  # host:port, no scheme (tests/gcs.py's has http://)
   monkeypatch.setattr(workdir_lock, "HEARTBEAT_SECONDS", 0.1)
@@ -372,9 +342,9 @@ def test_the_gs_holder_beats_a_new_generation_each_time(gcs):
   with workdir_lock.WorkdirLock(WORKDIR):
     first = gcs.generation()
     updated = gcs.objects[(BUCKET, NAME)]["updated"]
-    time.sleep(0.6)
+    until(lambda: gcs.count("upload", 200) >= 4)  # the create and three beats (0.1 s apart; a busy machine's 10 s)
     assert gcs.generation() > first and gcs.objects[(BUCKET, NAME)]["updated"] > updated
-    assert gcs.count("upload", 200) >= 4 and gcs.count("upload", 412) == 0  # the create and its beats
+    assert gcs.count("upload", 200) >= 4 and gcs.count("upload", 412) == 0
     assert gcs.holder()["pid"] == os.getpid()
 
 
@@ -403,7 +373,7 @@ def test_another_hosts_gs_lock_is_refused_while_it_beats_and_taken_over_once_it_
     finally:
       stop.set()
       beating.join()
-    clock = _watch_clock(monkeypatch)  # nothing beats from here on: a lease passes on the watch's clock
+    clock = watch_clock(monkeypatch)  # nothing beats from here on: a lease passes on the watch's clock
     started = clock.monotonic()
     with workdir_lock.WorkdirLock(WORKDIR):  # the holder stopped beating: it is taken over after a lease
       assert fake.holder()["pid"] == os.getpid()
@@ -445,7 +415,7 @@ def test_of_two_runs_racing_for_a_stale_gs_lock_exactly_one_takes_it(gcs, monkey
     remove_stale(self, look)
 
   monkeypatch.setattr(workdir_lock._GcsLock, "remove_stale", remove_when_both_judged)
-  clock = _watch_clock(monkeypatch)  # the stale lock's lease passes on the watch's clock (nothing beats it)
+  clock = watch_clock(monkeypatch)  # the stale lock's lease passes on the watch's clock (nothing beats it)
   for _ in range(3):
     deletes = gcs.count("delete", 204)
     gcs.put({"host": "elsewhere-host", "pid": 1, "since": "x"}, age=60.0)
@@ -485,8 +455,10 @@ def test_a_gs_release_deletes_only_its_own_generation(gcs, capfd):
   lock = workdir_lock.WorkdirLock(WORKDIR)
   lock.acquire()
   foreign = gcs.put({"host": "elsewhere-host", "pid": 1, "since": "x"})  # (another run took it over)
-  time.sleep(0.5)
-  lost = capfd.readouterr().err
+  said = []
+  until(lambda: said.append(capfd.readouterr().err) or "took the lock" in "".join(said))  # at its next beat
+  time.sleep(0.3)  # three more beats' time: the warning is said once, and nothing more is written
+  lost = "".join(said) + capfd.readouterr().err
   assert lost.count(f"nerfpod: warning: another run took the lock {PATH} over") == 1, lost  # said once
   assert gcs.generation() == foreign  # and no more beats onto the other run's lock
   lock.release()
@@ -534,7 +506,7 @@ def test_no_storage_endpoint_no_bucket_or_no_credentials_is_one_sentence(monkeyp
 def test_cloud_storage_is_asked_with_the_vms_or_the_users_token(monkeypatch, cloud, tmp_path):
   _metadata_server(monkeypatch, cloud.host)
   with workdir_lock.WorkdirLock(WORKDIR):  # the metadata server's token (a VM's service account)
-    time.sleep(0.3)
+    until(lambda: cloud.count("upload", 200) >= 2)  # the create and a beat
     assert cloud.holder()["pid"] == os.getpid() and cloud.count("upload", 200) >= 2
   assert cloud.holder() is None and cloud.count("delete", 204) == 1
   assert all(status != 401 for _, _, status in cloud.requests)
@@ -584,7 +556,7 @@ def test_a_service_account_key_file_takes_the_lock(monkeypatch, cloud, tmp_path)
   cloud.service_account = (email, _service_account_key(key, f"{cloud.url}/token", email))
   monkeypatch.setenv("GOOGLE_APPLICATION_CREDENTIALS", str(key))
   with workdir_lock.WorkdirLock(WORKDIR):
-    time.sleep(0.3)
+    until(lambda: cloud.count("upload", 200) >= 2)  # the create and a beat
     assert cloud.holder()["pid"] == os.getpid() and cloud.count("upload", 200) >= 2
     with pytest.raises(UserError, match=f"is in use by another training run \\(process {os.getpid()} on host"):
       workdir_lock.WorkdirLock(WORKDIR).acquire()
@@ -611,9 +583,7 @@ def test_the_locks_calls_are_retried_and_a_lost_answer_is_its_own(gcs, capfd, mo
     assert gcs.holder()["pid"] == os.getpid() and _agreed(gcs, lock)
     assert gcs.count("upload", 412) == 1  # the create's retry
     gcs.faults = {"upload": ["lost"]}  # a beat done, its answer lost
-    deadline = time.monotonic() + 5.0  # the beat (every 0.1 s), its answer lost, its retry
-    while gcs.count("upload", 412) < 2 and time.monotonic() < deadline:
-      time.sleep(0.01)
+    until(lambda: gcs.count("upload", 412) == 2)  # the beat (every 0.1 s), its answer lost, its retry
     assert gcs.count("upload", 412) == 2 and _agreed(gcs, lock)
     gcs.faults = {"delete": ["lost"]}
   assert gcs.holder() is None and gcs.count("delete", 503) == 1 and gcs.count("delete", 404) == 1
