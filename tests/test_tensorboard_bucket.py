@@ -85,17 +85,41 @@ def test_a_second_writer_on_the_same_bucket_workdir_adds_to_what_tensorboard_rea
   assert {name.rsplit(".", 1)[0] for name in emulator.files("runs/resumed")} == {same}
 
 
+# A writer in a process of its own: it logs two log steps, then flushes every 0.1 s until it is killed.
+_FLUSHING_WRITER = """
+import sys, time
+sys.path.insert(0, sys.argv[2])
+from nerfpod import monitor
+import test_tensorboard_bucket as t
+writer = monitor.summary_writer(sys.argv[1])
+t._log(writer, [100, 200])
+print("logged", flush=True)
+while True:
+  writer.flush()
+  time.sleep(0.1)
+"""
+
+
 def test_a_killed_writer_s_flushed_scalars_are_in_the_bucket(emulator):
-  """A run killed after a flush (no close) has left the scalars of that flush where TensorBoard reads them."""
+  """A run's process killed (SIGKILL: nothing closes its writer) after its flushes has left the scalars of those
+  flushes where TensorBoard reads them, the last log step's included."""
+  import signal
+  import subprocess
+  import sys
   workdir = f"gs://{emulator.bucket}/runs/killed"
-  writer = monitor.summary_writer(workdir)
-  _log(writer, [100, 200])
-  deadline = time.monotonic() + 30  # the writer's flush has the events its thread took from its queue
-  while _read_back(workdir).get("train/psnr", [])[-1:] != [(200, round(_value("train/psnr", 200), 6))]:
-    assert time.monotonic() < deadline, _read_back(workdir)
-    writer.flush()
-    time.sleep(0.1)
-  writer.close()
+  want = {tag: [(step, round(_value(tag, step), 6)) for step in (100, 200)] for tag in TAGS}
+  writer = subprocess.Popen([sys.executable, "-c", _FLUSHING_WRITER, workdir, os.path.dirname(__file__)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+  try:
+    logged = writer.stdout.readline() == "logged\n"
+    deadline = time.monotonic() + 60  # a flush uploads what the writer's thread has taken from its queue
+    while logged and _read_back(workdir) != want and time.monotonic() < deadline and writer.poll() is None:
+      time.sleep(0.1)
+  finally:
+    writer.send_signal(signal.SIGKILL)
+    writer.wait(timeout=30)
+  assert logged and writer.returncode == -signal.SIGKILL, writer.stderr.read()[-2000:]  # alive until killed
+  assert _read_back(workdir) == want  # as the killed process left them
 
 
 def test_an_event_object_s_name_is_never_taken_from_another_upload(emulator):
