@@ -200,6 +200,7 @@ EXTENDED = (
     "test_storage_away.py::test_a_bucket_that_stops_answering_stops_the_run_in_one_sentence_and_the_rerun_"
     "resumes_exactly",
     "test_storage_away.py::test_a_sigterm_while_the_bucket_does_not_answer_ends_the_run_within_the_bound",
+    "test_storage_away.py::test_a_bucket_that_refuses_connections_while_a_run_restores_is_the_same_sentence",
     # Whole TPU compiles: 7 pods, 512 chips, the launcher's preflight, libtpu beside a CPU run, the region
     # step (the gate compiles v4-8's evaluation and two v5e-4 slices' step, and the sweep's refusals).
     "test_pod_sweep.py::test_every_program_compiles_for_a_pod_of_every_generation_and_host_class",

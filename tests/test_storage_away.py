@@ -202,6 +202,38 @@ def test_a_bucket_that_fails_while_a_run_restores_leaves_its_checkpoint_as_it_is
   assert not emulator.files("runs/restore/checkpoints_damaged")
 
 
+@pytest.mark.slow  # a minute: gcsfs retries a refused connection 6 times, backing off 1 to 32 s (the quick test
+# above raises a refusal under orbax's error in its place)
+def test_a_bucket_that_refuses_connections_while_a_run_restores_is_the_same_sentence(emulator, monkeypatch):
+  """The restore of the test above through a bucket whose endpoint refuses every connection (the proxy in front
+  of the emulator, refusing): what orbax, tensorstore and gcsfs really raise is taken for storage, not for a
+  damaged step."""
+  import gcsfs
+  from test_checkpoints import _abstract, _mesh, _state
+  monkeypatch.setattr(storage, "_stopped", set())
+  workdir = f"gs://{emulator.bucket}/runs/refused-restore"
+  mesh = _mesh(1)
+  with gcs.Proxy(emulator) as proxy:
+    for name, value in proxy.env.items():
+      monkeypatch.setenv(name, value)
+    gcsfs.GCSFileSystem.clear_instance_cache()  # (one made for the emulator itself keeps its address)
+    with checkpoints.Checkpoints(workdir, every_steps=1, max_to_keep=1, storage_timeout_s=TIMEOUT_S) as ckpt:
+      ckpt.save(1, _state(mesh, 1), {"next_step": 1})
+    ckpt = checkpoints.Checkpoints(workdir, every_steps=1, max_to_keep=1, storage_timeout_s=TIMEOUT_S)
+    proxy.refuse()
+    with pytest.raises(storage.Stopped, match=rf"^the bucket gs://{gcs.BUCKET} failed while reading the checkpoint "
+                                              r"of step 1 \((.+)\); it is left as it is: rerun the same command once "
+                                              r"storage is back\.$") as stopped:
+      ckpt.restore(_abstract(_state(mesh, 0)))
+  cause = re.search(r"step 1 \((.+)\); it is", str(stopped.value)).group(1)  # the client's own words for it
+  assert re.match(r"\[Errno \d+\] (Connect call failed \('127\.0\.0\.1', \d+\)|Connection reset by peer)$",
+                  cause), cause
+  gcsfs.GCSFileSystem.clear_instance_cache()
+  assert storage.stopped(workdir)
+  assert "checkpoints/1/commit_success.txt" in emulator.files("runs/refused-restore")
+  assert not emulator.files("runs/refused-restore/checkpoints_damaged")
+
+
 def test_each_client_s_bound_is_set_in_its_own_settings_and_a_users_own_is_kept(monkeypatch):
   import fsspec.config
   monkeypatch.setattr(storage, "_set_here", set())
