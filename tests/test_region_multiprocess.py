@@ -46,3 +46,14 @@ def test_two_processes_end_at_one_processs_parameters(tmp_path, regions):
   assert stacked.shape[0] == regions  # saved whole, every region's fields
   for (path, a), (_, b) in zip(jax.tree.leaves_with_path(got["params"]), jax.tree.leaves_with_path(want["params"])):
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7, err_msg=jax.tree_util.keystr(path))
+  # Evaluation over the two processes (each rendering its share of the held-out rays through every region)
+  # gives one process's numbers, to the parameters' own tolerance.
+  one, pod = (json.loads((tmp_path / w / "eval" / "metrics.json").read_text()) for w in ("one", "pod"))
+  assert one["step"] == pod["step"] == STEPS and len(one["views"]) == len(pod["views"]) == 1
+  for a, b in [(pod["mean"], one["mean"]), *zip(pod["views"], one["views"])]:
+    assert sorted(a) == sorted(b) and {"psnr", "ssim"} <= set(a), (a, b)
+    for key in a:
+      if isinstance(a[key], float):
+        np.testing.assert_allclose(a[key], b[key], rtol=1e-4, err_msg=key)
+      else:
+        assert a[key] == b[key], key
