@@ -39,7 +39,7 @@ sys.exit(pytest.main(["-q", "--collect-only", "-p", "no:cacheprovider", "tests"]
 
 # How many tests the extended set holds (tests that the gate leaves out), counted on 2026-12-06 (52, less the
 # region step's gradient clip, which joined the gate).
-EXTENDED_SIZE = 52
+EXTENDED_SIZE = 53
 
 
 def _marks() -> dict[str, set[str]]:
