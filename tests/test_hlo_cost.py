@@ -4,7 +4,8 @@ import pytest
 from nerfpod.pod import chips, hlo_cost
 
 CHIP = chips.Chip("test chip", bf16_flops=100e12, hbm_bytes=16 * chips.GiB, hbm_bytes_per_s=1e12,
-                  allreduce_bytes_per_s=100e9, source="round figures")
+                  allreduce_bytes_per_s=100e9, source="round figures", gather_indices_per_s=1e8,
+                  vmem_gather_speedup=4.0, vmem_bytes_per_s=10e12)
 
 
 def _cost(text: str, devices: int = 4) -> hlo_cost.Cost:
@@ -178,3 +179,135 @@ ENTRY %main (x: f32[4096,2]) -> f32[4096,2] {{
   # Where Google publishes no DCN figure (v4), the collective is still reported, its time left out.
   v4 = hlo_cost.HloProgram(text, chips.CHIPS["v4"], 8, num_slices=2).cost()
   assert [c["network"] for c in v4.collectives].count("dcn") == 1 and v4.dcn_seconds == 0.0
+
+
+_ADD = """%add (a: f32[], b: f32[]) -> f32[] {
+  %a = f32[] parameter(0)
+  %b = f32[] parameter(1)
+  ROOT %s = f32[] add(%a, %b)
+}
+"""
+
+
+def test_a_gather_of_many_narrow_rows_is_bound_by_its_indices_and_of_few_wide_rows_by_its_bytes():
+  narrow = """HloModule m
+
+ENTRY %main (t: f32[1048576,2], i: s32[10,100,1]) -> f32[10,100,2] {
+  %t = f32[1048576,2]{0,1:T(2,128)} parameter(0)
+  %i = s32[10,100,1]{2,1,0} parameter(1)
+  ROOT %g = f32[10,100,2]{2,1,0} gather(%t, %i), offset_dims={2}, collapsed_slice_dims={0}, start_index_map={0}, index_vector_dim=2, slice_sizes={1,2}
+}
+"""
+  cost = _cost(narrow)
+  indices = 10 * 100  # the result's batch dims (not offset_dims): one index per row gathered
+  moved = indices * 2 * 128 * 4 + indices * 4 + indices * 2 * 4  # tile rows, indices, result
+  assert cost.indices == indices and cost.vmem_indices == 0 and cost.bytes == moved
+  assert indices / CHIP.gather_indices_per_s > moved / CHIP.hbm_bytes_per_s  # 10 us against 1.04 us
+  assert cost.seconds == pytest.approx(indices / CHIP.gather_indices_per_s)
+  assert cost.index_bound_seconds == cost.gather_scatter_seconds == cost.index_seconds == cost.seconds
+  assert cost.memory_seconds == 0 and cost.gather_scatter_bytes == moved
+
+  wide = """HloModule m
+
+ENTRY %main (t: f32[4096,4096], i: s32[64,1]) -> f32[64,4096] {
+  %t = f32[4096,4096]{1,0:T(8,128)} parameter(0)
+  %i = s32[64,1]{1,0} parameter(1)
+  ROOT %g = f32[64,4096]{1,0:T(8,128)} gather(%t, %i), offset_dims={1}, collapsed_slice_dims={0}, start_index_map={0}, index_vector_dim=1, slice_sizes={1,4096}
+}
+"""
+  cost = _cost(wide)
+  moved = 64 * 4096 * 4 + 64 * 4 + 64 * 4096 * 4  # 64 rows of 16 KiB read, the indices, the result
+  assert cost.indices == 64 and cost.bytes == moved
+  assert cost.seconds == pytest.approx(moved / CHIP.hbm_bytes_per_s)  # 2.1 us against 0.64 us of indices
+  assert cost.index_seconds == pytest.approx(64 / CHIP.gather_indices_per_s)
+  assert cost.memory_seconds == cost.gather_scatter_seconds == cost.seconds and cost.index_bound_seconds == 0
+
+
+def test_a_scatter_add_of_many_narrow_rows_is_bound_by_its_indices_and_of_few_wide_rows_by_its_bytes():
+  def scatter(table: str, rows: int, width: int, layout: str) -> str:
+    return f"""HloModule m
+
+{_ADD}
+ENTRY %main (t: f32[{table}], i: s32[{rows},1], u: f32[{rows},{width}]) -> f32[{table}] {{
+  %t = f32[{table}]{layout} parameter(0)
+  %i = s32[{rows},1]{{1,0}} parameter(1)
+  %u = f32[{rows},{width}]{{1,0}} parameter(2)
+  ROOT %s = f32[{table}]{layout} scatter(%t, %i, %u), update_window_dims={{1}}, inserted_window_dims={{0}}, scatter_dims_to_operand_dims={{0}}, index_vector_dim=1, to_apply=%add
+}}
+"""
+  narrow = _cost(scatter("1048576,2", 1000, 2, "{0,1:T(2,128)}"))
+  moved = 2 * 1000 * 2 * 4 + 1000 * 4  # the updates read and written, the indices
+  assert narrow.indices == 1000 and narrow.bytes == moved
+  assert narrow.seconds == pytest.approx(1000 / CHIP.gather_indices_per_s)  # 10 us against 0.02 us
+  assert narrow.index_bound_seconds == narrow.gather_scatter_seconds == narrow.seconds
+
+  wide = _cost(scatter("4096,4096", 64, 4096, "{1,0:T(8,128)}"))
+  moved = 2 * 64 * 4096 * 4 + 64 * 4
+  assert wide.indices == 64 and wide.bytes == moved
+  assert wide.seconds == pytest.approx(moved / CHIP.hbm_bytes_per_s)  # 2.1 us against 0.64 us
+  assert wide.memory_seconds == wide.seconds and wide.index_bound_seconds == 0
+
+
+def test_a_table_in_vmem_moves_no_hbm_bytes_and_is_indexed_faster():
+  """XLA copies a small table into VMEM (memory space S(1) in its layout) and gathers from it there (in a
+  fusion, as the TPU compiler writes a gather): the copy reads it from HBM once, the gather moves no bytes of
+  it and takes vmem_gather_speedup times less time per index."""
+  text = """HloModule m
+
+%fused (p0: f32[1024,2], p1: s32[1000,1]) -> f32[1000,2] {
+  %p0 = f32[1024,2]{0,1:T(2,128)S(1)} parameter(0)
+  %p1 = s32[1000,1]{1,0} parameter(1)
+  ROOT %g = f32[1000,2]{1,0} gather(%p0, %p1), offset_dims={1}, collapsed_slice_dims={0}, start_index_map={0}, index_vector_dim=1, slice_sizes={1,2}
+}
+
+ENTRY %main (t: f32[1024,2], i: s32[1000,1]) -> f32[1000,2] {
+  %t = f32[1024,2]{0,1:T(2,128)} parameter(0)
+  %i = s32[1000,1]{1,0} parameter(1)
+  %v = f32[1024,2]{0,1:T(2,128)S(1)} copy(%t)
+  ROOT %f = f32[1000,2]{1,0} fusion(%v, %i), kind=kCustom, calls=%fused
+}
+"""
+  cost = _cost(text)
+  table = 1024 * 2 * 4  # read from HBM once, by the copy into VMEM
+  gather = 1000 * 4 + 1000 * 2 * 4  # the indices and the result only
+  assert cost.bytes == table + gather
+  assert cost.vmem_bytes == 2 * table  # the copy writes it into VMEM, the gather reads it there (whole at most)
+  assert cost.indices == cost.vmem_indices == 1000
+  index = 1000 / (CHIP.gather_indices_per_s * CHIP.vmem_gather_speedup)
+  assert cost.index_seconds == pytest.approx(index)
+  assert cost.seconds == pytest.approx(table / CHIP.hbm_bytes_per_s + index)
+  # The same table left in HBM: the copy writes it there too, the gather reads it (whole: 1,000 tile rows would
+  # be more), and its indices take 4 times as long.
+  in_hbm = _cost(text.replace("S(1)", ""))
+  assert in_hbm.vmem_indices == 0 and in_hbm.index_seconds == pytest.approx(1000 / CHIP.gather_indices_per_s)
+  assert in_hbm.bytes == 2 * table + min(table, 1000 * 2 * 128 * 4) + gather
+  assert hlo_cost.parse_shape("s32[64]{0:T(1024)S(1)SC(0:8192)}")[0].in_vmem
+  assert not hlo_cost.parse_shape("u32[]{:S(2)}")[0].in_vmem
+  # VMEM traffic runs at the chip's VMEM bandwidth: zeros broadcast into a padded table there (64 MiB).
+  zeros = _cost("""HloModule m
+
+ENTRY %main () -> f32[131072,2] {
+  %c = f32[] constant(0)
+  ROOT %b = f32[131072,2]{1,0:T(8,128)S(1)} broadcast(%c), dimensions={}
+}
+""")
+  assert zeros.bytes == 4 and zeros.vmem_bytes == 131072 * 128 * 4
+  assert zeros.seconds == pytest.approx(131072 * 128 * 4 / CHIP.vmem_bytes_per_s)
+
+
+def test_a_pallas_kernel_is_costed_by_its_cost_estimate():
+  config = ('{"custom_call_config":{"body":"TUzvUgE=","cost_estimate":{"flops":"4000000000",'
+            '"transcendentals":"5","bytes_accessed":"65536","remote_bytes_transferred":"0"}}}')
+  text = f"""HloModule m
+
+ENTRY %main (x: f32[256,128]) -> f32[256,128] {{
+  %x = f32[256,128]{{1,0:T(8,128)}} parameter(0)
+  ROOT %k = f32[256,128]{{1,0:T(8,128)}} custom-call(%x), custom_call_target="tpu_custom_call", backend_config={config}
+}}
+"""
+  cost = _cost(text)
+  assert cost.flops == 4e9 and cost.bytes == 65536
+  assert cost.seconds == pytest.approx(max(4e9 / CHIP.bf16_flops, 65536 / CHIP.hbm_bytes_per_s))
+  without = _cost(text.replace(',"cost_estimate":{"flops":"4000000000","transcendentals":"5","bytes_accessed":'
+                               '"65536","remote_bytes_transferred":"0"}', ""))
+  assert without.flops == 0 and without.bytes == 2 * 256 * 128 * 4  # as any op: its operand and result

@@ -14,7 +14,8 @@ the whole pod (eval.chunk rays) and the orbit renderer, also over the whole pod 
 host: every host feeds its own frame's rays, nerfpod.run.orbit). Every program spans every chip of the pod, as
 every program of a run does (TPU v5e refuses a program on some of a slice's chips). It reports
 per-chip memory against the chip's HBM, FLOPs and bytes per step, the estimated step time (hlo_cost's
-roofline; XLA's own figures beside it where they are sane), rays/s per chip and for the pod, every
+roofline; XLA's own figures beside it where they are sane), the step's lookups (slices gathered and
+scattered per chip, at the chip's per-index time, and their bytes), rays/s per chip and for the pod, every
 collective in the step with its size and the mesh axes it runs over, a region model's traffic between its
 regions per step (model.regions > 1: region_traffic), and the estimated time of the config's
 train.num_steps. Estimates
@@ -142,16 +143,24 @@ def _program_report(compiled, pod: chips.Pod, num_devices: int, rays: int, secon
                     slices: int = 1, mesh_axes: dict | None = None) -> dict:
   cost = _roofline(compiled, pod, num_devices, slices, mesh_axes)
   memory = _memory(compiled)
+  rate = pod.chip.gather_indices_per_s
   seconds = cost.seconds
   return {
       "compile_seconds": round(seconds_to_compile, 1),
       "memory": memory, "fits_hbm": memory["peak_bytes"] <= pod.chip.hbm_bytes,
       "hbm_bytes": pod.chip.hbm_bytes,
-      "flops_per_chip": cost.flops, "bytes_per_chip": cost.bytes,
+      "flops_per_chip": cost.flops, "bytes_per_chip": cost.bytes, "vmem_bytes_per_chip": cost.vmem_bytes,
       "seconds": seconds,
       "seconds_split": {"matmul_bound": cost.compute_seconds, "memory_bound": cost.memory_seconds,
-                        "gather_scatter": cost.gather_scatter_seconds, "collectives": cost.collective_seconds,
-                        "dcn": cost.dcn_seconds},
+                        "index_bound": cost.index_bound_seconds, "gather_scatter": cost.gather_scatter_seconds,
+                        "collectives": cost.collective_seconds, "dcn": cost.dcn_seconds},
+      # The gathers and scatters (hash-grid lookups and their gradients), per chip: slices gathered or
+      # scattered, their time by index count alone (hlo_cost: per-index rates, chips.py), their HBM bytes.
+      "lookups": {"indices": cost.indices, "vmem_indices": cost.vmem_indices,
+                  "seconds_per_index": 1 / rate if rate else None,
+                  "vmem_seconds_per_index": 1 / rate / pod.chip.vmem_gather_speedup if rate else None,
+                  "index_seconds": cost.index_seconds, "bytes": cost.gather_scatter_bytes,
+                  "seconds": cost.gather_scatter_seconds},
       "bf16_peak_share": (cost.flops / seconds / pod.chip.bf16_flops) if seconds > 0 else 0.0,
       "rays": rays, "rays_per_s": rays / seconds if seconds > 0 else None,
       "rays_per_s_per_chip": rays / seconds / num_devices if seconds > 0 else None,
@@ -178,8 +187,8 @@ def _out_of_memory_report(error: Exception, pod: chips.Pod, rays: int, seconds_t
       "memory": {"argument_bytes": 0, "output_bytes": 0, "temp_bytes": needed, "alias_bytes": 0, "code_bytes": 0,
                  "peak_bytes": needed, "xla_available_bytes": available},
       "fits_hbm": False, "hbm_bytes": pod.chip.hbm_bytes, "flops_per_chip": None, "bytes_per_chip": None,
-      "seconds": None, "seconds_split": None, "bf16_peak_share": None, "rays": rays, "rays_per_s": None,
-      "rays_per_s_per_chip": None, "collectives": [], "xla": None,
+      "vmem_bytes_per_chip": None, "seconds": None, "seconds_split": None, "lookups": None, "bf16_peak_share": None,
+      "rays": rays, "rays_per_s": None, "rays_per_s_per_chip": None, "collectives": [], "xla": None,
   }
 
 
@@ -312,7 +321,8 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
       "chip": {"kind": pod.chip.name, "bf16_flops": pod.chip.bf16_flops, "hbm_bytes": pod.chip.hbm_bytes,
                "hbm_bytes_per_s": pod.chip.hbm_bytes_per_s,
                "allreduce_bytes_per_s": pod.chip.allreduce_bytes_per_s, "source": pod.chip.source,
-               "dcn_bytes_per_s": pod.chip.dcn_bytes_per_s},
+               "dcn_bytes_per_s": pod.chip.dcn_bytes_per_s, "gather_indices_per_s": pod.chip.gather_indices_per_s,
+               "vmem_gather_speedup": pod.chip.vmem_gather_speedup, "vmem_bytes_per_s": pod.chip.vmem_bytes_per_s},
       "batch": tc.batch_size, "rays_per_chip": tc.batch_size // num_chips, "microbatches": tc.microbatches,
       "compute_dtype": config.model.compute_dtype,
       "hashgrid_matmul_max_rows": program.model.grid_matmul_max_rows,
@@ -406,11 +416,19 @@ def format_report(report: dict) -> str:
     s = report["step"]
     split = s["seconds_split"]
     lines.append(f"  step time: {duration(split['matmul_bound'])} matmul-bound ops, "
-                 f"{duration(split['memory_bound'])} memory-bound (of which gathers/scatters "
-                 f"{duration(split['gather_scatter'])}), "
+                 f"{duration(split['memory_bound'])} memory-bound, {duration(split['index_bound'])} bound by "
+                 f"gather/scatter indices (gathers/scatters in all {duration(split['gather_scatter'])}), "
                  f"{duration(split['collectives'])} collectives"
                  + (f" (of which across slices over DCN {duration(split.get('dcn', 0.0))})" if slices > 1 else "")
                  + f"; {100 * s['bf16_peak_share']:.2f}% of the bf16 peak")
+    lookups = s["lookups"]
+    if lookups["indices"]:
+      per_index = (f"{1e9 * lookups['seconds_per_index']:.3g} ns each ({1e9 * lookups['vmem_seconds_per_index']:.3g} "
+                   f"ns from VMEM), {duration(lookups['index_seconds'])} by index count"
+                   if lookups["seconds_per_index"] else "no per-index rate for this chip")
+      lines.append(f"  lookups per step and chip: {lookups['indices']:,.0f} slices gathered or scattered (of which "
+                   f"{lookups['vmem_indices']:,.0f} in VMEM tables) at {per_index}; "
+                   f"{_size(lookups['bytes'])} of HBM traffic; {duration(lookups['seconds'])} of the step")
     for c in s["collectives"]:
       if c.get("network") == "dcn":
         lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} per chip across {c['group']} slices (DCN), "

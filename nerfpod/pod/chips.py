@@ -15,6 +15,21 @@ a pod's published "Data center network bandwidth per Pod" divided by its chips: 
 (https://cloud.google.com/tpu/docs/v5e; the same page gives each host 2 x 100 Gbps NICs, the same 25 Gbps,
 3.125 GB/s, per chip). The other generations' pages give no such figure: their DCN time is left out (None).
 
+Gathers and scatters take time per index (per gathered or scattered slice), not only per byte. Google
+publishes no such rate; the figures here are measured ones (JAX 0.10.2, TensorCore
+gathers of random rows, table in HBM) from the public study github.com/areporeporepo/tpu-irregular-memory-study:
+v6e, 262,144 indices of 1 float32 from a 1M-row table in 1.6912 ms (data/gather_20260816T192359Z.json; rows of
+8 values took 0.9511 ms: 1.55-2.76 x 10^8 indices/s, the slower taken, as for the hash grid's 2-value rows);
+v5p, 16,384 indices of 128 float32 from a 128 MiB table in 0.1094 ms (data/gather_locality_v5p.json). A table
+XLA keeps in VMEM (memory space S(1) in the compiled HLO's layouts: at most about 96 MiB on v6e,
+data/hlo_bisect_v6e.json, and between 40 and 48 MiB on v5p, data/hlo_v5p.json) is gathered faster: the same 16,384
+indices from a 2-32 MiB table took 0.0508 ms against 0.1446 ms from a 128 MiB one on v6e
+(data/sparsecore_v6e.json: 2.85 times), 0.0329 against 0.1094 ms on v5p (data/gather_locality_v5p.json:
+3.33 times). v4 and v5e have no published figure: each takes its nearest measured relative's (see CHIPS).
+VMEM's own bandwidth has no per-generation figure either; Google DeepMind's "How to Scale Your Model"
+(https://jax-ml.github.io/scaling-book/tpus/, source github.com/jax-ml/scaling-book, tpus.md) gives it as
+"around 22x higher than HBM bandwidth", which is taken for every generation.
+
 Names are the Cloud TPU accelerator types (`gcloud ... --accelerator-type`): v4 and v5p count
 TensorCores (two per chip, one JAX device per chip in megacore mode), v5e (`v5litepod-N`, also `v5e-N`)
 and v6e count chips. Multi-host pods have 4 chips per host, as their TPU VMs do.
@@ -28,7 +43,8 @@ GB, GiB = 1e9, 2**30
 
 @dataclasses.dataclass(frozen=True)
 class Chip:
-  """One chip's published figures: what hlo_cost's roofline runs on and what aot's memory is held against."""
+  """One chip's figures (published; the per-index rates measured, see the module's docstring): what hlo_cost's
+  roofline runs on and what aot's memory is held against."""
   name: str                  # JAX's device_kind family, for reports
   bf16_flops: float          # peak matmul FLOP/s, bf16
   hbm_bytes: float
@@ -36,14 +52,29 @@ class Chip:
   allreduce_bytes_per_s: float  # per chip (see the module's docstring)
   source: str
   dcn_bytes_per_s: float | None = None  # per chip, between slices; None where Google publishes no figure
+  gather_indices_per_s: float | None = None  # gathered or scattered slices a second, table in HBM; None: not charged
+  vmem_gather_speedup: float = 1.0  # how many times faster a table in VMEM (S(1)) is indexed than one in HBM
+  vmem_bytes_per_s: float | None = None  # VMEM's bandwidth (22 x HBM's, module docstring); None: VMEM is free
 
 
+# Per-index rates (module docstring): measured on v6e and v5p (tpu-irregular-memory-study, data/*.json).
+_V6E_INDICES_PER_S, _V6E_VMEM_SPEEDUP = 262144 / 1.6912e-3, 0.1446 / 0.0508
+_V5P_INDICES_PER_S, _V5P_VMEM_SPEEDUP = 16384 / 0.1094e-3, 0.1094 / 0.0329
+# v4, v5e unmeasured: their family's (v5e: v6e's; v4: v5p's); not HBM-scaled, as v5p (1.7x v6e's HBM) indexes alike.
+_VMEM_OVER_HBM = 22  # "How to Scale Your Model" (module docstring), for every generation
 CHIPS = {
-    "v4": Chip("TPU v4", 275e12, 32 * GiB, 1200 * GB, 1.1e15 / 4096, "https://cloud.google.com/tpu/docs/v4"),
+    "v4": Chip("TPU v4", 275e12, 32 * GiB, 1200 * GB, 1.1e15 / 4096, "https://cloud.google.com/tpu/docs/v4",
+               gather_indices_per_s=_V5P_INDICES_PER_S, vmem_gather_speedup=_V5P_VMEM_SPEEDUP,
+               vmem_bytes_per_s=_VMEM_OVER_HBM * 1200 * GB),
     "v5e": Chip("TPU v5 lite", 197e12, 16 * GiB, 819 * GB, 51.2e12 / 256, "https://cloud.google.com/tpu/docs/v5e",
-                6.4e12 / 8 / 256),
-    "v5p": Chip("TPU v5", 459e12, 95 * GiB, 2765 * GB, 1200 * GB / 2, "https://cloud.google.com/tpu/docs/v5p"),
-    "v6e": Chip("TPU v6 lite", 918e12, 32 * GiB, 1638 * GB, 102.4e12 / 256, "https://cloud.google.com/tpu/docs/v6e"),
+                6.4e12 / 8 / 256, gather_indices_per_s=_V6E_INDICES_PER_S, vmem_gather_speedup=_V6E_VMEM_SPEEDUP,
+                vmem_bytes_per_s=_VMEM_OVER_HBM * 819 * GB),
+    "v5p": Chip("TPU v5", 459e12, 95 * GiB, 2765 * GB, 1200 * GB / 2, "https://cloud.google.com/tpu/docs/v5p",
+                gather_indices_per_s=_V5P_INDICES_PER_S, vmem_gather_speedup=_V5P_VMEM_SPEEDUP,
+                vmem_bytes_per_s=_VMEM_OVER_HBM * 2765 * GB),
+    "v6e": Chip("TPU v6 lite", 918e12, 32 * GiB, 1638 * GB, 102.4e12 / 256, "https://cloud.google.com/tpu/docs/v6e",
+                gather_indices_per_s=_V6E_INDICES_PER_S, vmem_gather_speedup=_V6E_VMEM_SPEEDUP,
+                vmem_bytes_per_s=_VMEM_OVER_HBM * 1638 * GB),
 }
 
 

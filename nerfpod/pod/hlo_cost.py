@@ -5,9 +5,9 @@ XLA's own `cost_analysis()` for TPU programs is not usable as it comes for nerfp
 its whole table (hundreds of GB per step for the Instant-NGP grid). This module costs each executed HLO
 instruction itself:
 
-- time = max(FLOPs / matmul peak, bytes / HBM bandwidth) per instruction (a roofline per op: each op is
-  bound by the one it needs more of), summed over the program; collectives at the chip's all-reduce
-  bandwidth instead (over ICI, within a slice);
+- time = max(FLOPs / matmul peak, bytes / HBM bandwidth, indices / index rate) per instruction (a roofline
+  per op: each op is bound by the one it needs more of), summed over the program; collectives at the chip's
+  all-reduce bandwidth instead (over ICI, within a slice);
 - multi-slice programs: the TPU compiler writes a reduction across slices as a host transfer to the
   megascale runtime (a `send` whose frontend attributes name `_xla_megascale_transfer_type`, with its
   `recv` and `-done`s), after a reduction within each slice; that `send` is the DCN collective: its bytes
@@ -20,14 +20,27 @@ instruction itself:
   names), except that a gather moves only the slices it gathers, a scatter only its updates (read and
   written), a dynamic slice or update only its slice; each slice counts at least one tile row of its
   operand's layout (the unit XLA lays memory out in);
+- indices: a gather or scatter (alone or in a fusion) also takes time per slice it gathers or scatters (the
+  result's batch dims, those not in `offset_dims`; the updates' not in `update_window_dims`), at the chip's
+  measured rate (chips.Chip.gather_indices_per_s), `vmem_gather_speedup` times faster where its table is in
+  VMEM; scatters at the gathers' rate (no scatter figure is published). A dynamic slice or update, one index,
+  stays costed by its bytes (no op here pays a fixed cost per call);
+- VMEM: an array whose layout names memory space 1 (`S(1)`, e.g. `f32[1024,2]{1,0:T(8,128)S(1)}`: a table
+  XLA prefetched into the TensorCore's vector memory, or a result it keeps there) moves no HBM bytes: its
+  bytes are VMEM's, at the chip's VMEM bandwidth (chips.Chip.vmem_bytes_per_s, 22 times HBM's), and an op's
+  memory term is the larger of its HBM and VMEM times. The prefetch itself is a copy (or copy-start) from
+  HBM, charged its HBM side;
+- a Pallas kernel (`custom-call` to `tpu_custom_call`) is costed by the `cost_estimate` its author gave
+  `pallas_call` (the compiled HLO keeps it in the call's backend_config: flops at the matmul peak,
+  bytes_accessed at HBM bandwidth); one without is costed as any op, by its operands' and results' bytes;
 - a fusion is costed as one op: its operands and results cross HBM once, its inner ops are free except for
-  their matmul FLOPs; loops with a known trip count multiply their body; a conditional costs its dearest
-  branch.
+  their matmul FLOPs and their gathers' and scatters' indices; loops with a known trip count multiply their
+  body; a conditional costs its dearest branch.
 
 What it leaves out: overlap of independent ops (an upper bound for compute-bound and a fair figure for
-bandwidth-bound programs), vector-unit limits, collective latency (the all-reduce term is bandwidth only),
-and the host (input pipeline). The estimate is XLA's program on the chip's published peaks (chips.Chip),
-not a measurement.
+bandwidth-bound programs), vector-unit limits, collective latency (the all-reduce term is
+bandwidth only), and the host (input pipeline). The estimate is XLA's program on the chip's published peaks
+and measured per-index rates (chips.Chip), not a measurement.
 """
 import dataclasses
 import math
@@ -60,6 +73,16 @@ class Array:
   @property
   def elements(self) -> int:
     return math.prod(self.dims)
+
+  @property
+  def in_vmem(self) -> bool:
+    """Whether the layout places it in memory space 1, the TensorCore's VMEM (`...:T(8,128)S(1)}`)."""
+    return re.search(r"(?<![A-Z])S\(1\)", self.layout) is not None
+
+  @property
+  def hbm_bytes(self) -> int:
+    """Bytes it takes in HBM: its bytes, or none where it lives in VMEM."""
+    return 0 if self.in_vmem else self.bytes
 
   def tile(self) -> tuple[int, ...]:
     match = re.search(r"T\(([0-9,]+)\)", self.layout)
@@ -125,6 +148,14 @@ class Instruction:
   def bytes_out(self) -> int:
     return sum(a.bytes for a in self.shape)
 
+  def bytes_in(self, hbm: bool) -> int:
+    """Bytes of its result: in HBM only (hbm), or wherever they are."""
+    return sum(a.hbm_bytes if hbm else a.bytes for a in self.shape)
+
+  @property
+  def in_vmem(self) -> bool:
+    return bool(self.shape) and all(a.in_vmem for a in self.shape)
+
 
 def _split_call(rest: str) -> tuple[str, str]:
   """'a, b), attr=...' -> ('a, b', 'attr=...'): the operand list up to its closing parenthesis."""
@@ -160,18 +191,25 @@ def parse_module(text: str) -> tuple[dict[str, list[Instruction]], str]:
 @dataclasses.dataclass
 class Cost:
   flops: float = 0.0
-  bytes: float = 0.0
+  bytes: float = 0.0             # HBM's
+  vmem_bytes: float = 0.0        # VMEM's (arrays whose layout names S(1))
   seconds: float = 0.0
-  compute_seconds: float = 0.0   # the ops whose matmul term was the larger
-  memory_seconds: float = 0.0    # the ops whose memory term was the larger
+  compute_seconds: float = 0.0   # the ops whose matmul term was the largest
+  memory_seconds: float = 0.0    # the ops whose memory term was the largest
+  index_bound_seconds: float = 0.0  # the ops whose per-index term was the largest
   collective_seconds: float = 0.0
-  gather_scatter_seconds: float = 0.0
+  gather_scatter_seconds: float = 0.0  # the ops that gather or scatter, whichever term bound them
+  gather_scatter_bytes: float = 0.0    # their HBM bytes
+  indices: float = 0.0           # slices gathered and scattered
+  vmem_indices: float = 0.0      # of indices: from or into a table in VMEM
+  index_seconds: float = 0.0     # the per-index terms of the ops that gather or scatter, bound or not
   dcn_seconds: float = 0.0        # of collective_seconds: the cross-slice (DCN) collectives'
   collectives: list = dataclasses.field(default_factory=list)  # {"op", "bytes", "group", "network", "count"}
 
   def add(self, other: "Cost", times: float = 1.0) -> None:
-    for f in ("flops", "bytes", "seconds", "compute_seconds", "memory_seconds", "collective_seconds",
-              "gather_scatter_seconds", "dcn_seconds"):
+    for f in ("flops", "bytes", "vmem_bytes", "seconds", "compute_seconds", "memory_seconds", "index_bound_seconds",
+              "collective_seconds", "gather_scatter_seconds", "gather_scatter_bytes", "indices", "vmem_indices",
+              "index_seconds", "dcn_seconds"):
       setattr(self, f, getattr(self, f) + times * getattr(other, f))
     for c in other.collectives:
       self.collectives.append(dict(c, count=c["count"] * times))
@@ -211,11 +249,26 @@ def mesh_axes_of(group: tuple[int, ...] | None, mesh_axes: dict) -> tuple[str, .
   return tuple(name for i, name in enumerate(names) if len(set(places[:, i].tolist())) > 1)
 
 
+def pallas_cost_estimate(instr: Instruction) -> tuple[float, float] | None:
+  """(FLOPs, bytes) of a Pallas TPU kernel (a `custom-call` to `tpu_custom_call`) from the `cost_estimate` its
+  author gave `pallas_call`, which the compiled HLO keeps in the call's backend_config
+  (`"cost_estimate":{"flops":"1234","transcendentals":"5","bytes_accessed":"65536",...}`); None for any other
+  op, or a kernel without one."""
+  if instr.opcode != "custom-call" or 'custom_call_target="tpu_custom_call"' not in instr.attributes:
+    return None
+  estimate = re.search(r'"cost_estimate"\s*:\s*\{([^}]*)\}', instr.attributes)
+  if not estimate:
+    return None
+  fields = dict(re.findall(r'"(\w+)"\s*:\s*"?(\d+)', estimate.group(1)))
+  return float(fields.get("flops", 0)), float(fields.get("bytes_accessed", 0))
+
+
 class HloProgram:
   """A compiled program's optimised HLO module, costed on a chip: `HloProgram(compiled.as_text(), chip,
   num_devices).cost()`. The chip's peaks are its published figures (chips.Chip: bf16_flops,
-  hbm_bytes_per_s, allreduce_bytes_per_s, dcn_bytes_per_s); `num_devices` is the collectives' group where
-  the HLO names none; `num_slices` the slices a DCN collective reduces over. With `mesh_axes` (the program's
+  hbm_bytes_per_s, allreduce_bytes_per_s, dcn_bytes_per_s) and its measured per-index rates
+  (gather_indices_per_s, vmem_gather_speedup); `num_devices` is the collectives' group where the HLO names
+  none; `num_slices` the slices a DCN collective reduces over. With `mesh_axes` (the program's
   device mesh, name -> size, major first), each collective within a slice also names the mesh `axes` it runs
   over (mesh_axes_of: e.g. ('region',) for a region model's gather of partial sums)."""
 
@@ -237,9 +290,6 @@ class HloProgram:
 
   def _operand(self, computation: str, name: str) -> Instruction | None:
     return self._shapes[computation].get(name)
-
-  def _operand_bytes(self, computation: str, instr: Instruction) -> int:
-    return sum(op.bytes_out for op in (self._operand(computation, n) for n in instr.operands) if op)
 
   def _instruction(self, computation: str, instr: Instruction) -> Cost:
     op = instr.opcode
@@ -267,13 +317,22 @@ class HloProgram:
     base = op.removesuffix("-start")
     if base in COLLECTIVES:
       return self._collective(computation, instr, base)
-    flops, moved, gathers = self._flops_and_bytes(computation, instr)
-    compute, memory = flops / self.chip.bf16_flops, moved / self.chip.hbm_bytes_per_s
-    seconds = max(compute, memory)
-    return Cost(flops=flops, bytes=moved, seconds=seconds,
-                compute_seconds=seconds if compute >= memory else 0.0,
-                memory_seconds=seconds if memory > compute else 0.0,
-                gather_scatter_seconds=seconds if gathers else 0.0)
+    flops, moved, gathers = self._flops_and_bytes(computation, instr, hbm=True)
+    # VMEM traffic: the op's bytes wherever they are, less those in HBM.
+    vmem = max(0.0, self._flops_and_bytes(computation, instr, hbm=False)[1] - moved)
+    indices, vmem_indices, index = self._lookups(computation, instr)
+    gathers = gathers or indices > 0
+    compute, vmem_rate = flops / self.chip.bf16_flops, self.chip.vmem_bytes_per_s
+    memory = max(moved / self.chip.hbm_bytes_per_s, vmem / vmem_rate if vmem_rate else 0.0)
+    seconds = max(compute, memory, index)
+    bound = "compute" if compute == seconds else "memory" if memory == seconds else "index"
+    return Cost(flops=flops, bytes=moved, vmem_bytes=vmem, seconds=seconds,
+                compute_seconds=seconds if bound == "compute" else 0.0,
+                memory_seconds=seconds if bound == "memory" else 0.0,
+                index_bound_seconds=seconds if bound == "index" else 0.0,
+                gather_scatter_seconds=seconds if gathers else 0.0,
+                gather_scatter_bytes=moved if gathers else 0.0,
+                indices=indices, vmem_indices=vmem_indices, index_seconds=index)
 
   def _collective(self, computation: str, instr: Instruction, base: str) -> Cost:
     operands = [self._operand(computation, n) for n in instr.operands]
@@ -303,8 +362,9 @@ class HloProgram:
     return Cost(seconds=seconds, collective_seconds=seconds, dcn_seconds=seconds,
                 collectives=[{"op": op, "bytes": size, "group": group, "network": "dcn", "count": 1}])
 
-  def _flops_and_bytes(self, computation: str, instr: Instruction) -> tuple[float, float, bool]:
-    """(matmul FLOPs, HBM bytes, whether it gathers or scatters) of one top-level op or fusion."""
+  def _flops_and_bytes(self, computation: str, instr: Instruction, hbm: bool) -> tuple[float, float, bool]:
+    """(matmul FLOPs, bytes, whether it gathers or scatters) of one top-level op or fusion: its HBM bytes
+    (hbm), or its bytes wherever they are (VMEM's too)."""
     operands = [self._operand(computation, n) for n in instr.operands]
     if instr.opcode == "fusion":
       fused = instr.attr("calls").lstrip("%")
@@ -315,44 +375,53 @@ class HloProgram:
       for pname, number in params.items():
         if number >= len(operands) or operands[number] is None:
           continue
-        full = operands[number].bytes_out
-        partial = self._partial_read(fused, pname, operands[number])
+        full = operands[number].bytes_in(hbm)
+        partial = self._partial_read(fused, pname, operands[number], hbm)
         gathers |= partial is not None and partial[1]
         moved += min(full, partial[0]) if partial is not None else full
       root = next((i for i in inner if i.root), None)
-      written = self._written_bytes(fused, root) if root is not None else None
+      written = self._written_bytes(fused, root, hbm) if root is not None else None
       gathers |= written is not None and written[1]
-      moved += written[0] if written is not None else instr.bytes_out
+      moved += written[0] if written is not None else instr.bytes_in(hbm)
       return flops, moved, gathers
+    estimate = pallas_cost_estimate(instr)
+    if estimate is not None:  # its author's bytes_accessed: HBM's
+      return estimate[0], estimate[1], False
     flops = self._matmul_flops(computation, instr)
     table = operands[0] if operands else None
+    into_vmem = hbm and table is not None and table.in_vmem  # an update or slice of an array in VMEM
     if instr.opcode == "gather" and table is not None:
-      return flops, (self._gather_bytes(instr, table) + instr.bytes_out
-                     + self._operand_bytes_from(operands[1:])), True
-    if instr.opcode == "scatter" and table is not None:
-      updates = operands[-1].bytes_out if operands[-1] else 0
-      return flops, 2 * updates + self._operand_bytes_from(operands[1:-1]), True
-    if instr.opcode == "copy-start":  # an asynchronous copy: its result tuple holds source and destination
-      return flops, 2 * self._operand_bytes_from(operands), False
+      return flops, (self._gather_bytes(instr, table, hbm) + instr.bytes_in(hbm)
+                     + self._operand_bytes_from(operands[1:], hbm)), True
+    if instr.opcode == "scatter" and table is not None:  # its updates read, and written into the table
+      updates = operands[-1]
+      moved = updates.bytes_in(hbm) + (0 if into_vmem else updates.bytes_out) if updates else 0
+      return flops, moved + self._operand_bytes_from(operands[1:-1], hbm), True
+    if instr.opcode == "copy-start":  # an asynchronous copy: its result tuple holds destination and source
+      destination = instr.shape[0].hbm_bytes if hbm else instr.shape[0].bytes
+      return flops, self._operand_bytes_from(operands, hbm) + destination, False
     if instr.opcode in ("dynamic-slice", "slice"):
-      return flops, 2 * instr.bytes_out, False
+      return flops, (0 if into_vmem else instr.bytes_out) + instr.bytes_in(hbm), False
     if instr.opcode == "dynamic-update-slice":
-      update = operands[1].bytes_out if len(operands) > 1 and operands[1] else 0
-      return flops, 2 * update, False
-    return flops, self._operand_bytes_from(operands) + instr.bytes_out, False
+      update = operands[1] if len(operands) > 1 else None
+      return flops, (update.bytes_in(hbm) + (0 if into_vmem else update.bytes_out) if update else 0), False
+    return flops, self._operand_bytes_from(operands, hbm) + instr.bytes_in(hbm), False
 
   @staticmethod
-  def _operand_bytes_from(operands) -> int:
-    return sum(o.bytes_out for o in operands if o is not None)
+  def _operand_bytes_from(operands, hbm: bool) -> int:
+    return sum(o.bytes_in(hbm) for o in operands if o is not None)
 
   def _parameter_numbers(self, computation: str) -> dict[str, int]:
     return {i.name: int(i.raw_operands) for i in self.computations.get(computation, [])
             if i.opcode == "parameter" and i.raw_operands.strip().isdigit()}
 
-  def _gather_bytes(self, gather: Instruction, table: Instruction) -> float:
-    """Slices gathered x the bytes each touches (at least a tile row of the table's layout)."""
+  def _gather_bytes(self, gather: Instruction, table: Instruction, hbm: bool) -> float:
+    """Slices gathered x the bytes each touches (at least a tile row of the table's layout); none of HBM's from
+    a table in VMEM."""
     sizes = re.search(r"slice_sizes=\{([0-9,]*)\}", gather.attributes)
     array = table.shape[0] if table.shape else None
+    if hbm and array is not None and array.in_vmem:
+      return 0
     if not sizes or array is None:
       return gather.bytes_out
     slice_dims = [int(s) for s in sizes.group(1).split(",") if s]
@@ -360,7 +429,7 @@ class HloProgram:
     count = max(1, gather.shape[0].elements // slice_elements) if gather.shape else 1
     return count * array.slice_bytes(slice_dims)
 
-  def _partial_read(self, fused: str, param: str, operand: Instruction) -> tuple[float, bool] | None:
+  def _partial_read(self, fused: str, param: str, operand: Instruction, hbm: bool) -> tuple[float, bool] | None:
     """Bytes a fusion reads of parameter `param` when every use reads only part of it (gather, slices,
     scatter's in-place operand), with whether a gather or scatter does; None when some use reads it whole."""
     users = [i for i in self.computations[fused] if param in i.operands]
@@ -370,33 +439,77 @@ class HloProgram:
     for user in users:
       first = user.operands and user.operands[0] == param
       if user.opcode == "gather" and first:
-        total += self._gather_bytes(user, operand)
+        total += self._gather_bytes(user, operand, hbm)
         gathers = True
       elif user.opcode in ("dynamic-slice", "slice") and first:
-        total += user.bytes_out
+        total += user.bytes_in(hbm)
       elif user.opcode in ("scatter", "dynamic-update-slice") and first:
         gathers |= user.opcode == "scatter"  # in place: its updates are counted where it writes
       else:
         return None
     return total, gathers
 
-  def _written_bytes(self, fused: str, root: Instruction) -> tuple[float, bool] | None:
-    """Bytes a fusion writes when its result is an in-place update (scatter: updates read and written)."""
+  def _written_bytes(self, fused: str, root: Instruction, hbm: bool) -> tuple[float, bool] | None:
+    """Bytes a fusion writes when its result is an in-place update (scatter: updates read and written); none of
+    HBM's into an array in VMEM."""
     shapes = self._shapes[fused]
     roots = [shapes[n] for n in root.operands if n in shapes] if root.opcode == "tuple" else [root]
     total, any_partial, gathers = 0.0, False, False
     for r in roots:
+      into_vmem = hbm and (r.in_vmem or bool(r.operands) and r.operands[0] in shapes
+                           and shapes[r.operands[0]].in_vmem)
       if r.opcode == "scatter":
         updates = shapes.get(r.operands[-1])
-        total += 2 * (updates.bytes_out if updates else 0)
+        total += 0 if into_vmem else 2 * (updates.bytes_out if updates else 0)
         any_partial = gathers = True
       elif r.opcode == "dynamic-update-slice":
         update = shapes.get(r.operands[1])
-        total += 2 * (update.bytes_out if update else 0)
+        total += 0 if into_vmem else 2 * (update.bytes_out if update else 0)
         any_partial = True
       else:
-        total += r.bytes_out
+        total += r.bytes_in(hbm)
     return (total, gathers) if any_partial else None
+
+  def _lookups(self, computation: str, instr: Instruction) -> tuple[int, int, float]:
+    """(slices gathered and scattered, of which from or into a table in VMEM, their time at the chip's
+    per-index rates) of one top-level op or fusion: every gather and scatter in it."""
+    rate = self.chip.gather_indices_per_s
+    where, ops, outer = computation, [instr], []
+    if instr.opcode == "fusion":
+      where = instr.attr("calls").lstrip("%")
+      ops = self.computations.get(where, [])
+      outer = [self._operand(computation, n) for n in instr.operands]
+    params = self._parameter_numbers(where) if outer else {}
+    indices = vmem_indices = 0
+    seconds = 0.0
+    for op in ops:
+      if op.opcode not in ("gather", "scatter") or not op.operands:
+        continue
+      count = self._index_count(where, op)
+      table = self._shapes[where].get(op.operands[0])
+      number = params.get(op.operands[0], len(outer))
+      vmem = (table is not None and table.in_vmem) or (number < len(outer) and outer[number] is not None
+                                                         and outer[number].in_vmem)
+      indices += count
+      vmem_indices += count if vmem else 0
+      if rate:
+        seconds += count / (rate * (self.chip.vmem_gather_speedup if vmem else 1.0))
+    return indices, vmem_indices, seconds
+
+  def _index_count(self, computation: str, op: Instruction) -> int:
+    """The slices a gather gathers (its result's dims that are not `offset_dims`) or a scatter scatters (its
+    updates' dims that are not `update_window_dims`)."""
+    if op.opcode == "gather":
+      array, window = (op.shape[0] if op.shape else None), op.attr("offset_dims")
+    else:
+      updates = self._shapes[computation].get(op.operands[-1])
+      array, window = (updates.shape[0] if updates and updates.shape else None), op.attr("update_window_dims")
+    if array is None:
+      return 0
+    if window is None:  # not named (XLA always names them): one slice per element
+      return array.elements
+    window_dims = {int(d) for d in re.findall(r"\d+", window)}
+    return math.prod(d for i, d in enumerate(array.dims) if i not in window_dims)
 
   def _matmul_flops(self, computation: str, instr: Instruction) -> float:
     if instr.opcode not in ("dot", "convolution") or not instr.shape:
