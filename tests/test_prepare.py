@@ -1,8 +1,9 @@
-"""nerfpod prepare: the pure pieces (frame selection, camera and matching choice, the LLFF and nerfstudio
-writers, the report), every bad input, and real runs of pycolmap's SfM end to end: on a textured scene rendered
-here with known cameras (photos and a video with blurred frames), on 20 of the shared LLFF horns images, on the
-shared COLMAP cup (slow), and a video of the horns that configs/llff.py then trains on (slow). Recovered poses
-are compared with the known ones after a similarity alignment (Umeyama)."""
+"""nerfpod prepare: the pure pieces (frame selection, camera and matching choice, the choice between the mappers'
+models and its reruns, the LLFF and nerfstudio writers, the report), every bad input, and real runs of pycolmap's
+SfM end to end: on a textured scene rendered here with known cameras (photos and a video with blurred frames; the
+same capture twice, bit for bit; another seed; a disagreement between the mappers forced), on 20 of the shared
+LLFF horns images, on the shared COLMAP cup (slow), and a video of the horns that configs/llff.py then trains on
+(slow). Recovered poses are compared with the known ones after a similarity alignment (Umeyama)."""
 import importlib.util
 import json
 import os
@@ -326,16 +327,93 @@ def test_choosing_the_model_of_two_mappers():
   incremental = {"mapper": "incremental", "registered": 10, "reprojection_error": 0.9,
                  "poses": {k: poses[k] for k in list(poses)[:10]}}
   good_global = {"mapper": "global", "registered": 12, "reprojection_error": 0.5, "poses": _moved(poses)}
-  best, note = sfm.choose_model([incremental, good_global])
-  assert best is good_global and "agreed with it" in note
+  best, note, choice = sfm.choose_model([incremental, good_global])
+  assert best is good_global and "agreed with it" in note and choice == {"reason": "agreed", "reruns": []}
   wrong = dict(good_global, poses={k: p @ np.diag([1.0, -1.0, -1.0, 1.0]) for k, p in poses.items()})
-  best, note = sfm.choose_model([incremental, wrong])  # more images, but upside down: not trusted
-  assert best is incremental and "disagreed" in note
+  best, note, choice = sfm.choose_model([dict(incremental), wrong])  # more images, but upside down: not trusted
+  assert best["mapper"] == "incremental" and "disagreed" in note and choice["reason"] == "disagreed"
   few = dict(incremental, registered=3, poses={k: poses[k] for k in list(poses)[:3]})
   assert sfm.choose_model([few, wrong])[0] is wrong  # 3 images check nothing
   tie = dict(good_global, registered=10, reprojection_error=1.2)
   assert sfm.choose_model([incremental, tie])[0] is incremental  # a tie: the lower reprojection error
-  assert sfm.choose_model([incremental]) == (incremental, "")
+  assert sfm.choose_model([incremental]) == (incremental, "", {"reason": "one mapper", "reruns": []})
+
+
+def _flipped(poses: dict) -> dict:
+  """The cameras each turned upside down (180 degrees about their x axis): a model that disagrees."""
+  return {k: p @ np.diag([1.0, -1.0, -1.0, 1.0]) for k, p in poses.items()}
+
+
+def _candidates():
+  """A global model of 12 cameras (right, in another frame), an incremental one of 10 of them turned upside down
+  (wrong), with per-image figures, and the reruns a fake mapper gives by seed: 1 wrong with 11 images, 2 right
+  with 11 images (each run a new dict, as run_mapper's)."""
+  poses = {f"{i:02d}.jpg": p for i, p in enumerate(_model(12).c2w_opencv())}
+  names = sorted(poses)
+
+  def per_image(keep, error, track):
+    return {k: {"observations": 100, "error_px": error, "track_length": track} for k in keep}
+
+  glob = {"mapper": "global", "seed": 0, "registered": 12, "reprojection_error": 0.5, "poses": _moved(poses),
+          "per_image": per_image(names, 0.5, 5.0), "models": 1, "others": 0, "seconds": 2.0}
+  first = {"mapper": "incremental", "seed": 0, "registered": 10, "reprojection_error": 0.9,
+           "poses": _flipped({k: poses[k] for k in names[:10]}), "per_image": per_image(names[:10], 0.9, 3.0),
+           "models": 1, "others": 0, "seconds": 1.0}
+  reruns = {1: dict(first, seed=1, registered=11, poses=_flipped({k: poses[k] for k in names[:11]}),
+                    per_image=per_image(names[:11], 0.8, 3.5), rerun=True),
+            2: dict(first, seed=2, registered=11, reprojection_error=0.7, poses={k: poses[k] for k in names[1:]},
+                    per_image=per_image(names[1:], 0.7, 4.0), rerun=True)}
+  return glob, first, reruns
+
+
+def test_a_global_model_that_disagrees_is_kept_when_a_rerun_of_the_incremental_mapper_agrees():
+  glob, first, reruns = _candidates()
+  asked = []
+
+  def rerun(k):
+    asked.append(k)
+    return dict(reruns[k])
+  best, note, choice = sfm.choose_model([first, glob], rerun)
+  assert asked == [1, 2] and best is glob and choice["reason"] == "agreed with a rerun"
+  assert [r["seed"] for r in choice["reruns"]] == [1, 2]
+  assert "disagreed with the incremental model on the 10 images both placed" in note, note
+  assert "ran again (seed 1, 2), and its run from seed 2 placed 11 and agreed with the global model" in note, note
+  record = sfm.mapping_record(best, note, choice, [first, glob] + choice["reruns"])
+  assert record["kept"] == "global" and record["kept_seed"] == 0 and record["reason"] == "agreed with a rerun"
+  assert [(r["mapper"], r["seed"], r.get("rerun", False)) for r in record["tried"]] == [
+      ("incremental", 0, False), ("global", 0, False), ("incremental", 1, True), ("incremental", 2, True)]
+  first_r, glob_r, wrong_r, right_r = record["tried"]
+  assert glob_r["agreement_with_incremental"]["rotation_deg"] > 45 and not sfm.agrees(
+      glob_r["agreement_with_incremental"])
+  assert right_r["agreement_with_global"]["common"] == 11 and right_r["agreement_with_global"]["rotation_deg"] < 1e-4
+  assert wrong_r["agreement_with_global"]["rotation_deg"] > 45
+  # The figures of each model on the images it shares with the other: recorded, not used to decide.
+  assert first_r["on_common_images"] == {"images": 10, "observations": 1000, "reprojection_error_px": 0.9,
+                                         "track_length": 3.0}
+  assert glob_r["on_common_images"]["images"] == 10 and glob_r["on_common_images"]["track_length"] == 5.0
+  assert right_r["on_common_images"]["reprojection_error_px"] == 0.7
+  json.dumps(record, allow_nan=False)  # prepare.json's, as written
+
+
+def test_a_global_model_no_incremental_run_agrees_with_is_not_used():
+  glob, first, reruns = _candidates()
+  reruns[2] = dict(reruns[2], poses=_flipped(reruns[2]["poses"]), registered=9)
+  best, note, choice = sfm.choose_model([first, glob], lambda k: dict(reruns[k]))
+  # None agrees: the incremental run that placed the most (the rerun from seed 1, 11 images) is kept.
+  assert best["mapper"] == "incremental" and best["seed"] == 1 and choice["reason"] == "disagreed"
+  assert "nor did it agree with the incremental mapper's runs from seed 1, 2, so its model was not used; the run " \
+      "from seed 1 placed the most (11)" in note, note
+  record = sfm.mapping_record(best, note, choice, [first, glob] + choice["reruns"])
+  assert record["kept"] == "incremental" and record["kept_seed"] == 1 and len(record["tried"]) == 4
+  # Without reruns (a hand-made choice), the first incremental model is kept.
+  glob, first, _ = _candidates()
+  best, note, choice = sfm.choose_model([first, glob])
+  assert best is first and choice == {"reason": "disagreed", "reruns": []} and note.endswith("was not used")
+
+
+def test_derived_seeds_stay_in_colmaps_range():
+  assert sfm.derived_seed(0, 0) == 0 and sfm.derived_seed(5, 2) == 7
+  assert sfm.derived_seed(sfm.MAX_SEED, 1) == 0 and sfm.derived_seed(sfm.MAX_SEED - 1, 2) == 0
 
 
 def test_too_few_message_suggests_what_was_not_tried():
@@ -655,6 +733,92 @@ def test_video_frames_are_the_sharp_ones_and_get_poses(textured, tmp_path, capsy
   assert len(scene_poses(scene)) == 24 and np.median(rotation) < 1.0 and np.median(position) < 0.02
 
 
+def _written(out) -> dict:
+  """What a capture's poses, cameras and points come to: the bytes of its poses_bounds.npy and transforms.json, the
+  camera-to-world poses by name in sparse/0/, and prepare.json."""
+  import pycolmap
+  rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+  return {"poses_bounds": (out / "poses_bounds.npy").read_bytes(), "transforms": (out / "transforms.json").read_text(),
+          "poses": sfm.camera_poses(rec), "points": rec.num_points3D(),
+          "cameras": {i: list(c.params) for i, c in rec.cameras.items()},
+          "summary": json.loads((out / "prepare.json").read_text())}
+
+
+@needs_pycolmap
+@pytest.mark.parametrize("mapper", ["auto", "global"])
+def test_the_same_photos_and_seed_give_the_same_capture(textured, tmp_path, capsys, mapper):
+  """Two runs on the same photos with 2 threads, and (the incremental mapper) a third with 1: the same images
+  registered and the same poses, cameras and points, bit for bit; prepare.json records the seed."""
+  root, _ = textured
+  runs = []
+  for i, threads in enumerate((2, 2, 1) if mapper == "auto" else (2, 2)):
+    out = tmp_path / f"capture{i}"
+    code, stdout, err = run_prepare(capsys, f"--input={root / 'photos'}", f"--out={out}", f"--threads={threads}",
+                                    f"--mapper={mapper}")
+    assert code == 0, err
+    assert f"({threads} threads, seed 0; work in" in stdout
+    runs.append(_written(out))
+  first = runs[0]
+  assert first["summary"]["options"]["seed"] == 0 and first["summary"]["mapping"]["kept_seed"] == 0
+  assert len(first["poses"]) >= 20
+  for again in runs[1:]:
+    assert sorted(again["poses"]) == sorted(first["poses"])  # the same images registered
+    assert all(np.array_equal(again["poses"][k], first["poses"][k]) for k in first["poses"])
+    assert again["cameras"] == first["cameras"] and again["points"] == first["points"]
+    assert again["poses_bounds"] == first["poses_bounds"] and again["transforms"] == first["transforms"]
+    assert again["summary"]["counts"] == first["summary"]["counts"]
+
+
+@needs_pycolmap
+def test_another_seed_is_taken_and_recorded_and_a_bad_one_refused(textured, tmp_path, capsys):
+  root, _ = textured
+  out = tmp_path / "capture"
+  code, stdout, err = run_prepare(capsys, f"--input={root / 'photos'}", f"--out={out}", "--seed=7")
+  assert code == 0, err
+  summary = json.loads((out / "prepare.json").read_text())
+  assert summary["options"]["seed"] == 7 and summary["mapping"]["kept_seed"] == 7
+  assert [r["seed"] for r in summary["mapping"]["tried"]] == [7] and summary["counts"]["registered"] == 24
+  for bad in ("-1", str(sfm.MAX_SEED + 1), "one"):
+    code, stdout, err = run_prepare(capsys, f"--input={root / 'photos'}", f"--out={tmp_path / 'other'}",
+                                    f"--seed={bad}")
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"nerfpod: error: --seed={bad}: "), err
+    assert "Traceback" not in err and not (tmp_path / "other").exists()
+
+
+@needs_pycolmap
+def test_a_disagreement_reruns_the_incremental_mapper_and_prepare_json_says_so(textured, tmp_path, capsys,
+                                                                                monkeypatch):
+  """The first incremental model made to disagree (16 of its cameras turned upside down, the other 8 left out):
+  the global mapper runs, disagrees with it, and the incremental mapper runs again from seed 1, whose model agrees
+  with the global one; prepare.json records the three runs and why the kept model won."""
+  root, _ = textured
+  real = sfm.run_mapper
+
+  def run_mapper(mapper, db_path, image_dir, out_dir, num_images, seed=0):
+    result = real(mapper, db_path, image_dir, out_dir, num_images, seed)
+    if mapper == "incremental" and os.path.basename(out_dir) == "sparse_incremental":
+      kept = sorted(result["poses"])[:16]
+      result.update(registered=16, poses=_flipped({k: result["poses"][k] for k in kept}))
+    return result
+  monkeypatch.setattr(sfm, "run_mapper", run_mapper)
+  out = tmp_path / "capture"
+  code, stdout, err = run_prepare(capsys, f"--input={root / 'photos'}", f"--out={out}")
+  assert code == 0, err
+  assert "trying the global mapper" in stdout and "running the incremental mapper again from seed 1" in stdout
+  mapping = json.loads((out / "prepare.json").read_text())["mapping"]
+  assert mapping["reason"] == "agreed with a rerun", mapping
+  assert [(r["mapper"], r["seed"], r.get("rerun", False)) for r in mapping["tried"]] == [
+      ("incremental", 0, False), ("global", 0, False), ("incremental", 1, True)]
+  first, glob, rerun = mapping["tried"]
+  assert not sfm.agrees(first["agreement_with_global"]) and sfm.agrees(rerun["agreement_with_global"])
+  assert glob["agreement_with_incremental"] == first["agreement_with_global"]
+  for figures in (rerun["on_common_images"], rerun["global_on_common_images"]):  # from the real models
+    assert figures["images"] >= 20 and 0 < figures["reprojection_error_px"] < 2 and figures["track_length"] >= 2
+  assert (mapping["kept"], mapping["kept_seed"]) in (("global", 0), ("incremental", 1))
+  assert "and its run from seed 1 placed" in mapping["note"] and "agreed with the global model" in mapping["note"]
+  assert f"({mapping['kept']} mapper; the global mapper placed" in stdout
+
+
 @needs_pycolmap
 def test_an_interrupted_run_resumes_and_overwrite_starts_again(textured, tmp_path, capsys, monkeypatch):
   root, _ = textured
@@ -676,7 +840,8 @@ def test_an_interrupted_run_resumes_and_overwrite_starts_again(textured, tmp_pat
   code, stdout, err = run_prepare(capsys, *args, "--overwrite", "--mapper=global")
   assert code == 0, err
   assert "earlier run" not in stdout, stdout
-  # How many images the global mapper registers may vary with thread timing; which mapper was kept may not.
+  # How many images the global mapper registers is the same every run (one seed, one thread) but may differ from
+  # one machine to another (docs/prepare.md); which mapper was kept may not.
   assert re.search(r"\b2[0-4] of 24 images \(global mapper", stdout), stdout
   assert json.loads((out / "prepare.json").read_text())["mapping"]["kept"] == "global"
 

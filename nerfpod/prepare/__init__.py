@@ -10,14 +10,17 @@ SIFT features, matching with geometric verification, then COLMAP's incremental m
     matching  exhaustive, or sequential (neighbours in time + loop pairs among evenly spaced frames)
     mapping   the incremental mapper; where it leaves over 5% of the images out, also the global one on the
               same matches, keeping the model with more images (on a tie, the lower reprojection error) unless
-              the global model disagrees with the incremental one on the images both placed
+              the global model disagrees with the incremental one on the images both placed: then the
+              incremental mapper runs again from other seeds, to confirm the global model or place more
     writing   DIR/images/ (the registered images), sparse/0/, images_2/4/8 for large images,
               poses_bounds.npy (LLFF), transforms.json (nerfstudio), prepare.json
 
-When everything is written the work folder's capture is renamed to DIR, so DIR is never half-written. An
-interrupted run leaves DIR.partial/: the same command again reuses its finished stages (the frames, the
-features and matches in the COLMAP database); --overwrite starts again. A user's mistake is one sentence on
-stderr and exit code 2. Measurements and every message: docs/prepare.md.
+Every random choice derives from --seed, and the mappers run on one thread: the same input, options and seed
+give the same capture (docs/prepare.md says what may still differ from one machine to another). When everything
+is written the work folder's capture is renamed to DIR, so DIR is never half-written. An interrupted run leaves
+DIR.partial/: the same command again reuses its finished stages (the frames, the features and matches in the
+COLMAP database); --overwrite starts again. A user's mistake is one sentence on stderr and exit code 2.
+Measurements and every message: docs/prepare.md.
 
 Here: the command (its absl flags, read as every subcommand reads them: errors.parse_flags; the stages in
 order, resuming them, the report). The stages' work is in
@@ -94,7 +97,11 @@ flags.DEFINE_integer("max_image_size", 1600, "SIFT runs on images shrunk to this
                      lower_bound=1, flag_values=FLAGS)
 flags.DEFINE_float("min_registered", 0.5, "Fail unless at least this share of the images is registered.",
                    lower_bound=0.0, upper_bound=1.0, flag_values=FLAGS)
-flags.DEFINE_integer("threads", _threads(), "CPU threads (default: this machine's cores).", lower_bound=1,
+flags.DEFINE_integer("threads", _threads(), "CPU threads for SIFT and matching (default: this machine's cores); "
+                     "the mappers run on one thread, for the same capture every run.", lower_bound=1,
+                     flag_values=FLAGS)
+flags.DEFINE_integer("seed", sfm.DEFAULT_SEED, "Every random choice (RANSAC, the mappers) derives from it: the same "
+                     "photos, options and seed give the same capture.", lower_bound=0, upper_bound=sfm.MAX_SEED,
                      flag_values=FLAGS)
 flags.DEFINE_bool("overwrite", False, "Start again: replace an earlier prepare's capture at --out and its "
                   "unfinished work.", flag_values=FLAGS)
@@ -207,7 +214,7 @@ def prepare(args) -> dict:
   what = (f"{len(src.files)} photos in {src.path}" if src.kind == "photos" else
           f"video {src.path} ({src.video['frames']} frames, {src.video['width']}x{src.video['height']}, "
           f"{src.video['duration_s']:.1f} s)")
-  print(f"nerfpod prepare: {what} -> {out} ({args.threads} threads; work in {work})", flush=True)
+  print(f"nerfpod prepare: {what} -> {out} ({args.threads} threads, seed {args.seed}; work in {work})", flush=True)
 
   def save_state():
     capture._write_json(os.path.join(work, STATE), state)
@@ -250,13 +257,13 @@ def prepare(args) -> dict:
     stages["features"] = {"key": key}
     save_state()
   counts.update(sfm.stage_features(db_path, image_dir, names, cameras, camera_model, args.max_image_size,
-                               args.threads))
+                                   args.threads, args.seed))
   timings["features"] = time.monotonic() - t
 
   # 3. matching
   matching = sfm.choose_matching(src.kind, len(names), args.matching)
   pairs = sfm.image_pairs(len(names), matching)
-  key = {"matching": matching}
+  key = {"matching": matching, "seed": args.seed}  # the seed of the verification's RANSAC
   t = time.monotonic()
   order = " (neighbours in time, and loop pairs)" if matching == "sequential" else ""
   print(f"[3/5] matching: {matching}{order}, {len(pairs):,} pairs", flush=True)
@@ -265,14 +272,14 @@ def prepare(args) -> dict:
       sfm._count(db_path, lambda db: (db.clear_matches(), db.clear_two_view_geometries()))
     stages["matching"] = {"key": key}
     save_state()
-  counts.update(sfm.stage_matching(db_path, work, names, pairs, args.threads))
+  counts.update(sfm.stage_matching(db_path, work, names, pairs, args.threads, args.seed))
   timings["matching"] = time.monotonic() - t
 
   # 4. mapping
   t = time.monotonic()
   print("[4/5] mapping: " + (f"the {args.mapper} mapper" if args.mapper != "auto" else
                               "the incremental mapper (and the global one if it leaves over 5% out)"), flush=True)
-  best, note, tried = sfm.stage_mapping(db_path, work, image_dir, len(names), args.mapper, args.threads)
+  best, note, choice, tried = sfm.stage_mapping(db_path, work, image_dir, len(names), args.mapper, args.seed)
   timings["mapping"] = time.monotonic() - t
   needed = max(sfm.MIN_IMAGES, math.ceil(args.min_registered * len(names)))
   if best["registered"] < needed:
@@ -301,18 +308,10 @@ def prepare(args) -> dict:
                 **({"damaged_left_out": src.damaged} if src.damaged else {})},
       "options": {"num_frames": args.num_frames, "matching": matching, "mapper": args.mapper,
                   "cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size,
-                  "min_registered": args.min_registered, "threads": args.threads},
+                  "min_registered": args.min_registered, "threads": args.threads, "seed": args.seed},
       "versions": _versions(),
       "counts": counts,
-      "mapping": {"kept": best["mapper"], "note": note,
-                  "tried": [{"mapper": r["mapper"], "registered": r["registered"], "models": r["models"],
-                             "other_models_images": r["others"], "seconds": round(r["seconds"], 2),
-                             "reprojection_error_px": (None if math.isinf(r["reprojection_error"]) else
-                                                       r["reprojection_error"]),
-                             **({"agreement_with_incremental": {
-                                 k: None if isinstance(v, float) and math.isnan(v) else v
-                                 for k, v in r["agreement"].items()}} if "agreement" in r else {})}
-                            for r in tried]},
+      "mapping": sfm.mapping_record(best, note, choice, tried),
       "downscales": factors,
       "forward_facing": capture.looks_forward_facing(model.c2w_opencv()),
       "timings_s": {k: round(v, 2) for k, v in timings.items()},
