@@ -962,3 +962,24 @@ def test_ffmpeg_reason_is_its_last_line_without_the_demuxer_prefix_cut_between_w
   reason = frames.ffmpeg_reason(long, limit=50)
   assert reason == "word0 word1 word2 word3 word4 word5 word6 word7 ..." and len(reason) <= 54
   assert frames.ffmpeg_reason(OSError()) == "OSError"
+
+
+def test_a_capture_with_under_90_percent_placed_ends_with_one_sentence_naming_those_left_out():
+  import nerfpod.prepare as prepare_tool
+  names = [f"{i:02d}.jpg" for i in range(44)]
+  summary = {"counts": {"images": 44, "registered": 30, "unregistered": names[30:]},
+             "options": {"seed": 0, "matching": "sequential"}, "mapping": {"kept": "incremental"}}
+  warning = prepare_tool.left_out_warning(summary)
+  assert warning == ("nerfpod: warning: only 30 of 44 photos were placed (under 90%); left out: 30.jpg, 31.jpg, "
+                     "32.jpg, 33.jpg, 34.jpg, 35.jpg, 36.jpg, 37.jpg, 38.jpg, 39.jpg and 4 more; try --seed=1, "
+                     "--mapper=global, --matching=exhaustive with --overwrite (or another --out), or photos with "
+                     "more overlap of those parts of the scene."), warning
+  assert "\n" not in warning and warning.count(". ") == 0
+  summary["counts"].update(registered=40, unregistered=names[40:])  # 40 of 44: 91%, no sentence
+  assert prepare_tool.left_out_warning(summary) is None
+  summary["counts"].update(registered=39, unregistered=names[39:])
+  summary["options"].update(seed=7, matching="exhaustive")
+  summary["mapping"]["kept"] = "global"
+  assert prepare_tool.left_out_warning(summary).endswith(
+      "left out: 39.jpg, 40.jpg, 41.jpg, 42.jpg, 43.jpg; try --seed=8, --mapper=incremental with --overwrite (or "
+      "another --out), or photos with more overlap of those parts of the scene.")
