@@ -992,18 +992,22 @@ def test_a_capture_with_under_90_percent_placed_ends_with_one_sentence_naming_th
   import nerfpod.prepare as prepare_tool
   names = [f"{i:02d}.jpg" for i in range(44)]
   summary = {"counts": {"images": 44, "registered": 30, "unregistered": names[30:]},
-             "options": {"seed": 0, "matching": "sequential"}, "mapping": {"kept": "incremental"}}
+             "options": {"seed": 0, "matching": "sequential"},
+             "mapping": {"kept": "incremental", "tried": [{"mapper": "incremental"}]}}
   warning = prepare_tool.left_out_warning(summary)
   assert warning == ("nerfpod: warning: only 30 of 44 photos were placed (under 90%); left out: 30.jpg, 31.jpg, "
                      "32.jpg, 33.jpg, 34.jpg, 35.jpg, 36.jpg, 37.jpg, 38.jpg, 39.jpg and 4 more; try --seed=1, "
-                     "--mapper=global, --matching=exhaustive with --overwrite (or another --out), or photos with "
+                     "--matching=exhaustive, --mapper=global with --overwrite (or another --out), or photos with "
                      "more overlap of those parts of the scene."), warning
   assert "\n" not in warning and warning.count(". ") == 0
   summary["counts"].update(registered=40, unregistered=names[40:])  # 40 of 44: 91%, no sentence
   assert prepare_tool.left_out_warning(summary) is None
   summary["counts"].update(registered=39, unregistered=names[39:])
   summary["options"].update(seed=7, matching="exhaustive")
-  summary["mapping"]["kept"] = "global"
+  summary["mapping"] = {"kept": "global", "tried": [{"mapper": "global"}]}  # --mapper=global
   assert prepare_tool.left_out_warning(summary).endswith(
       "left out: 39.jpg, 40.jpg, 41.jpg, 42.jpg, 43.jpg; try --seed=8, --mapper=incremental with --overwrite (or "
       "another --out), or photos with more overlap of those parts of the scene.")
+  # Both mappers ran (and a rerun): the other mapper is no longer something to try, as in too_few_message.
+  summary["mapping"]["tried"] = [{"mapper": "incremental"}, {"mapper": "global"}, {"mapper": "incremental"}]
+  assert "try --seed=8 with --overwrite" in prepare_tool.left_out_warning(summary)

@@ -73,16 +73,13 @@ WELL_PLACED = 0.9  # a capture with fewer of its photos registered ends with a s
 
 def left_out_warning(summary: dict) -> str | None:
   """One sentence where fewer than WELL_PLACED of the photos were registered: which were left out, and what to
-  try (another seed, the other mapper, exhaustive matching where it was sequential); None otherwise."""
-  c, options, mapping = summary["counts"], summary["options"], summary["mapping"]
+  try (another seed, and what the run did not try: sfm.untried_options); None otherwise."""
+  c, options = summary["counts"], summary["options"]
   if c["registered"] >= WELL_PLACED * c["images"]:
     return None
   names = c["unregistered"]
   shown = ", ".join(names[:10]) + (f" and {len(names) - 10} more" if len(names) > 10 else "")
-  other = "global" if mapping["kept"] == "incremental" else "incremental"
-  hints = [f"--seed={options['seed'] + 1}", f"--mapper={other}"]
-  if options["matching"] == "sequential":
-    hints.append("--matching=exhaustive")
+  hints = [f"--seed={options['seed'] + 1}", *sfm.untried_options(summary["mapping"]["tried"], options["matching"])]
   return (f"nerfpod: warning: only {c['registered']} of {c['images']} photos were placed (under "
           f"{WELL_PLACED:.0%}); left out: {shown}; try {', '.join(hints)} with --overwrite (or another --out), "
           f"or photos with more overlap of those parts of the scene.")

@@ -251,17 +251,22 @@ def mapping_record(best: dict, note: str, choice: dict, tried: list[dict]) -> di
           "tried": [entry(r) for r in tried]}
 
 
+def untried_options(tried: list[dict], matching: str) -> list[str]:
+  """The flags of a rerun that would try what this run did not: exhaustive matching where it was sequential, the
+  other mapper where only one mapper ran (`tried`: the mapper runs, {"mapper", ...} each)."""
+  flags = ["--matching=exhaustive"] if matching == "sequential" else []
+  if {r["mapper"] for r in tried} in ({"incremental"}, {"global"}):
+    flags.append(f"--mapper={'incremental' if tried[0]['mapper'] == 'global' else 'global'}")
+  return flags
+
+
 def too_few_message(registered: int, total: int, needed: int, tried: list[dict], matching: str,
                     work: str) -> str:
   """The sentence for a model with too few images: how many, and what to try that was not tried."""
   placed = ", ".join(f"the {r['mapper']} mapper{' from seed ' + str(r['seed']) if r.get('rerun') else ''} "
                      f"{r['registered']}" for r in tried)
   hints = ["take the photos or film with more overlap (each part of the scene in 3 or more views) and less "
-           "motion blur"]
-  if matching == "sequential":
-    hints.append("try --matching=exhaustive")
-  if len(tried) == 1:
-    hints.append(f"try --mapper={'incremental' if tried[0]['mapper'] == 'global' else 'global'}")
+           "motion blur"] + [f"try {flag}" for flag in untried_options(tried, matching)]
   return (f"only {registered} of {total} images could be placed ({placed}), fewer than the {needed} needed "
           f"(--min_registered); {', or '.join(hints)}; a rerun reuses the features and matches kept in {work}.")
 
