@@ -392,12 +392,9 @@ def test_another_hosts_gs_lock_is_refused_while_it_beats_and_taken_over_once_it_
 def _agreed(gcs, lock, within_s=2.0):
   """Whether the lock's generation is the stored object's: beats run every 0.1 s here, so a beat in flight (the
   object written, its answer not yet read) is waited out rather than taken for a disagreement."""
-  deadline = time.monotonic() + within_s
-  while gcs.generation() != lock._store._generation:
-    if time.monotonic() > deadline:
-      return False
-    time.sleep(0.01)
-  return True
+  agree = lambda: gcs.generation() == lock._store._generation  # noqa: E731
+  until(agree, within_s)
+  return agree()
 
 
 @pytest.mark.parametrize("late", [False, True], ids=["together", "one-late"])
