@@ -33,6 +33,7 @@ import jax
 import numpy as np
 
 from nerfpod import storage
+from nerfpod.text import duration
 
 WANDB_RECORD = "wandb.json"  # in the workdir: {"id", "step", "keys"}
 WANDB_STEP = "step"          # the W&B metric every other metric is plotted against
@@ -99,7 +100,7 @@ class BucketEventFile:
   def __init__(self, url: str, flush_wait_s: float | None = None):
     self.url = url
     self.flush_wait_s = flush_wait_s
-    self.bucket_name, _, self.name = url[len("gs://"):].partition("/")
+    self.name = url[len("gs://"):].partition("/")[2]  # the objects' names' stem in the bucket
     self.pending = bytearray()  # written since the last flush (tensorboardX's thread)
     self.bucket = None
     self.number = None  # the next object's, known at the first upload
@@ -167,13 +168,12 @@ class BucketEventFile:
 
   def _upload(self, data: bytes) -> None:
     from google.api_core import exceptions
-    from google.cloud import storage as gcs
     # Each request bounded, and its retries too (checkpoint.storage_timeout_s: storage.bound_clients): a
     # bucket that stops answering fails an upload instead of holding tensorboardX's writer thread, and the
     # training loop whose events queue up behind it.
     bounds = {"timeout": storage.gcs_timeout(), "retry": storage.gcs_retry()}
     if self.bucket is None:
-      self.bucket = gcs.Client().bucket(self.bucket_name)
+      self.bucket = storage.gcs_bucket(self.url).bucket  # (its endpoint and credentials as the lock's)
     if self.number is None:
       numbers = [blob.name[len(self.name) + 1:] for blob in self.bucket.list_blobs(prefix=self.name + ".",
                                                                                     **bounds)]
@@ -307,7 +307,7 @@ class WandbRun:
         record = {"id": new_run_id(), "step": None, "keys": []}
         storage.path(workdir).mkdir(parents=True, exist_ok=True)
         _write_json(storage.path(workdir) / WANDB_RECORD, record)
-      local = "://" not in str(workdir)
+      local = not storage.is_url(workdir)
       try:  # a private setting of W&B's: where a version no longer has it, W&B's own default
         settings = wandb.Settings(x_transaction_log_flush_interval=WANDB_FLUSH_SECONDS)
       except Exception:  # noqa: BLE001
@@ -347,7 +347,7 @@ class WandbRun:
     def add():
       import wandb
       local = path
-      if "://" in path:  # W&B reads local files: a local copy of a gs:// video first
+      if storage.is_url(path):  # W&B reads local files: a local copy of a gs:// video first
         self.copies.append(tempfile.mkdtemp(prefix="nerfpod-wandb-"))
         local = os.path.join(self.copies[-1], os.path.basename(path))
         storage.path(path).copy(storage.path(local), overwrite=True)
@@ -428,14 +428,6 @@ def _check_wandb_server() -> None:
 
 def _reason(error: Exception) -> str:
   return " ".join(str(error).split())[:300] or type(error).__name__
-
-
-def duration(seconds: float) -> str:
-  """'1h02m' or '3m07s'."""
-  seconds = int(round(seconds))
-  if seconds >= 3600:
-    return f"{seconds // 3600}h{seconds // 60 % 60:02d}m"
-  return f"{seconds // 60}m{seconds % 60:02d}s"
 
 
 class Monitor:

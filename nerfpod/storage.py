@@ -31,8 +31,9 @@ What nerfpod writes (a workdir's config.json, scene.json and metrics, the export
 etils.epath.Path, local or gs://, the type orbax's checkpoints take too, which reaches gs:// through the same
 gcsfs (and its STORAGE_EMULATOR_HOST) as the reads above.
 
-What fsspec does not do, writing an object only if its generation is the one expected (the workdir lock), goes
-through google-cloud-storage itself: gcs_bucket() gives its Bucket of a URL, on the same endpoint and with the
+What fsspec does not do, writing an object only if its generation is the one expected (the workdir lock,
+TensorBoard's event objects in a bucket: nerfpod.monitor), goes through google-cloud-storage itself, whose
+clients are made here only: gcs_bucket() gives its Bucket of a URL, on the same endpoint and with the
 credentials every Google client finds (google.auth.default(): gcloud's application-default credentials of a
 user, a service account's key file or an external account's configuration in GOOGLE_APPLICATION_CREDENTIALS,
 or the metadata server of a GCE or TPU VM); STORAGE_EMULATOR_HOST, where it is set, is an emulator that takes
@@ -428,17 +429,19 @@ def gcs_timeout() -> float:
   return GCS_TIMEOUT
 
 
-def gcs_retry():
-  """google-cloud-storage's `retry=`: its DEFAULT_RETRY, given up after GCS_TIMEOUT seconds in all."""
+def gcs_retry(seconds: float | None = None):
+  """google-cloud-storage's `retry=`: its DEFAULT_RETRY, given up after `seconds` in all (default: GCS_TIMEOUT;
+  the workdir lock's calls have a bound of their own)."""
   from google.cloud.storage.retry import DEFAULT_RETRY
-  return DEFAULT_RETRY.with_timeout(GCS_TIMEOUT)
+  return DEFAULT_RETRY.with_timeout(GCS_TIMEOUT if seconds is None else seconds)
 
 
-def gcs_retry_if_generation():
-  """google-cloud-storage's `retry=` for a write: gcs_retry(), where the request carries a generation
-  precondition (which makes a retry safe), as the library's own DEFAULT_RETRY_IF_GENERATION_SPECIFIED."""
+def gcs_retry_if_generation(retry=None):
+  """google-cloud-storage's `retry=` for a write or a delete: `retry` (default: gcs_retry()), where the request
+  carries a generation precondition (which makes a retry safe), as the library's own
+  DEFAULT_RETRY_IF_GENERATION_SPECIFIED."""
   from google.cloud.storage.retry import ConditionalRetryPolicy, is_generation_specified
-  return ConditionalRetryPolicy(gcs_retry(), is_generation_specified, ["query_params"])
+  return ConditionalRetryPolicy(gcs_retry() if retry is None else retry, is_generation_specified, ["query_params"])
 
 
 def within(url, seconds: float, work):

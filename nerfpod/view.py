@@ -175,12 +175,6 @@ class Viewer:
 
   # ---- checkpoints --------------------------------------------------------------------------------------
 
-  def _restore_newest(self, above: int):
-    """(step, params) of the newest step after `above` that reads back whole, or None (the one door's
-    checkpoints.restore_newest: damaged steps are said once, remembered in `self.damaged` and left in place)."""
-    found = checkpoints.restore_newest(self.workdir, self.comps.state_shapes, above, self.damaged)
-    return None if found is None else (found[0], found[1].params)
-
   def poll(self) -> bool:
     """One look for a newer checkpoint (the poller's, every `poll_seconds`): the newest step after the one
     on screen that reads back whole replaces it and every page is re-rendered; newer steps that do not read
@@ -189,7 +183,8 @@ class Viewer:
     and looked at again at the next poll."""
     damaged = len(self.damaged)
     try:
-      newest = self._restore_newest(above=self.step)
+      # (the one door's: damaged steps are said once, remembered in `self.damaged` and left in place)
+      newest = run_trained.newer(self.workdir, self.comps, self.step, self.damaged)
     except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
       reason = checkpoints.damage_reason(e)
       if reason != self._poll_error:

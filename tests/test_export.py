@@ -341,7 +341,7 @@ def test_a_pose_refined_run_exports_its_training_frames_corrected_poses(smoke_wo
 def test_depth_maps_read_back_as_the_rendered_depth(smoke_workdir, tmp_path):
   import json
   from PIL import Image
-  from nerfpod.export import trained as trained_lib
+  from nerfpod.export import shared
   from nerfpod.run import trained as run_trained
   out_png, out_npy = tmp_path / "png", tmp_path / "npy"
   _export("depth", f"--workdir={smoke_workdir}", "--split=test", f"--out={out_png}", "--min_opacity=0.1")
@@ -360,7 +360,7 @@ def test_depth_maps_read_back_as_the_rendered_depth(smoke_workdir, tmp_path):
     # direction is -1), 0 where the opacity is under 0.1.
     i = view["index"]
     origins, directions = cameras.image_rays(split.poses[i], split.cameras[i])
-    out = trained_lib.render_rays(trained, origins.reshape(-1, 3), directions.reshape(-1, 3), 1024)
+    out = shared.render_rays(trained, origins.reshape(-1, 3), directions.reshape(-1, 3), 1024)
     want = np.where(out["acc"] >= 0.1, out["depth"] / np.maximum(out["acc"], 1e-10), 0).reshape(32, 32)
     np.testing.assert_allclose(npy, want, rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(view["transform_matrix"], split.poses[i], atol=1e-6)
@@ -493,6 +493,7 @@ def test_a_mesh_resolution_that_cannot_fit_in_memory_is_refused_before_any_work(
   """--resolution is weighed against this host's available memory before anything is restored or written: a
   grid that cannot fit is one sentence (exit code 2) naming the memory it would take and the largest that fits;
   one that fits exports as before, saying its progress."""
+  from nerfpod import text
   from nerfpod.export import mesh
   monkeypatch.setattr(mesh, "available_memory_bytes", lambda: 16 * 2 ** 20)  # 16 MiB
   fits = mesh.largest_resolution(mesh.MEMORY_SHARE * 16 * 2 ** 20)
@@ -502,8 +503,8 @@ def test_a_mesh_resolution_that_cannot_fit_in_memory_is_refused_before_any_work(
     export_tool.run(["mesh", f"--workdir={smoke_workdir}", f"--out={out}", "--resolution=96"])
   assert refused.value.code == 2
   captured = capsys.readouterr()
-  assert (f"nerfpod: error: --resolution=96 would take about {mesh._gib(mesh.memory_bytes(96))} of memory (its 96^3 "
-          f"density grid and marching cubes' working memory) but this host has 16 MiB available; pass "
+  assert (f"nerfpod: error: --resolution=96 would take about {text.byte_size(mesh.memory_bytes(96))} of memory (its 96^3 "
+          f"density grid and marching cubes' working memory) but this host has 16.0 MiB available; pass "
           f"--resolution={fits} or less.") in captured.err, captured.err
   assert "restored" not in captured.out and not (tmp_path / "exports").exists()  # nothing restored or made
   # A resolution that fits: the density pass reports its progress, and the export is written as before.
@@ -526,7 +527,7 @@ def test_a_long_mesh_export_says_its_time_and_memory_up_front(smoke_workdir, tmp
     _export("mesh", f"--workdir={smoke_workdir}", f"--out={tmp_path / 'mesh.ply'}", "--resolution=96", "--level=1000")
   lines = capsys.readouterr().out.splitlines()
   (estimate,) = [i for i, line in enumerate(lines) if "mesh: a 96^3 grid (" in line]
-  assert re.search(r"field queries at \S+ a second measured, then marching cubes\) takes about \d+ s and "
-                   r"\d+ MiB of memory", lines[estimate]), lines[estimate]
+  assert re.search(r"field queries at \S+ a second measured, then marching cubes\) takes about \S+ (ms|s|min \d+ s|h \d+ min) and "
+                   r"[\d.,]+ [KMG]iB of memory", lines[estimate]), lines[estimate]
   (done,) = [i for i, line in enumerate(lines) if "mesh: density 96/96 planes" in line]
   assert estimate < done

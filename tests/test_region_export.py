@@ -15,7 +15,7 @@ import pytest
 from conftest import smoke_config
 from nerfpod import distributed
 from nerfpod.export import mesh as mesh_export
-from nerfpod.export import pointcloud, trained as trained_lib
+from nerfpod.export import pointcloud, shared
 from nerfpod.nerf import fields, regions
 from nerfpod.run import components
 from nerfpod.run.trained import Trained
@@ -128,7 +128,7 @@ def test_each_point_takes_the_field_of_its_own_region(cut, models):
   viewdirs /= np.linalg.norm(viewdirs, axis=1, keepdims=True)
   ids = np.asarray(regions.region_of(jnp.asarray(points), partition))
   assert sorted(set(ids.tolist())) == [0, 1, 2, 3]
-  query = trained_lib.FieldQuery(trained, 64)  # several chunks, each device's share meeting several regions
+  query = shared.FieldQuery(trained, 64)  # several chunks, each device's share meeting several regions
   rgb, sigma, normals = query.query(points, viewdirs)
   np.testing.assert_allclose(query.density(points), sigma, rtol=1e-6)
   stacked = trained.params["params"]["regions"]["coarse"]
@@ -152,7 +152,7 @@ def test_the_ground_order_puts_neighbours_together():
   """Blocks of 256 points in ground order (a device's share of a chunk) each meet 1 or 2 of a 4 x 4 grid's
   regions on average, where blocks of points in no order meet nearly all 16."""
   points = np.random.default_rng(3).uniform(-BOUND, BOUND, (32768, 3))
-  order = trained_lib.ground_order(points)
+  order = shared.ground_order(points)
   assert sorted(order.tolist()) == list(range(len(points)))
   ids = np.asarray(regions.region_of(jnp.asarray(points, jnp.float32), regions.grid(16, BOUND)))
   met = lambda ids: np.mean([len(set(block.tolist())) for block in ids.reshape(-1, 256)])  # noqa: E731
@@ -169,7 +169,7 @@ def test_a_region_models_mesh_and_point_cloud_are_valid(models, tmp_path):
   one, split = models["one"], models["grid"]
   assert one.comps.model.regions == 1
   probe = np.random.default_rng(0).uniform(-BOUND, BOUND, (4096, 3))
-  level = float(np.median(trained_lib.FieldQuery(split, 1024).density(probe)))
+  level = float(np.median(shared.FieldQuery(split, 1024).density(probe)))
   meshes = {}
   for name, trained in (("one", one), ("four", split)):
     path = tmp_path / f"{name}.ply"
@@ -183,7 +183,7 @@ def test_a_region_models_mesh_and_point_cloud_are_valid(models, tmp_path):
   vertices = meshes["four"].vertices
   # Its vertices lie on the level set of the region field's density (up to the grid's interpolation): the
   # density there is far nearer the level than at random points (0.05 against 0.47 in log density, 2026-12-06).
-  query = trained_lib.FieldQuery(split, 1024)
+  query = shared.FieldQuery(split, 1024)
   off = lambda points: np.median(np.abs(np.log(query.density(points)) - np.log(level)))  # noqa: E731
   assert off(np.asarray(vertices)) < 0.2 * off(probe)
   for axis in (0, 1):
@@ -205,6 +205,6 @@ def test_the_one_field_query_is_the_fields_own(models):
   field = fields.make_field(config.model, jnp.float32)
   rgb, sigma = jax.jit(lambda p, x, d: field.apply({"params": p}, x, d))(
       trained.params["params"]["coarse"], points, np.broadcast_to(np.float32([0, 0, -1]), points.shape))
-  got_rgb, got_sigma, _ = trained_lib.FieldQuery(trained, 128).query(points)
+  got_rgb, got_sigma, _ = shared.FieldQuery(trained, 128).query(points)
   np.testing.assert_allclose(got_sigma, sigma, rtol=1e-6, atol=1e-7)
   np.testing.assert_allclose(got_rgb, rgb, rtol=1e-6, atol=1e-7)

@@ -69,8 +69,8 @@ def _report(config, pod, note: list, what=("step",), slices: int = 1):
 
 
 def _time(seconds) -> str:
-  from nerfpod.pod import aot
-  return "n/a" if seconds is None else aot.duration(seconds)
+  from nerfpod import text
+  return "n/a" if seconds is None else text.duration(seconds)
 
 
 def _gib(n) -> str:

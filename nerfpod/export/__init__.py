@@ -10,9 +10,11 @@ video reads the orbit archive; the others restore the workdir's newest checkpoin
 training may still run) and render or query it on every device of every host (on a pod, run the command on
 every host, as training; process 0 writes). Their outputs default to DIR/exports/. Each kind is a module
 here (video, pointcloud, mesh, cameras, depth) with ABOUT, define_flags(flag_values), check(args) and
-export(); trained restores a workdir for them, ply writes PLY files. Each kind's absl flags are defined when
-that kind is asked for, in a FlagValues of its own, and read as every subcommand reads them
-(errors.parse_flags: `nerfpod export KIND --help`, one sentence and exit 2 for a mistake).
+export(); nerfpod.run.trained restores a workdir for them, shared holds what they share (the field and the
+renderer over the whole device mesh, the output path's check, progress lines), ply writes PLY files. Each
+kind's absl flags are defined when that kind is asked for, in a FlagValues of its own, and read as every
+subcommand reads them (errors.parse_flags: `nerfpod export KIND --help`, one sentence and exit 2 for a
+mistake).
 """
 import importlib
 import sys
@@ -93,12 +95,12 @@ def export(args) -> list[str] | dict:
   checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
   distributed.keep_off_absent_tpu()
   distributed.initialize()  # several hosts (a TPU pod, JAX_* variables) render together; else one process
-  from nerfpod.export import trained as trained_lib
-  from nerfpod.run import trained as run_trained
-  run_trained.check(args.workdir)  # no config.json or checkpoint: refused before --out is made
+  from nerfpod.export import shared
+  from nerfpod.run import trained
+  trained.check(args.workdir)  # no config.json or checkpoint: refused before --out is made
   default, kind = _default_out(module, args)
-  out = trained_lib.output_path(args.out, default, args.workdir, kind)
-  module.export(args, run_trained.restore(args.workdir), out)
+  out = shared.output_path(args.out, default, args.workdir, kind)
+  module.export(args, trained.restore(args.workdir), out)
   return [out]
 
 

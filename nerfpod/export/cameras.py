@@ -22,7 +22,7 @@ from PIL import Image
 from nerfpod import storage
 from nerfpod.workdir import files as workdir_files
 from nerfpod.errors import UserError
-from nerfpod.export import trained as trained_lib
+from nerfpod.export import shared
 from nerfpod.nerf import pose_correction
 from nerfpod.nerf.cameras import DISTORTION_PARAMS
 
@@ -40,14 +40,14 @@ def check(args) -> None:
                     f"go to images/ beside it.")
 
 
-def export(args, trained: trained_lib.Trained, out: str) -> dict:
+def export(args, trained: shared.Trained, out: str) -> dict:
   scene = trained.comps.scene
   corrections = pose_correction.of_params(trained.params)
   folder = storage.path(out).parent
   frames, lists, written = [], {}, {}  # written: id(split) -> its file names (val and test may be one split)
   distorted = any(s.cameras.is_distorted for s in scene.splits.values())
   total = sum(len(s) for s in scene.splits.values())
-  progress = trained_lib.Progress("cameras", total, "frames")
+  progress = shared.Progress("cameras", total, "frames")
   done = 0
   for name, split in scene.splits.items():
     if id(split) in written:
@@ -85,5 +85,5 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
                       "capture_to_scene": np.asarray(trained.capture_to_scene).tolist()}}
   if jax.process_index() == 0:
     workdir_files.write_json(out, meta)
-  trained_lib.say(f"cameras: {len(frames)} frames -> {out}")
+  shared.say(f"cameras: {len(frames)} frames -> {out}")
   return {"frames": len(frames)}

@@ -17,7 +17,7 @@ from PIL import Image
 from nerfpod import storage
 from nerfpod.workdir import files as workdir_files
 from nerfpod.errors import UserError
-from nerfpod.export import trained as trained_lib
+from nerfpod.export import shared
 from nerfpod.nerf import cameras
 
 ABOUT = "per-view depth maps of a split (16-bit PNG with their scale, or .npy)"
@@ -48,20 +48,20 @@ def z_depth(points_Nx3, c2w_4x4) -> np.ndarray:
   return (np.asarray(points_Nx3, np.float64) - c2w[:3, 3]) @ -c2w[:3, 2]
 
 
-def export(args, trained: trained_lib.Trained, out: str) -> dict:
+def export(args, trained: shared.Trained, out: str) -> dict:
   config, comps = trained.config, trained.comps
   split = comps.scene.split(args.split)
   folder = storage.path(out)
   units = 1.0 if args.normalized else 1.0 / trained.scale  # output units per scene unit
   poses = trained.poses_out(split.poses, args.normalized)
   views = []
-  progress = trained_lib.Progress(f"depth {args.split}", len(split), "views")
+  progress = shared.Progress(f"depth {args.split}", len(split), "views")
   for i in range(len(split)):
     intr = split.cameras[i]
     origins, directions = cameras.image_rays(split.poses[i], intr, config.data.pixel_center)
     origins, directions = origins.reshape(-1, 3), directions.reshape(-1, 3)
-    rendered = trained_lib.render_rays(trained, origins, directions, config.eval.chunk)
-    points, hit = trained_lib.hit_points(rendered, origins, directions, config.render.space, args.min_opacity)
+    rendered = shared.render_rays(trained, origins, directions, config.eval.chunk)
+    points, hit = shared.hit_points(rendered, origins, directions, config.render.space, args.min_opacity)
     depth = np.where(hit, z_depth(points, split.poses[i]) * units, 0.0).reshape(intr.height, intr.width)
     depth = np.maximum(depth, 0.0)
     name = f"{args.split}_{i:04d}.{args.format}"
@@ -87,5 +87,5 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
           "min_opacity": args.min_opacity, "views": views}
   if jax.process_index() == 0:
     workdir_files.write_json(folder / "depth.json", meta)
-  trained_lib.say(f"depth: {len(views)} views -> {out}")
+  shared.say(f"depth: {len(views)} views -> {out}")
   return {"views": len(views)}

@@ -25,7 +25,8 @@ import numpy as np
 from absl import flags
 
 from nerfpod.errors import UserError
-from nerfpod.export import ply, trained as trained_lib
+from nerfpod.export import ply, shared
+from nerfpod.text import byte_size, duration
 
 ABOUT = "a coloured triangle mesh (PLY or OBJ) by marching cubes on the density"
 DEFAULT_OUT = "mesh.ply"
@@ -96,10 +97,6 @@ def largest_resolution(budget: float) -> int:
   return n
 
 
-def _gib(size: float) -> str:
-  return f"{size / 2 ** 30:.1f} GiB" if size >= 2 ** 30 else f"{size / 2 ** 20:.0f} MiB"
-
-
 def check_memory(n: int) -> None:
   """Refuses, before any work, a --resolution whose grid and marching cubes would not fit in this host's
   available memory (MEMORY_SHARE of it), naming the largest one that would."""
@@ -109,16 +106,8 @@ def check_memory(n: int) -> None:
   fits = largest_resolution(MEMORY_SHARE * available)
   way_out = (f"pass --resolution={fits} or less" if fits >= 8
              else "free some memory (not even --resolution=8 fits)")
-  raise UserError(f"--resolution={n} would take about {_gib(need)} of memory (its {n}^3 density grid and marching "
-                  f"cubes' working memory) but this host has {_gib(available)} available; {way_out}.")
-
-
-def _duration(seconds: float) -> str:
-  if seconds < 120:
-    return f"{seconds:.0f} s"
-  if seconds < 7200:
-    return f"{seconds / 60:.0f} min"
-  return f"{seconds / 3600:.1f} h"
+  raise UserError(f"--resolution={n} would take about {byte_size(need)} of memory (its {n}^3 density grid and "
+                  f"marching cubes' working memory) but this host has {byte_size(available)} available; {way_out}.")
 
 
 def _queries_per_second(query, points_Nx3) -> float:
@@ -130,16 +119,16 @@ def _queries_per_second(query, points_Nx3) -> float:
   return len(points_Nx3) / max(time.perf_counter() - started, 1e-9)
 
 
-def export(args, trained: trained_lib.Trained, out: str) -> dict:
+def export(args, trained: shared.Trained, out: str) -> dict:
   from skimage import measure  # the mesh extra
   config = trained.config
   if config.render.space == "ndc":
     raise UserError("a forward-facing scene's field lives in NDC space (render.space=ndc), where no mesh of the "
                     "world can be cut; export a point cloud instead (nerfpod export pointcloud).")
-  bound = trained_lib.box_bound(trained, args.bound)
+  bound = shared.box_bound(trained, args.bound)
   n = args.resolution
   axis = np.linspace(-bound, bound, n)
-  query = trained_lib.FieldQuery(trained, max(config.eval.chunk, 65536))
+  query = shared.FieldQuery(trained, max(config.eval.chunk, 65536))
   density = np.empty((n, n, n), np.float32)
   plane = np.stack(np.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
   slabs = max(1, min(n, SLAB_POINTS // (n * n)))  # x-planes per query: ~2M points
@@ -148,18 +137,18 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
     rate = _queries_per_second(query, slab_of(axis[:slabs])[:query.chunk])
     seconds = n ** 3 / rate + n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND
     if seconds >= SAY_ESTIMATE_SECONDS:
-      trained_lib.say(f"mesh: a {n}^3 grid ({n ** 3:.3g} field queries at {rate:.3g} a second measured, then marching "
-                      f"cubes) takes about {_duration(seconds)} and {_gib(memory_bytes(n))} of memory")
-  progress = trained_lib.Progress("mesh: density", n, "planes")
+      shared.say(f"mesh: a {n}^3 grid ({n ** 3:.3g} field queries at {rate:.3g} a second measured, then marching "
+                 f"cubes) takes about {duration(seconds)} and {byte_size(memory_bytes(n))} of memory")
+  progress = shared.Progress("mesh: density", n, "planes")
   started = time.perf_counter()
   for start in range(0, n, slabs):
     xs = axis[start:start + slabs]
     density[start:start + len(xs)] = query.density(slab_of(xs)).reshape(len(xs), n, n)
     done, spent = start + len(xs), time.perf_counter() - started
-    progress.update(done, f", about {_duration(spent * (n - done) / done)} left" if done < n else "")
+    progress.update(done, f", about {duration(spent * (n - done) / done)} left" if done < n else "")
   if n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND >= SAY_ESTIMATE_SECONDS / 3:
-    trained_lib.say(f"mesh: marching cubes on the {n}^3 grid (about "
-                    f"{_duration(n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND)}, one core)")
+    shared.say(f"mesh: marching cubes on the {n}^3 grid (about "
+               f"{duration(n ** 3 / MARCHING_CUBES_POINTS_PER_SECOND)}, one core)")
   if not np.isfinite(density).all():
     raise UserError(f"the field's density is not finite at some grid points; the checkpoint of step {trained.step} "
                     f"is damaged or diverged.")
@@ -177,12 +166,12 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
               f"marching cubes: {n}^3 grid over [-{bound:g}, {bound:g}]^3 (normalized), density level {args.level:g}"]
   if config.render.space == "contract":
     comments.append("contracted scene: the bounded part only (the unit ball left as it is by the contraction)")
-    trained_lib.say("mesh: a contracted scene: the mesh covers its bounded part only (the box [-1, 1]^3 of the "
-                    "normalised scene; --bound to change)")
+    shared.say("mesh: a contracted scene: the mesh covers its bounded part only (the box [-1, 1]^3 of the "
+               "normalised scene; --bound to change)")
   verts_out = trained.points_out(verts, args.normalized)
   normals_out = trained.directions_out(normals, args.normalized)
   if jax.process_index() == 0:
     write = ply.write_obj if str(out).lower().endswith(".obj") else ply.write_ply
     write(out, verts_out, rgb, normals_out, faces, comments=comments)
-  trained_lib.say(f"mesh: {len(verts)} vertices, {len(faces)} triangles -> {out}")
+  shared.say(f"mesh: {len(verts)} vertices, {len(faces)} triangles -> {out}")
   return {"vertices": len(verts), "faces": len(faces)}

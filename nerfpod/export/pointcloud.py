@@ -15,7 +15,7 @@ import numpy as np
 from absl import flags
 
 from nerfpod.errors import UserError
-from nerfpod.export import ply, trained as trained_lib
+from nerfpod.export import ply, shared
 from nerfpod.nerf import cameras
 
 ABOUT = "a coloured point cloud (PLY) from the training views' rendered depth"
@@ -49,25 +49,25 @@ def pixel_rays(split, pixel_ids, pixel_center: float):
   return cameras.frame_rays(split.poses[frames], split.cameras, frames, rows, cols, pixel_center)
 
 
-def export(args, trained: trained_lib.Trained, out: str) -> dict:
+def export(args, trained: shared.Trained, out: str) -> dict:
   """Writes the PLY to `out` (process 0); returns a summary."""
   config, comps = trained.config, trained.comps
   split = comps.scene.split(args.split)
-  bound = trained_lib.box_bound(trained, args.bound)
+  bound = shared.box_bound(trained, args.bound)
   total = split.num_pixels
   rng = np.random.default_rng(args.seed)
   order = rng.permutation(total) if total <= MAX_PERMUTED else None
   batch = max(comps.mesh.size, config.eval.chunk) * 8
   kept_points, kept_rgb, kept, tried = [], [], 0, 0
-  progress = trained_lib.Progress("pointcloud", args.num_points, "points")
+  progress = shared.Progress("pointcloud", args.num_points, "points")
   limit = total if order is not None else max(total, 4 * args.num_points)
   while kept < args.num_points and tried < limit:
     count = min(batch, limit - tried)
     ids = order[tried:tried + count] if order is not None else rng.integers(0, total, count)
     tried += count
     origins, directions = pixel_rays(split, ids, config.data.pixel_center)
-    out_rays = trained_lib.render_rays(trained, origins, directions, config.eval.chunk)
-    points, hit = trained_lib.hit_points(out_rays, origins, directions, config.render.space, args.min_opacity)
+    out_rays = shared.render_rays(trained, origins, directions, config.eval.chunk)
+    points, hit = shared.hit_points(out_rays, origins, directions, config.render.space, args.min_opacity)
     keep = hit & (np.abs(points) <= bound).all(1)
     kept_points.append(points[keep])
     kept_rgb.append(np.clip(out_rays["rgb"][keep], 0, 1))
@@ -75,12 +75,12 @@ def export(args, trained: trained_lib.Trained, out: str) -> dict:
     progress.update(min(kept, args.num_points), f" from {tried} rays")
   points = np.concatenate(kept_points)[:args.num_points] if kept_points else np.zeros((0, 3))
   rgb = np.concatenate(kept_rgb)[:args.num_points] if kept_rgb else np.zeros((0, 3))
-  _, _, normals = trained_lib.FieldQuery(trained, config.eval.chunk).query(points)
+  _, _, normals = shared.FieldQuery(trained, config.eval.chunk).query(points)
   comments = [f"nerfpod export pointcloud: step {trained.step} of {trained.workdir}",
               f"coordinates: {'normalized scene' if args.normalized else 'capture'}",
               f"rays tried {tried}, min_opacity {args.min_opacity}, box [-{bound:g}, {bound:g}]^3 (normalized)"]
   if jax.process_index() == 0:
     ply.write_ply(out, trained.points_out(points, args.normalized), rgb,
                   trained.directions_out(normals, args.normalized), comments=comments)
-  trained_lib.say(f"pointcloud: {len(points)} points (of {tried} rays) -> {out}")
+  shared.say(f"pointcloud: {len(points)} points (of {tried} rays) -> {out}")
   return {"points": len(points), "rays": tried}

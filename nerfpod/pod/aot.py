@@ -39,6 +39,7 @@ from ml_collections import config_flags
 from nerfpod import schema
 from nerfpod.errors import UserError, fail, parse_flags
 from nerfpod.pod import chips
+from nerfpod.text import byte_size, duration
 
 ABOUT = "compile a config for a TPU pod topology here, and report memory and time"
 # Its own flags (not absl's global ones): tools.pod_tables imports this module beside flags of its own.
@@ -368,24 +369,6 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   return report
 
 
-def _size(n: float) -> str:
-  for unit, scale in (("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
-    if n >= scale:
-      return f"{n / scale:.1f} {unit}"
-  return f"{int(n)} B"
-
-
-def duration(seconds: float) -> str:
-  """A time for people: h, min, s or ms."""
-  if seconds >= 3600:
-    return f"{seconds / 3600:.1f} h"
-  if seconds >= 60:
-    return f"{seconds / 60:.1f} min"
-  if seconds >= 1:
-    return f"{seconds:.2f} s"
-  return f"{seconds * 1e3:.3g} ms"
-
-
 def format_report(report: dict) -> str:
   """The report as a readable table."""
   slices = report.get("slices", 1)
@@ -402,13 +385,14 @@ def format_report(report: dict) -> str:
     r = report[name]
     m = r["memory"]
     if r["seconds"] is None:
-      lines.append(f"  {name:<7} does not fit: XLA needs {_size(m['peak_bytes'])} of temporaries, the chip has "
-                   f"{_size(m['xla_available_bytes'])} ({r['compile_error'][:160]})")
+      lines.append(f"  {name:<7} does not fit: XLA needs {byte_size(m['peak_bytes'])} of temporaries, the chip has "
+                   f"{byte_size(m['xla_available_bytes'])} ({r['compile_error'][:160]})")
       continue
     xla = r["xla"]["optimal_seconds"]
     lines.append(
-        f"  {name:<7} {_size(m['argument_bytes']):>9} {_size(m['temp_bytes']):>9} {_size(m['output_bytes']):>9} "
-        f"{_size(m['peak_bytes']):>9} {('fits' if r['fits_hbm'] else 'OVER'):>8} {r['flops_per_chip'] / 1e9:>9.3f} "
+        f"  {name:<7} {byte_size(m['argument_bytes']):>9} {byte_size(m['temp_bytes']):>9} "
+        f"{byte_size(m['output_bytes']):>9} "
+        f"{byte_size(m['peak_bytes']):>9} {('fits' if r['fits_hbm'] else 'OVER'):>8} {r['flops_per_chip'] / 1e9:>9.3f} "
         f"{r['bytes_per_chip'] / 1e9:>8.3f} {duration(r['seconds']):>10} "
         f"{(duration(xla) if xla else 'n/a'):>9} {r['rays_per_s_per_chip'] or 0:>12,.0f} "
         f"{(r['rays_per_s'] or 0):>12,.0f} {r['compile_seconds']:>7.1f}s")
@@ -428,14 +412,15 @@ def format_report(report: dict) -> str:
                    if lookups["seconds_per_index"] else "no per-index rate for this chip")
       lines.append(f"  lookups per step and chip: {lookups['indices']:,.0f} slices gathered or scattered (of which "
                    f"{lookups['vmem_indices']:,.0f} in VMEM tables) at {per_index}; "
-                   f"{_size(lookups['bytes'])} of HBM traffic; {duration(lookups['seconds'])} of the step")
+                   f"{byte_size(lookups['bytes'])} of HBM traffic; {duration(lookups['seconds'])} of the step")
     for c in s["collectives"]:
       if c.get("network") == "dcn":
-        lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} per chip across {c['group']} slices (DCN), "
+        lines.append(f"  collective: {c['op']} of {byte_size(c['bytes'])} per chip across {c['group']} slices (DCN), "
                      f"x{c['count']:g}")
       else:
         axes = f" ({' x '.join(c['axes'])} axis)" if c.get("axes") else ""
-        lines.append(f"  collective: {c['op']} of {_size(c['bytes'])} over {c['group']} chips{axes}, x{c['count']:g}")
+        lines.append(f"  collective: {c['op']} of {byte_size(c['bytes'])} over {c['group']} chips{axes}, "
+                     f"x{c['count']:g}")
     verdict = "; ".join(s["unexpected_collectives"]) or (
         "the gradient all-reduce and scalars only" if slices == 1 else
         "the gradient all-reduce (within each slice, then across the slices over DCN) and scalars only")
@@ -444,11 +429,11 @@ def format_report(report: dict) -> str:
     lines.append(f"  step collectives: {verdict}")
     if "region_traffic" in s:
       t, regions = s["region_traffic"], report["mesh"].get("region", 1)
-      lines.append(f"  region traffic per step and chip: {_size(t['gathered_bytes'])} of partial sums all-gathered "
+      lines.append(f"  region traffic per step and chip: {byte_size(t['gathered_bytes'])} of partial sums all-gathered "
                    f"over the region axis ({t['gathers']:g} gather(s); {regions - 1}/{regions} of it from the other "
-                   f"{regions - 1} chips), {_size(t['region_reduce_bytes'])} reduced over the region axis, "
-                   f"{_size(t['gradient_mean_bytes'])} in the gradient mean over the batch's axes"
-                   + (f", {_size(t['other_region_bytes'])} other over the region axis" if t["other_region_bytes"]
+                   f"{regions - 1} chips), {byte_size(t['region_reduce_bytes'])} reduced over the region axis, "
+                   f"{byte_size(t['gradient_mean_bytes'])} in the gradient mean over the batch's axes"
+                   + (f", {byte_size(t['other_region_bytes'])} other over the region axis" if t["other_region_bytes"]
                       else ""))
     lines.append(f"  {report['num_steps']} steps (train.num_steps): {duration(s['run_seconds'])} estimated")
   if slices > 1:
@@ -458,7 +443,7 @@ def format_report(report: dict) -> str:
                  f"  DCN between slices: no published bandwidth for {report['chip']['kind']}; the time across "
                  f"slices is left out of the estimates")
   lines.append(f"  host rows contiguous: {report['host_rows_contiguous']}; HBM per chip "
-               f"{_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
+               f"{byte_size(report['chip']['hbm_bytes'])} ({report['chip']['source']}); times are estimates (XLA's "
                f"compiled program on the chip's published peaks: nerfpod.pod.hlo_cost), not measurements")
   return "\n".join(lines)
 

@@ -40,7 +40,7 @@ from absl import flags
 
 from nerfpod.errors import UserError, fail, parse_flags
 from nerfpod.prepare import capture, frames, sfm
-from nerfpod.prepare.progress import duration
+from nerfpod.text import duration
 
 STATE = "state.json"
 

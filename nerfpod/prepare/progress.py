@@ -1,6 +1,8 @@
-"""What nerfpod prepare prints while a stage runs: a progress line with the count, the time so far and an ETA,
-and durations as a person reads them."""
+"""What nerfpod prepare prints while a stage runs: a progress line with the count, the time so far and an ETA
+(durations as nerfpod.text writes them)."""
 import time
+
+from nerfpod.text import duration
 
 
 def eta(done: float, total: float, elapsed: float) -> str:
@@ -8,16 +10,6 @@ def eta(done: float, total: float, elapsed: float) -> str:
   if done <= 0 or total <= done:
     return ""
   return f", about {duration(elapsed * (total - done) / done)} left"
-
-
-def duration(seconds: float) -> str:
-  seconds = max(0.0, float(seconds))
-  if seconds < 60:
-    return f"{seconds:.1f} s" if seconds < 10 else f"{seconds:.0f} s"
-  minutes, s = divmod(int(round(seconds)), 60)
-  if minutes < 60:
-    return f"{minutes} min {s} s"
-  return f"{minutes // 60} h {minutes % 60} min"
 
 
 class Progress:

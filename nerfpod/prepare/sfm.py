@@ -14,7 +14,8 @@ import time
 import numpy as np
 
 from nerfpod.errors import UserError
-from nerfpod.prepare.progress import Progress, duration
+from nerfpod.prepare.progress import Progress
+from nerfpod.text import duration
 
 MIN_IMAGES = 5                 # fewer cannot make a model worth training on (20+ is a good start)
 EXHAUSTIVE_MAX_IMAGES = 300    # exhaustive matching up to this many images (n^2/2 pairs), sequential above

@@ -110,11 +110,6 @@ def memory_budget_bytes(config) -> int:
   return int(config.compile.cpu_memory_gib * 2**30 / jax.local_device_count())
 
 
-def size_text(n: float) -> str:
-  """A size in bytes as one shows it: GiB from 1 GiB up, else MiB (one decimal)."""
-  return f"{n / 2**30:,.1f} GiB" if n >= 2**30 else f"{n / 2**20:,.1f} MiB"
-
-
 def device_memory_bytes() -> int:
   """What one device has: an accelerator's memory as it reports it; on a CPU, the host's physical memory
   shared by this process's simulated devices."""

@@ -41,7 +41,7 @@ def train_and_evaluate(config, workdir: str) -> dict | None:
   """
   schema.validate(config, jax.device_count())
   storage.bound_clients(config.checkpoint.storage_timeout_s)  # before the first request to a bucket
-  new_workdir = "://" not in str(workdir) and not os.path.exists(workdir)
+  new_workdir = not storage.is_url(workdir) and not os.path.exists(workdir)
   workdir_files.check_workdir(workdir, writable=True)
   lock = _hold(workdir)
   try:
@@ -83,7 +83,7 @@ def _disk_full_is_one_sentence(workdir: str, training: bool):
   except Exception as e:  # noqa: BLE001 (orbax, tensorstore, tensorboardX and Python raise it differently)
     if not checkpoints.disk_full(e):
       raise
-    if jax.process_index() == 0 and "://" not in str(workdir):
+    if jax.process_index() == 0 and not storage.is_url(workdir):
       try:
         checkpoints.remove_cut_off_saves(workdir)
         for events in glob.glob(os.path.join(glob.escape(str(workdir)), "events.out.tfevents.*")):

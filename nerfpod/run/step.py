@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import optax
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import distributed
+from nerfpod import distributed, text
 from nerfpod.run import compilation, train_state
 from nerfpod.run.components import Components
 from nerfpod.run.train_state import TrainState
@@ -409,8 +409,8 @@ def compile_for_run(comps: Components):
             f"or a smaller --config.train.batch_size" if tc.microbatches else
             "set a smaller --config.train.batch_size")
     raise UserError(f"the train step of train.batch_size={tc.batch_size} ({per_device} rays per device) in "
-                    f"{count} micro-batch(es) needs {compilation.size_text(need)} per device by XLA's analysis, "
-                    f"more than the {compilation.size_text(capacity)} a device has; {more}.")
+                    f"{count} micro-batch(es) needs {text.byte_size(need)} per device by XLA's analysis, "
+                    f"more than the {text.byte_size(capacity)} a device has; {more}.")
   if comps.config.train.microbatches == 0 and jax.process_index() == 0:
     fits = "fits" if need is None or need <= budget else "is the most there can be; it does not fit"
     shown = "unknown" if need is None else f"{need / 2**20:,.1f} MiB"

@@ -5,6 +5,9 @@
                                     config.json, every device of this process's runtime)
     restore(workdir, config)        the same for --mode=eval and --mode=render (the command line's config,
                                     checked against the workdir's, on the run's mesh)
+    newer(workdir, comps, above, damaged)
+                                    (step, params) of the newest checkpoint after step `above` that reads back
+                                    whole, or None: the viewer's poll while a training run goes on
 
 Restoring only reads: the newest finished step that reads back whole (checkpoints.restore_newest: a damaged
 step is said in one warning line and left in place for a training run to set aside), nothing written,
@@ -83,7 +86,7 @@ def check(workdir: str, config=None):
   if given:
     schema.validate(config, jax.device_count())
   workdir_files.check_workdir(workdir, writable=False)  # an existing file: one sentence
-  if "://" not in workdir and not os.path.isdir(workdir):
+  if not storage.is_url(workdir) and not os.path.isdir(workdir):
     raise UserError(f"workdir {workdir} does not exist; check the --workdir path, or train first (nerfpod train "
                     f"--config=configs/default.py --workdir={workdir}).")
   if not given:
@@ -119,3 +122,12 @@ def restore(workdir: str, config=None) -> Trained:
   if jax.process_index() == 0:
     print(f"nerfpod: restored step {step} of {workdir}", flush=True)
   return Trained(workdir, config, comps, state.params, step, transform, damaged)
+
+
+def newer(workdir: str, comps: components.Components, above: int, damaged: dict) -> tuple[int, Any] | None:
+  """(step, params) of the newest step of `workdir` after `above` that reads back whole, placed as `comps`
+  (a restored Trained's) places them; None where there is none. A step that does not read back whole is said
+  in one warning line, added to `damaged` ({step: why}; the steps already there are not read again) and left
+  in place."""
+  found = checkpoints.restore_newest(str(workdir), comps.state_shapes, above, damaged)
+  return None if found is None else (found[0], found[1].params)

@@ -51,7 +51,7 @@ from nerfpod.workdir.finite import all_finite
 
 def checkpoint_dir(workdir: str) -> epath.Path:
   workdir = str(workdir)
-  return epath.Path(workdir if "://" in workdir else epath.Path(workdir).absolute()) / "checkpoints"
+  return epath.Path(workdir if storage.is_url(workdir) else epath.Path(workdir).absolute()) / "checkpoints"
 
 
 ROTATED = ".rotated"  # where rotated-out steps wait to be deleted (a folder of the checkpoints' folder)
@@ -285,24 +285,20 @@ class Checkpoints:
       return self._restore_step(abstract_state, step)
     assert not self._read_only, "a read-only reader restores through restore_newest"
     damaged = []
-    for candidate in sorted(self.manager.all_steps(), reverse=True):
-      try:
-        return self._restore_step(abstract_state, candidate)
-      except UserError:
-        raise
-      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = damage_reason(e)
-        if self._timeout is not None and storage_failure(e):  # the bucket failed, not the step: kept as it is
-          storage.mark_stopped(self._workdir)
-          raise storage.Stopped(f"the bucket {storage.bucket_of(self._workdir)} failed while reading the "
-                                f"checkpoint of step {candidate} ({reason}); it is left as it is: rerun the same "
-                                f"command once storage is back.") from None
-        damaged.append(f"step {candidate}: {reason}")
-        where = self._set_aside(candidate)
-        if jax.process_index() == 0:
-          print(f"nerfpod: warning: the checkpoint of step {candidate} in {self._directory} does not read back "
-                f"whole ({reason}); set aside as {where}; falling back to the step before it", file=sys.stderr,
-                flush=True)
+
+    def set_aside(candidate: int, error: Exception) -> str:
+      reason = damage_reason(error)
+      if self._timeout is not None and storage_failure(error):  # the bucket failed, not the step: kept as it is
+        storage.mark_stopped(self._workdir)
+        raise storage.Stopped(f"the bucket {storage.bucket_of(self._workdir)} failed while reading the "
+                              f"checkpoint of step {candidate} ({reason}); it is left as it is: rerun the same "
+                              f"command once storage is back.") from None
+      damaged.append(f"step {candidate}: {reason}")
+      return f"set aside as {self._set_aside(candidate)}; falling back to the step before it"
+    found = newest_whole(self._directory, self.manager.all_steps(),
+                         lambda candidate: self._restore_step(abstract_state, candidate), set_aside)
+    if found is not None:
+      return found[1]
     raise UserError(f"no checkpoint in {self._directory} reads back whole ({'; '.join(damaged)}); they were set "
                     f"aside in {self._damaged_dir()}; train again from scratch in a new --workdir (or rerun the "
                     f"training command, which now starts from scratch).")
@@ -428,21 +424,37 @@ def restore_newest(workdir: str, abstract_state, above: int = -1,
   run sets it aside); a step gone meanwhile (rotated out by a training run's max_to_keep) is passed over in
   silence. A checkpoint of another model is one sentence (UserError)."""
   damaged = {} if damaged is None else damaged
+
+  def leave_in_place(step: int, error: Exception) -> str | None:
+    if step not in finished_steps(workdir):
+      return None
+    damaged[step] = damage_reason(error)
+    return "left in place (a training run on this workdir sets it aside); falling back to the step before it"
   with Checkpoints(workdir, every_steps=1, max_to_keep=1, read_only=True) as ckpt:  # (a reader saves nothing)
-    for step in sorted((s for s in finished_steps(workdir) if s > above and s not in damaged), reverse=True):
-      try:
-        return step, ckpt.restore(abstract_state, step)[0]
-      except UserError:
-        raise
-      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = damage_reason(e)
-      if step not in finished_steps(workdir):
-        continue
-      damaged[step] = reason
-      if jax.process_index() == 0:
-        print(f"nerfpod: warning: the checkpoint of step {step} in {checkpoint_dir(workdir)} does not read back "
-              f"whole ({reason}); left in place (a training run on this workdir sets it aside); falling back to "
-              f"the step before it", file=sys.stderr, flush=True)
+    steps = [s for s in finished_steps(workdir) if s > above and s not in damaged]
+    found = newest_whole(checkpoint_dir(workdir), steps, lambda step: ckpt.restore(abstract_state, step)[0],
+                         leave_in_place)
+  return found
+
+
+def newest_whole(directory, steps, read, damaged_step) -> tuple[int, Any] | None:
+  """(step, read(step)) of the newest of `steps` that reads back whole, None where none does: the one loop
+  through which every reader of a workdir's checkpoints (Checkpoints.restore, restore_newest, read_numpy)
+  falls back from a damaged step to the one before it. A UserError (a checkpoint of another model) ends it as
+  it is; any other exception from read(step) is the step's damage: damaged_step(step, error) deals with the
+  step (or raises) and returns what became of it, said after the reason in one warning line (process 0), or
+  None to pass over it in silence (a step gone meanwhile). `directory`: the checkpoints' folder, for the
+  warning."""
+  for step in sorted(steps, reverse=True):
+    try:
+      return step, read(step)
+    except UserError:
+      raise
+    except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
+      then = damaged_step(step, e)
+      if then is not None and jax.process_index() == 0:
+        print(f"nerfpod: warning: the checkpoint of step {step} in {directory} does not read back whole "
+              f"({damage_reason(e)}); {then}", file=sys.stderr, flush=True)
   return None
 
 
@@ -634,14 +646,11 @@ def read_numpy(workdir: str, step: int | None = None) -> tuple[dict, dict, int]:
     steps = finished_steps(workdir)
     if not steps:
       raise UserError(f"workdir {workdir} holds no complete checkpoint.")
-    for candidate in reversed(steps):
-      try:
-        return read_numpy(workdir, candidate)
-      except Exception as e:  # noqa: BLE001 (whatever orbax or tensorstore raise on a damaged step)
-        reason = damage_reason(e)
-        print(f"nerfpod: warning: the checkpoint of step {candidate} in {checkpoint_dir(workdir)} does not read "
-              f"back whole ({reason}); reading the step before it", file=sys.stderr, flush=True)
-    raise UserError(f"no checkpoint in {checkpoint_dir(workdir)} reads back whole.")
+    found = newest_whole(checkpoint_dir(workdir), steps, lambda candidate: read_numpy(workdir, candidate),
+                         lambda candidate, error: "reading the step before it")
+    if found is None:
+      raise UserError(f"no checkpoint in {checkpoint_dir(workdir)} reads back whole.")
+    return found[1]
   path = checkpoint_dir(workdir) / str(step)
   restore_args = jax.tree.map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), _saved_tree(path / "state"))
   state = ocp.PyTreeCheckpointer().restore(path / "state",

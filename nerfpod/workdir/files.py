@@ -57,7 +57,7 @@ def with_defaults(saved: dict) -> dict:
 def check_workdir(workdir: str, writable: bool) -> None:
   """Refuses, in one sentence each, a --workdir that is a file, or (`writable`: training) one that cannot be
   made or written. gs:// paths are left to their own errors."""
-  if "://" in str(workdir):
+  if storage.is_url(workdir):
     return
   path = storage.path(workdir)
   if path.exists() and not path.is_dir():
@@ -119,7 +119,7 @@ def write_json(path, value, sort_keys: bool = False) -> None:
   path = storage.path(path)
   # allow_nan=False: a NaN or infinity is an error here, not a bare NaN that strict JSON parsers refuse.
   text = json.dumps(value, indent=2, sort_keys=sort_keys, allow_nan=False)
-  if "://" in str(path):
+  if storage.is_url(path):
     path.write_text(text)
     return
   path.parent.mkdir(parents=True, exist_ok=True)

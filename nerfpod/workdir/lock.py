@@ -294,16 +294,14 @@ class _GcsLock:
 
   @staticmethod
   def _retry():
-    """google-cloud-storage's DEFAULT_RETRY, for at most RETRY_SECONDS: for reads."""
-    from google.cloud.storage.retry import DEFAULT_RETRY
-    return DEFAULT_RETRY.with_timeout(RETRY_SECONDS)
+    """storage's retry policy (google-cloud-storage's DEFAULT_RETRY), for at most RETRY_SECONDS: for reads."""
+    return storage.gcs_retry(RETRY_SECONDS)
 
   @staticmethod
   def _retry_if_generation():
-    """DEFAULT_RETRY_IF_GENERATION_SPECIFIED, for at most RETRY_SECONDS: for writes and deletes, which it retries
-    only where they carry a generation precondition (every one of the lock's does)."""
-    from google.cloud.storage.retry import ConditionalRetryPolicy, is_generation_specified
-    return ConditionalRetryPolicy(_GcsLock._retry(), is_generation_specified, ["query_params"])
+    """storage's retry policy for writes and deletes, for at most RETRY_SECONDS: retried only where they carry a
+    generation precondition (every one of the lock's does)."""
+    return storage.gcs_retry_if_generation(_GcsLock._retry())
 
   @contextlib.contextmanager
   def _answers(self):
@@ -355,7 +353,7 @@ class WorkdirLock:
     self.workdir = str(workdir)
     if self.workdir.startswith("gs://"):
       self._store = _GcsLock(self.workdir)
-    elif "://" in self.workdir:
+    elif storage.is_url(self.workdir):
       self._store = None
     else:
       self._store = _LocalLock(self.workdir)

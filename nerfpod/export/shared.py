@@ -47,7 +47,7 @@ def output_path(out: str | None, default: str, workdir: str, kind: str) -> str:
   """--out (default: WORKDIR/exports/`default`), checked writable before any work: its folder is made and a
   probe file written and removed (local paths; gs:// is left to its own errors)."""
   path = str(out) if out else str(storage.path(workdir) / "exports" / default)
-  if "://" in path or jax.process_index() != 0:
+  if storage.is_url(path) or jax.process_index() != 0:
     return path
   target = storage.path(path)
   folder = target if kind == "folder" else target.parent
