@@ -216,18 +216,29 @@ def _one_batch(config):
   return scene, nerf_model.from_config(config), train_state.make_optimizer(config.train), mesh, batch
 
 
-def test_coarse_to_fine_shuts_the_finer_levels_until_its_start_and_is_the_plain_step_from_its_end():
+@pytest.fixture(scope="module")
+def smoke_step():
+  """The smoke model's plain step (step.Options()) on its first batch of 64 rays, one compiled program that
+  the options' tests below compare theirs with (each test builds its own option's step): a namespace of
+  config, scene, model, optimizer, mesh, batch, plain (the jitted step), make(**options) (another step of the
+  same model) and fresh(step) (a new initial state whose step counter is `step`; the step donates its state)."""
+  config = smoke_config(**{"train.batch_size": 64})
+  scene, model, optimizer, mesh, batch = _one_batch(config)
+  make = lambda **options: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
+                                                 step.Options(**options))
+  initial = jax.device_get(train_state.initial_state(model, optimizer, 0, mesh))  # (initialised once)
+  fresh = lambda s: jax.device_put(initial.replace(step=np.int32(s)), distributed.replicated(mesh))  # noqa: E731
+  return types.SimpleNamespace(config=config, scene=scene, model=model, optimizer=optimizer, mesh=mesh,
+                               batch=batch, plain=make(), make=make, fresh=fresh)
+
+
+def test_coarse_to_fine_shuts_the_finer_levels_until_its_start_and_is_the_plain_step_from_its_end(smoke_step):
   """train.coarse_to_fine (Options.coarse_to_fine, here steps (5, 10)): before step 5, only the NeRF field's
   coarsest hash-grid level learns (a shut level's gradient is 0, so Adam leaves its table as it was) and the
   proposal field is untouched by it; from step 10 on the step is the plain step's, to the bit."""
-  config = smoke_config(**{"train.batch_size": 128})
-  scene, model, optimizer, mesh, batch = _one_batch(config)
+  config, batch, at = smoke_step.config, smoke_step.batch, smoke_step.fresh
   key = jax.random.key(7)
-  make = lambda steps: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
-                                            step.Options(coarse_to_fine=steps))
-  c2f, plain = make((5, 10)), make(())
-  at = lambda s: train_state.initial_state(model, optimizer, 0, mesh).replace(  # noqa: E731
-      step=jax.device_put(jnp.int32(s), distributed.replicated(mesh)))
+  c2f, plain = smoke_step.make(coarse_to_fine=(5, 10)), smoke_step.plain
 
   def two_steps(step_fn, start):  # (the schedule's warm-up gives the first update a learning rate of 0)
     state = step_fn(at(start), batch, key)[0]
@@ -260,29 +271,20 @@ def test_options_take_coarse_to_fine_as_steps_of_the_run():
   assert step.Options.of(comps, 1, backend="cpu").coarse_to_fine == ()
 
 
-def test_the_blurred_interlevel_loss_trains_the_proposals_alone_and_options_take_it_from_the_config():
+def test_the_blurred_interlevel_loss_trains_the_proposals_alone_and_options_take_it_from_the_config(smoke_step):
   """train.interlevel_blur (Options.interlevel_blur): the step's interlevel loss is Zip-NeRF's blurred one
   (another number from the same state and batch), and it still reaches only the proposal field: after two
   steps the NeRF field's parameters are those of the plain loss's step to the bit, the proposal's are not."""
-  config = smoke_config(**{"render.proposal_samples": (16,), "render.num_samples": 8, "train.batch_size": 64})
+  config = smoke_config(**{"train.batch_size": 64})
+  assert config.render.proposal_samples  # (the smoke model has a proposal round)
   comps = types.SimpleNamespace(config=config, compiler_options=None)
   assert step.Options.of(comps, 1, backend="cpu").interlevel_blur == ()
   config.train.interlevel_blur = (0.03,)
   assert step.Options.of(comps, 1, backend="cpu").interlevel_blur == (0.03,)
-  mesh = distributed.make_mesh()
-  scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
-  optimizer = train_state.make_optimizer(config.train)
-  batch = dict(data.ray_batches(scene.split("train"), 0, 64, slice(0, 64), 0.5, 1)[0])
-  batch.pop("step")
-  batch = distributed.to_global(mesh, batch)
   runs = []
-  for blur in ((), (0.03,)):
-    step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
-                                    step.Options(interlevel_blur=blur))
-    state = train_state.initial_state(model, optimizer, 0, mesh)
-    state, first = step_fn(state, batch, jax.random.key(0))  # (the warm-up's first learning rate is 0)
-    state, _ = step_fn(state, batch, jax.random.key(1))
+  for step_fn in (smoke_step.plain, smoke_step.make(interlevel_blur=(0.03,))):
+    state, first = step_fn(smoke_step.fresh(0), smoke_step.batch, jax.random.key(0))  # (warm-up: lr 0 first)
+    state, _ = step_fn(state, smoke_step.batch, jax.random.key(1))
     runs.append((jax.device_get(first), jax.device_get(state.params)["params"]))
   (plain_metrics, plain), (blurred_metrics, blurred) = runs
   assert float(plain_metrics["mse"]) == float(blurred_metrics["mse"])
@@ -293,16 +295,13 @@ def test_the_blurred_interlevel_loss_trains_the_proposals_alone_and_options_take
   assert any(np.any(a != b) for a, b in zip(jax.tree.leaves(plain[proposal]), jax.tree.leaves(blurred[proposal])))
 
 
-def test_annealing_changes_the_first_steps_and_is_the_plain_step_to_the_bit_once_over():
+def test_annealing_changes_the_first_steps_and_is_the_plain_step_to_the_bit_once_over(smoke_step):
   """train.proposal_anneal_steps (Options.proposal_anneal_steps, here 10): at step 0 the proposal weights are
   resampled as w^0 (the NeRF's samples move: another loss); from step 10 on the step is the plain one, to the
   bit; Options take the length from the config."""
-  scene, model, optimizer, mesh, batch = _one_batch(smoke_config(**{"train.batch_size": 64}))
-  key = jax.random.key(3)
-  make = lambda steps: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
-                                            step.Options(proposal_anneal_steps=steps))
-  annealed, plain = make(10), make(0)
-  trained = lambda s: plain(train_state.initial_state(model, optimizer, 0, mesh), batch, key)[0].replace(  # noqa: E731
+  mesh, batch, key = smoke_step.mesh, smoke_step.batch, jax.random.key(3)
+  annealed, plain = smoke_step.make(proposal_anneal_steps=10), smoke_step.plain
+  trained = lambda s: plain(smoke_step.fresh(0), batch, key)[0].replace(  # noqa: E731
       step=jax.device_put(jnp.int32(s), distributed.replicated(mesh)))  # (a proposal that learnt one step)
   early = [jax.device_get(fn(trained(0), batch, key)[1]["loss"]) for fn in (annealed, plain)]
   assert early[0] != early[1]
@@ -312,7 +311,7 @@ def test_annealing_changes_the_first_steps_and_is_the_plain_step_to_the_bit_once
   assert step.Options.of(comps, 1, backend="cpu").proposal_anneal_steps == 7
 
 
-def test_single_jitter_shifts_each_rays_strata_alike_and_changes_the_step():
+def test_single_jitter_shifts_each_rays_strata_alike_and_changes_the_step(smoke_step):
   """train.single_jitter (nerfacto's): one number per ray in every column of a round (distinct rays, distinct
   numbers, the same for a ray wherever it is rendered); the step trains on other samples; Options take it."""
   key, ids = jax.random.key(5), jnp.asarray([7, 3, 11, 7], jnp.int32)
@@ -321,11 +320,8 @@ def test_single_jitter_shifts_each_rays_strata_alike_and_changes_the_step():
   np.testing.assert_array_equal(u, np.repeat(u[:, :1], 6, axis=1))
   assert len(set(u[:3, 0])) == 3 and u[0, 0] == u[3, 0]
   np.testing.assert_array_equal(step.round_uniforms(key, ids, 6), step.per_ray_uniforms(key, ids, 6))
-  scene, model, optimizer, mesh, batch = _one_batch(smoke_config(**{"train.batch_size": 64}))
-  make = lambda single: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
-                                             step.Options(single_jitter=single))
-  losses = [jax.device_get(make(single)(train_state.initial_state(model, optimizer, 0, mesh), batch,
-                                        jax.random.key(3))[1]["loss"]) for single in (True, False)]
+  losses = [jax.device_get(step_fn(smoke_step.fresh(0), smoke_step.batch, jax.random.key(3))[1]["loss"])
+            for step_fn in (smoke_step.make(single_jitter=True), smoke_step.plain)]
   assert np.isfinite(losses).all() and losses[0] != losses[1]
   comps = types.SimpleNamespace(config=smoke_config(**{"train.single_jitter": True}), compiler_options=None)
   assert step.Options.of(comps, 1, backend="cpu").single_jitter
