@@ -27,10 +27,10 @@ import time
 
 _START = time.perf_counter()
 
-from absl import app, flags  # noqa: E402
+from absl import flags  # noqa: E402
 from ml_collections import config_flags  # noqa: E402
 
-from nerfpod.errors import UserError, fail, parse_flags  # noqa: E402
+from nerfpod.errors import Command  # noqa: E402
 
 ABOUT = "benchmark a config: throughput, FLOP/s against the peak, time to quality"
 FLAGS = flags.FlagValues()  # its own: `config` is also nerfpod.main's flag, and the aot tool's
@@ -43,7 +43,7 @@ def _psnrs(values) -> bool:
     return False
 
 
-_CONFIG = config_flags.DEFINE_config_file("config", None, "Config file to benchmark.", flag_values=FLAGS,
+config_flags.DEFINE_config_file("config", None, "Config file to benchmark.", flag_values=FLAGS,
                                           lock_config=True)
 _STEPS = flags.DEFINE_integer("steps", 30, "Timed train steps (throughput mode).", lower_bound=1, flag_values=FLAGS)
 _QUALITY = flags.DEFINE_bool("quality", False, "Measure time to held-out PSNR 20/25/28/30 dB instead.",
@@ -281,18 +281,13 @@ def time_to_quality(config, max_seconds: float, eval_every: int, started: float 
       "samples_per_ray": samples_per_ray(config), "weights": weight_share(trainer), **_peak_memory()}
 
 
-def main(argv):
-  del argv  # [the program's name]: the flags' parsing refuses anything else
-  from nerfpod import schema
-  try:
-    try:
-      config = _CONFIG.value
-      config.keys()  # the value is a lazy proxy until first touched
-    except OSError as e:  # ml_collections reports a config file that failed to load on first access
-      raise UserError(f"could not load the --config file ({' '.join(str(e).split())}).") from None
-    schema.validate(config)
-  except UserError as e:
-    fail(e)
+def _check(config) -> None:
+  from nerfpod import schema  # (not at import: `nerfpod bench --help` stays quick)
+  schema.validate(config)
+
+
+def main(config):
+  """The benchmark of a checked config: one JSON line (and --out)."""
   import jax
   from nerfpod import distributed
   from nerfpod.run import compilation
@@ -321,12 +316,9 @@ def main(argv):
 
 
 def run(argv=None):
-  """`nerfpod bench ...` (argv[0] is the program's name) and `python -m nerfpod.bench ...`."""
-  def parse(argv):
-    parse_flags("nerfpod bench", ABOUT, FLAGS, argv[1:], required=("config",),
-                examples={"config": "configs/default.py", "targets": "31,33"})
-    return argv[:1]
-  app.run(main, argv=argv, flags_parser=parse)
+  """`nerfpod bench ...` and `python -m nerfpod.bench ...` (argv: the words after it; None: sys.argv[1:])."""
+  Command("nerfpod bench", ABOUT, FLAGS, required=("config",), check=_check,
+          examples={"config": "configs/default.py", "targets": "31,33"}).run(argv, main)
 
 
 if __name__ == "__main__":

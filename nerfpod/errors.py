@@ -1,13 +1,18 @@
-"""A user's mistake: the one exception type for it, the one way every command ends on it, and the one way every
-subcommand reads its command line (absl flags), where a bad flag is such a mistake."""
+"""A user's mistake: the one exception type for it, and the one way every command starts and ends (Command.run):
+it reads its command line (absl flags, parse_flags), where a bad flag is such a mistake, loads its config where
+it takes one, and ends on a mistake (one sentence, exit 2) or Ctrl-C (one sentence, exit 130)."""
+import dataclasses
+import faulthandler
 import os
 import re
+import signal
 import sys
-from typing import NoReturn, Sequence
+from typing import Any, Callable, NoReturn, Sequence
 
 from absl import flags
 
 HELP_WORDS = ("-h", "--help", "--helpshort", "--helpfull")
+INTERRUPTED_EXIT_CODE = 128 + signal.SIGINT  # 130: a command stopped by Ctrl-C (the shells' convention)
 
 
 class UserError(Exception):
@@ -28,6 +33,74 @@ def fail(problem: "UserError | str", program: str = "nerfpod", code: int | None 
     sys.stdout.flush()
     os._exit(code)
   sys.exit(code)
+
+
+@dataclasses.dataclass(frozen=True)
+class Command:
+  """A command as every one starts and ends (`run`): its name (`nerfpod bench`, its --help's usage line and the
+  name its messages give), the one line of its --help, its absl flags (a flags.FlagValues of its own, or absl's
+  FLAGS for a run) with those it requires and an example value of each, whether it takes a `--config` (an
+  ml_collections config file flag among its flags, loaded and checked once, by `check`, before the work starts),
+  and what its Ctrl-C sentence adds: what the same command does when run again (or a function of the parsed
+  flags giving it)."""
+  name: str
+  about: str
+  flag_values: flags.FlagValues
+  required: Sequence[str] = ()
+  examples: dict[str, str] = dataclasses.field(default_factory=dict)
+  check: Callable[[Any], None] | None = None  # takes a --config: what the loaded config must pass (schema.validate)
+  after_ctrl_c: str | Callable[[], str] = ""
+
+  def run(self, argv: Sequence[str] | None, work: Callable[..., int | None]) -> None:
+    """The command: parses `argv` (the words after the command's name; None: sys.argv[1:]) into its flags
+    (parse_flags: --help, one sentence and exit 2 for a bad flag), loads its config where it takes one, then
+    `work()` (`work(config)`), whose result is the exit code (None or 0: return). A UserError anywhere is its one
+    sentence and exit 2 (`fail`); Ctrl-C outside a handler of its own (training's steps save first:
+    run/preemption.py) is `nerfpod: interrupted` with `after_ctrl_c`, exit 130."""
+    _start_process()
+    try:
+      parse_flags(self.name, self.about, self.flag_values, sys.argv[1:] if argv is None else argv, self.required,
+                  self.examples)
+      code = work() if self.check is None else work(self._config())
+    except UserError as e:
+      fail(e)
+    except KeyboardInterrupt:
+      after = self.after_ctrl_c() if callable(self.after_ctrl_c) else self.after_ctrl_c
+      print(f"nerfpod: interrupted{'; ' + after if after else ''}", file=sys.stderr, flush=True)
+      sys.exit(INTERRUPTED_EXIT_CODE)
+    if code:
+      sys.exit(code)
+
+  def _config(self):
+    """The --config flag's value (the file's get_config(arg), the overrides applied), checked: a file that does
+    not exist or does not load is one sentence, as is each mistake `check` finds (UserError)."""
+    from ml_collections import config_flags
+    path = config_flags.get_config_filename(self.flag_values["config"]).split(":")[0]
+    if not os.path.isfile(path):
+      raise UserError(f"the --config file {path} does not exist (a relative path is from the current folder, "
+                      f"{os.getcwd()}).")
+    try:
+      config = self.flag_values["config"].value
+      config.keys()  # the value is a lazy proxy until first touched
+    except UserError:
+      raise
+    except (OSError, AttributeError, KeyError, TypeError, ValueError, SyntaxError, ImportError) as e:
+      raise UserError(f"could not load the --config file {path} ({' '.join(str(e).split())[:300]}).") from None
+    self.check(config)
+    return config
+
+
+def _start_process() -> None:
+  """What absl's app.run did for a command, once per process: absl's log handler on Python's logging (its
+  format, and --verbosity's level, for nerfpod's and its libraries' log lines) and, where nothing has yet,
+  Python's fault handler (a crash in native code prints every thread's stack)."""
+  from absl import logging
+  logging.use_absl_handler()
+  if not faulthandler.is_enabled():
+    try:
+      faulthandler.enable()
+    except (AttributeError, ValueError, OSError):  # a stderr without a file descriptor (a test's capture)
+      pass
 
 
 def parse_flags(command: str, about: str, flag_values: flags.FlagValues, args: Sequence[str],
@@ -77,7 +150,7 @@ def parse_flags(command: str, about: str, flag_values: flags.FlagValues, args: S
     fail(f"{' and '.join('--' + n for n in missing)} {'is' if len(missing) == 1 else 'are'} required, e.g. "
          f"{' '.join(f'--{n}={examples[n]}' for n in missing)} ({see}).")
   if flag_values is not flags.FLAGS and not flags.FLAGS.is_parsed():
-    flags.FLAGS.mark_as_parsed()  # absl (app.run, logging) reads its own flags: their defaults
+    flags.FLAGS.mark_as_parsed()  # absl (its logging) reads its own flags: their defaults
 
 
 def flags_help(command: str, about: str, flag_values: flags.FlagValues, everything: bool = False) -> str:

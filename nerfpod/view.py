@@ -39,6 +39,7 @@ Viewer cameras are viser's (OpenCV: looking down +z, +y down); nerfpod's poses a
 """
 import dataclasses
 import os
+import signal
 import socket
 import sys
 import threading
@@ -53,7 +54,7 @@ from nerfpod.render import camera_path as camera_paths
 from nerfpod.render import renderer, video
 from nerfpod.run import trained as run_trained
 from nerfpod.workdir import checkpoints
-from nerfpod.errors import UserError, fail, parse_flags
+from nerfpod.errors import Command, UserError
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 from nerfpod.nerf import regions as nerf_regions
 
@@ -501,42 +502,47 @@ flags.register_validator("poll_seconds", lambda seconds: seconds > 0, "must be a
                          flag_values=FLAGS)
 
 
-def _parse(argv):
-  """The command line's flags (errors.parse_flags: --help, one sentence and exit 2 for a mistake)."""
-  parse_flags("nerfpod view", ABOUT, FLAGS, argv, required=("workdir",), examples={"workdir": "runs/mine"})
-  return types.SimpleNamespace(**FLAGS.flag_values_dict())
+COMMAND = Command("nerfpod view", ABOUT, FLAGS, required=("workdir",), examples={"workdir": "runs/mine"})
 
 
 def run(argv=None):
-  """`nerfpod view ...` and `python -m nerfpod.view ...`: serves until Ctrl-C; a user's mistake is one
-  sentence and exit code 2."""
+  """`nerfpod view ...` and `python -m nerfpod.view ...` (argv: the words after it; None: sys.argv[1:]): serves
+  until Ctrl-C, then exits 0; a user's mistake is one sentence and exit code 2 (errors.Command.run)."""
   started = time.perf_counter()
-  args = _parse(sys.argv[1:] if argv is None else argv)
-  logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
-  checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
-  distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU: the CPU
-  try:
+
+  def serve():
+    args = types.SimpleNamespace(**FLAGS.flag_values_dict())
+    logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
+    checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
+    distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU: the CPU
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)
-  except UserError as e:
-    fail(e)
-  print(f"nerfpod: view: step {viewer.step} of {args.workdir} at {viewer.url} (ready in "
-        f"{time.perf_counter() - started:.1f} s; Ctrl-C stops)", flush=True)
-  try:
-    while True:
-      time.sleep(3600)
-  except KeyboardInterrupt:
-    # Stop serving (for at most 10 s), then leave at once: the viewer writes nothing, so skipping the
-    # interpreter's clean-up of JAX's and the server's threads loses nothing; that clean-up can take long
-    # under load (docs/results.md), and Ctrl-C must stop the viewer.
-    closing = threading.Thread(target=viewer.close, name="nerfpod-view-close", daemon=True)
-    closing.start()
-    closing.join(10)
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(0)
-  finally:
-    viewer.close()
+    try:
+      print(f"nerfpod: view: step {viewer.step} of {args.workdir} at {viewer.url} (ready in "
+            f"{time.perf_counter() - started:.1f} s; Ctrl-C stops)", flush=True)
+      _serve_until_ctrl_c(viewer)
+    finally:
+      viewer.close()
+  COMMAND.run(argv, serve)
+
+
+def _serve_until_ctrl_c(viewer: Viewer) -> None:
+  """Serving ends with Ctrl-C (SIGINT, caught here: the viewer's way to stop, not an interruption; where it is
+  ignored, as in the background of a non-interactive shell, it stays ignored). Then it stops serving (for at
+  most 10 s) and leaves at once, exit 0: the viewer writes nothing, so skipping the interpreter's clean-up of
+  JAX's and the server's threads loses nothing; that clean-up can take long under load (docs/results.md), and
+  Ctrl-C must stop the viewer."""
+  stop = threading.Event()
+  if signal.getsignal(signal.SIGINT) is not signal.SIG_IGN:
+    signal.signal(signal.SIGINT, lambda signum, frame: stop.set())
+  while not stop.wait(1.0):  # (a timeout: the handler runs even where another thread took the signal)
+    pass
+  closing = threading.Thread(target=viewer.close, name="nerfpod-view-close", daemon=True)
+  closing.start()
+  closing.join(10)
+  sys.stdout.flush()
+  sys.stderr.flush()
+  os._exit(0)
 
 
 if __name__ == "__main__":

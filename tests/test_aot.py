@@ -19,8 +19,8 @@ needs_libtpu = pytest.mark.skipif(not HAS_LIBTPU, reason="libtpu is not installe
 
 
 AOT = ["-m", "nerfpod.pod.aot"]
-# The ways in: `nerfpod aot` (run with the program's name as argv[0]) and python -m nerfpod.pod.aot.
-ENTRY_POINTS = {"run": ["-c", "import sys; from nerfpod.pod import aot; aot.run(['nerfpod aot'] + sys.argv[1:])"],
+# The ways in: `nerfpod aot` (its run(argv), the words after the subcommand) and python -m nerfpod.pod.aot.
+ENTRY_POINTS = {"run": ["-c", "import sys; from nerfpod.pod import aot; aot.run(sys.argv[1:])"],
                 "module": AOT}
 
 
@@ -88,7 +88,7 @@ def test_a_compiler_refusal_is_one_sentence_naming_the_program_the_pod_and_xlas_
       "   == target.Topology()->LogicalDeviceCount() should include all slice devices\\nmore detail')\n"
       "  return {'orbit': aot._compile('orbit', compile_fn, pod, 4, 1024)}\n"
       "aot.compile_pod = refuse\n"
-      "aot.run(['nerfpod aot'] + sys.argv[1:])\n")
+      "aot.run(sys.argv[1:])\n")
   out = _aot("--config=configs/default.py:smoke", "--topology=v5e-64", "--what=orbit", entry=["-c", script])
   line = _one_sentence(out, code=1)
   assert line == ("nerfpod: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 hosts): "

@@ -13,27 +13,48 @@ from nerfpod import cli
 
 
 def _nerfpod(*args, timeout=120):
-  """`nerfpod ARGS` as the console script runs it (nerfpod.cli.run), in a process of its own."""
+  """`nerfpod ARGS` as the console script runs it (nerfpod.cli.run), in a process of its own: for a claim about
+  what the command sets up in its process (the backend, jax.distributed, the host's settings)."""
   env = dict(os.environ, JAX_PLATFORMS="cpu")
   return subprocess.run([sys.executable, "-c", "from nerfpod import cli; cli.run()", *args], cwd=REPO, env=env,
                         capture_output=True, text=True, timeout=timeout)
 
 
-def test_help_lists_every_subcommand_with_one_line_each():
-  done = _nerfpod("--help")
+@pytest.fixture
+def nerfpod(capsys, monkeypatch):
+  """`nerfpod ARGS` in this process (nerfpod.cli.run, as the console script calls it): its exit code, stdout and
+  stderr as a process's (subprocess.CompletedProcess), for claims about a command's parsing, help and refusals,
+  which end before any work (no process of its own needed)."""
+  monkeypatch.chdir(REPO)
+
+  def call(*args):
+    monkeypatch.setattr(sys, "argv", ["nerfpod", *args])  # (ml_collections reads --config's overrides off it)
+    capsys.readouterr()
+    try:
+      cli.run(list(args))
+      code = 0
+    except SystemExit as e:
+      code = e.code if isinstance(e.code, int) else int(e.code is not None)
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["nerfpod", *args], code, out, err)
+  return call
+
+
+def test_help_lists_every_subcommand_with_one_line_each(nerfpod):
+  done = nerfpod("--help")
   assert done.returncode == 0, done.stderr
   listed = [line.split()[0] for line in done.stdout.splitlines() if line.startswith("  ")]
   assert listed == ["train", "eval", "render", "view", "prepare", "export", "aot", "bench"]
   assert list(cli.SUBCOMMANDS) == listed
 
 
-def test_no_subcommand_prints_the_usage_and_exits_2():
-  done = _nerfpod()
+def test_no_subcommand_prints_the_usage_and_exits_2(nerfpod):
+  done = nerfpod()
   assert done.returncode == 2 and "subcommands:" in done.stderr and done.stdout == ""
 
 
-def test_an_unknown_subcommand_is_one_sentence_naming_the_known_ones():
-  done = _nerfpod("trian")
+def test_an_unknown_subcommand_is_one_sentence_naming_the_known_ones(nerfpod):
+  done = nerfpod("trian")
   assert done.returncode == 2
   assert done.stderr.count("\n") == 1 and "unknown subcommand 'trian'" in done.stderr
   assert "train, eval, render, view, prepare, export, aot, bench" in done.stderr
@@ -41,20 +62,20 @@ def test_an_unknown_subcommand_is_one_sentence_naming_the_known_ones():
 
 @pytest.mark.parametrize("name,flag", [("train", "--workdir"), ("eval", "--config"), ("bench", "quality"),
                                        ("view", "--workdir"), ("export", "video")])
-def test_each_subcommand_has_its_own_help(name, flag):
-  done = _nerfpod(name, "--help")
+def test_each_subcommand_has_its_own_help(nerfpod, name, flag):
+  done = nerfpod(name, "--help")
   assert done.returncode == 0, done.stderr
   assert flag in done.stdout and "Traceback" not in done.stderr
 
 
-def test_train_eval_render_set_the_mode_and_refuse_another():
-  done = _nerfpod("eval", "--mode=train", "--config=configs/default.py", "--workdir=/nonexistent")
+def test_train_eval_render_set_the_mode_and_refuse_another(nerfpod):
+  done = nerfpod("eval", "--mode=train", "--config=configs/default.py", "--workdir=/nonexistent")
   assert done.returncode == 2 and "sets the mode itself" in done.stderr and done.stderr.count("\n") == 1
 
 
-def test_train_checks_the_config_before_anything_runs(tmp_path):
+def test_train_checks_the_config_before_anything_runs(nerfpod, tmp_path):
   """`nerfpod train` is nerfpod.main: a config mistake is its one sentence and exit 2, nothing written."""
-  done = _nerfpod("train", "--config=configs/default.py:smoke", "--config.train.log_every=0",
+  done = nerfpod("train", "--config=configs/default.py:smoke", "--config.train.log_every=0",
                   f"--workdir={tmp_path / 'run'}")
   assert done.returncode == 2, done.stderr
   assert done.stderr.startswith("nerfpod: error: train.log_every=0 is not valid") and "Traceback" not in done.stderr
@@ -202,22 +223,29 @@ def test_every_subcommands_required_flags_are_named_with_an_example(command_line
   assert " required, e.g. --" in line, line
 
 
-def test_the_modes_help_lines_are_the_subcommands():
+def test_the_modes_are_the_subcommands_that_run_nerfpod_main(nerfpod):
+  """One table of the modes (nerfpod.run.MODES): each is a subcommand with its line, a --mode value, and the
+  function of run.modes that it runs."""
   from nerfpod import main
-  assert {mode: cli.SUBCOMMANDS[mode][1] for mode in main.MODES} == main.MODES
+  from nerfpod.run import MODES, modes
+  assert {mode: cli.SUBCOMMANDS[mode] for mode in MODES} == {m: ("nerfpod.main", v.about) for m, v in MODES.items()}
+  assert main.flags.FLAGS["mode"].parser.enum_values == list(MODES)
+  assert all(callable(getattr(modes, mode.function)) for mode in MODES.values())
+  for name, mode in MODES.items():
+    assert nerfpod(name, "--help").stdout.split("\n")[2] == mode.about
 
 
-def test_export_without_a_kind_lists_the_kinds_or_asks_for_one():
-  done = _nerfpod("export", "--help")
+def test_export_without_a_kind_lists_the_kinds_or_asks_for_one(nerfpod):
+  done = nerfpod("export", "--help")
   assert done.returncode == 0 and "kinds:" in done.stdout and "nerfpod export KIND --help" in done.stdout
   for words in (["export"], ["export", "--workdir=/nonexistent"]):
-    done = _nerfpod(*words)
+    done = nerfpod(*words)
     assert done.returncode == 2 and done.stdout == "", done
     assert done.stderr.startswith("nerfpod: error: name what to export first") and done.stderr.count("\n") == 1
 
 
-def test_a_mistyped_nested_config_field_is_named_with_its_whole_path():
-  done = _nerfpod("train", "--config=configs/default.py:smoke", "--config.model.hashgrid.nmu_levels=4",
+def test_a_mistyped_nested_config_field_is_named_with_its_whole_path(nerfpod):
+  done = nerfpod("train", "--config=configs/default.py:smoke", "--config.model.hashgrid.nmu_levels=4",
                   "--workdir=/nonexistent/never")
   assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
   assert done.stderr == ("nerfpod: error: --config.model.hashgrid.nmu_levels: config section model.hashgrid has no "

@@ -1,13 +1,39 @@
 """The entry point as a user runs it: one command, a workdir with config, events and metrics.
 
 The whole job (the smoke config, in a process of its own on one device) is marked slow; the refusals below
-stop before any work and stay in the quick loop."""
+stop before any work and stay in the quick loop: those refused before JAX starts (a bad flag, config file or
+field) in this process, through nerfpod.main.run; those refused by the run's start-up (the scene, the devices)
+in a process of its own, as a user's run starts."""
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 
 import test_golden
+from conftest import REPO
 from procs import run_main
+
+
+@pytest.fixture
+def main_here(capsys, monkeypatch):
+  """`python -m nerfpod.main ARGS` in this process (nerfpod.main.run): its exit code, stdout and stderr as a
+  process's (subprocess.CompletedProcess), for refusals that come before any work."""
+  from nerfpod import main
+  monkeypatch.chdir(REPO)
+
+  def call(*args):
+    monkeypatch.setattr(sys, "argv", ["nerfpod.main", *args])  # (ml_collections reads the overrides off it)
+    capsys.readouterr()
+    try:
+      main.run(list(args))
+      code = 0
+    except SystemExit as e:
+      code = e.code if isinstance(e.code, int) else int(e.code is not None)
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["nerfpod.main", *args], code, out, err)
+  return call
 
 
 @pytest.fixture(scope="module")
@@ -61,33 +87,46 @@ def test_tensorboard_can_read_the_events_with_the_recorded_losses(smoke_run):
   assert eval_psnr[0].value == pytest.approx(test_golden.EVAL["psnr"], rel=test_golden.RTOL)
 
 
-def test_unknown_config_key_is_refused_clearly(tmp_path):
-  result = run_main("--config=configs/default.py", f"--workdir={tmp_path}", "--config.train.num_stepz=5")
+def test_unknown_config_key_is_refused_clearly(main_here, tmp_path):
+  result = main_here("--config=configs/default.py", f"--workdir={tmp_path}", "--config.train.num_stepz=5")
   assert result.returncode != 0
   assert "num_stepz" in result.stderr and "Traceback" not in result.stderr
   assert result.stderr.count("nerfpod: error:") == 1
   assert not (tmp_path / "config.json").exists()
 
 
+# Refused by the run's start-up, after JAX has started on the process's devices: a process of its own, 8 devices.
 @pytest.mark.parametrize("args,message", [
     (["--config.data.kind=blender", "--config.data.path=/nonexistent/lego"], "not found"),
     (["--config.data.kind=tiny", "--config.data.path=/nonexistent/tiny.npz"], "not found"),
     (["--config.train.batch_size=100", "--config.data.image_size=8"], None),
-    (["--config.render.proposal_padding=-0.01"], "render.proposal_padding=-0.01 is not valid: it must be a finite "
-                                                 "number >= 0"),
-    (["--config.train.proposal_anneal_steps=1000"], "train.proposal_anneal_steps=1000 is longer than the run"),
 ])
 def test_bad_input_exits_non_zero_with_one_sentence(tmp_path, args, message):
   result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *args,
                     devices_per_process=8)
   if message is None:  # 100 rays over 8 devices
     message = "does not split over 8 devices"
+  _assert_one_sentence(result, message)
+
+
+# Refused by the config's check, before JAX starts: in this process.
+@pytest.mark.parametrize("args,message", [
+    (["--config.render.proposal_padding=-0.01"], "render.proposal_padding=-0.01 is not valid: it must be a finite "
+                                                 "number >= 0"),
+    (["--config.train.proposal_anneal_steps=1000"], "train.proposal_anneal_steps=1000 is longer than the run"),
+])
+def test_bad_config_values_exit_2_with_one_sentence(main_here, tmp_path, args, message):
+  _assert_one_sentence(main_here("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *args), message)
+
+
+def _assert_one_sentence(result, message):
   assert result.returncode == 2, result.stderr[-2000:]
   assert message in result.stderr and "Traceback" not in result.stderr
   assert len([l for l in result.stderr.splitlines() if l.startswith("nerfpod: error:")]) == 1
 
 
-def test_missing_config_file_is_refused_clearly(tmp_path):
-  result = run_main("--config=configs/no_such_config.py", f"--workdir={tmp_path}")
+def test_missing_config_file_is_refused_clearly(main_here, tmp_path):
+  result = main_here("--config=configs/no_such_config.py", f"--workdir={tmp_path}")
   assert result.returncode == 2 and "Traceback" not in result.stderr
-  assert "could not load the --config file" in result.stderr and "no_such_config.py" in result.stderr
+  assert result.stderr == ("nerfpod: error: the --config file configs/no_such_config.py does not exist (a relative "
+                           f"path is from the current folder, {os.getcwd()}).\n")

@@ -481,7 +481,6 @@ def test_a_second_ctrl_c_in_training_stops_at_once_with_status_130():
 # of its own (absl's flags are the process's): each mode's exit status and stderr, as JSON.
 _CTRL_C_OUTSIDE_STEPS = r"""
 import contextlib, io, json, sys
-from absl import flags
 from nerfpod import distributed, main
 from nerfpod.run import compilation, modes
 
@@ -493,12 +492,10 @@ for name in ("train_and_evaluate", "evaluate_workdir", "render_workdir"):
 distributed.initialize = lambda *a, **k: None
 out = {}
 for mode in ("eval", "render", "train"):
-  flags.FLAGS.unparse_flags()
-  main._flags_parser(["nerfpod", "--config=configs/default.py:smoke", "--workdir=" + sys.argv[1], "--mode=" + mode])
   err = io.StringIO()
   with contextlib.redirect_stderr(err):
     try:
-      main.main(["nerfpod"])
+      main.run(["--config=configs/default.py:smoke", "--workdir=" + sys.argv[1], "--mode=" + mode])
       code = 0
     except SystemExit as e:
       code = e.code

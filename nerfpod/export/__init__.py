@@ -22,7 +22,7 @@ import types
 
 from absl import flags
 
-from nerfpod.errors import HELP_WORDS, UserError, fail, parse_flags
+from nerfpod.errors import HELP_WORDS, Command, fail, parse_flags
 from nerfpod.export.video import write_files  # noqa: F401 (the earlier nerfpod.export.write_files)
 
 KINDS = {
@@ -58,9 +58,9 @@ def usage() -> str:
                     *[f"  {kind:<{width}}  {about}" for kind, about in KINDS.items()]])
 
 
-def parse_args(argv) -> types.SimpleNamespace:
-  """`KIND --flag=value ...` -> the kind and its flags' values (attributes); --help and every mistake end here
-  (errors.parse_flags)."""
+def command(argv) -> Command:
+  """The command `nerfpod export KIND` that `argv` (KIND, then its flags) names: --help before a kind lists the
+  kinds; no kind or an unknown one is one sentence, exit 2."""
   argv = list(argv)
   if not argv or argv[0].startswith("-"):
     if any(word in HELP_WORDS for word in argv):
@@ -71,10 +71,21 @@ def parse_args(argv) -> types.SimpleNamespace:
   kind = argv[0]
   if kind not in KINDS:
     fail(f"unknown kind {kind!r}; choose one of {', '.join(KINDS)} (nerfpod export --help says what each writes).")
-  flag_values = kind_flags(kind)
-  parse_flags(f"nerfpod export {kind}", KINDS[kind], flag_values, argv[1:], required=("workdir",),
-              examples={"workdir": "runs/mine", "fps": "30"})
-  return types.SimpleNamespace(kind=kind, **flag_values.flag_values_dict())
+  return Command(f"nerfpod export {kind}", KINDS[kind], kind_flags(kind), required=("workdir",),
+                 examples={"workdir": "runs/mine", "fps": "30"})
+
+
+def parse_args(argv) -> types.SimpleNamespace:
+  """`KIND --flag=value ...` -> the kind and its flags' values (attributes); --help and every mistake end here
+  (errors.parse_flags)."""
+  chosen = command(argv)
+  parse_flags(chosen.name, chosen.about, chosen.flag_values, list(argv)[1:], chosen.required, chosen.examples)
+  return _args(chosen)
+
+
+def _args(chosen: Command) -> types.SimpleNamespace:
+  """The parsed flags of `nerfpod export KIND`, with the kind."""
+  return types.SimpleNamespace(kind=chosen.name.split()[-1], **chosen.flag_values.flag_values_dict())
 
 
 def _default_out(module, args) -> tuple[str, str]:
@@ -105,17 +116,20 @@ def export(args) -> list[str] | dict:
 
 
 def run(argv=None) -> None:
-  """`nerfpod export KIND ...` (argv: the arguments after `export`)."""
-  args = parse_args(sys.argv[1:] if argv is None else argv)
-  from absl import logging
-  logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
-  try:
+  """`nerfpod export KIND ...` and `python -m nerfpod.export KIND ...` (argv: the words after `export`; None:
+  sys.argv[1:])."""
+  argv = sys.argv[1:] if argv is None else list(argv)
+  chosen = command(argv)
+
+  def work():
+    from absl import logging
+    logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
+    args = _args(chosen)
     files = export(args)
-  except UserError as e:
-    fail(e)
-  if args.kind == "video":
-    for path in files:
-      print(path)
+    if args.kind == "video":
+      for path in files:
+        print(path)
+  chosen.run(argv[1:], work)
 
 
 if __name__ == "__main__":

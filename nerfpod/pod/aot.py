@@ -33,18 +33,18 @@ import os
 import sys
 import time
 
-from absl import app, flags
+from absl import flags
 from ml_collections import config_flags
 
 from nerfpod import schema
-from nerfpod.errors import UserError, fail, parse_flags
+from nerfpod.errors import Command, UserError, fail
 from nerfpod.pod import chips
 from nerfpod.text import byte_size, duration
 
 ABOUT = "compile a config for a TPU pod topology here, and report memory and time"
 # Its own flags (not absl's global ones): tools.pod_tables imports this module beside flags of its own.
 FLAGS = flags.FlagValues()
-_CONFIG = config_flags.DEFINE_config_file(
+config_flags.DEFINE_config_file(
     "config", None, "Config file, e.g. configs/default.py[:arg]; a field is overridden as "
     "--config.section.name=value "
     "(`python -m nerfpod.schema` lists every field, its default, range and meaning).",
@@ -448,11 +448,6 @@ def format_report(report: dict) -> str:
   return "\n".join(lines)
 
 
-def _error(message: "UserError | str", code: int = 2):
-  """Ends the tool with one sentence on stderr (no traceback): exit 2 for bad input, 1 for a refusal."""
-  fail(message, code=code)
-
-
 def _check_json_path(path: str | None) -> None:
   """--json names a file that can be written once the compiles (minutes) are done: checked first."""
   if not path or path == "-":
@@ -467,70 +462,52 @@ def _check_json_path(path: str | None) -> None:
     raise UserError(f"--json={path}: its folder {folder} is not writable; name another file.")
 
 
-def _load_config():
-  """The --config value (with its overrides): a file that fails to load is one sentence."""
-  path = config_flags.get_config_filename(FLAGS["config"]).split(":")[0]
-  if not os.path.isfile(path):
-    raise UserError(f"the --config file {path} does not exist (a relative path is from the current folder, "
-                    f"{os.getcwd()}).")
+def main(config):
+  """Compiles the checked config for each pod asked for; prints the reports (and writes --json). Exit 1 with one
+  sentence where the compiler refuses a program, or anything else fails unexpectedly."""
   try:
-    config = _CONFIG.value
-    config.keys()  # the value is a lazy proxy until first touched
+    _compile_and_report(config)
   except UserError:
     raise
-  except (OSError, AttributeError, KeyError, TypeError, ValueError, SyntaxError, ImportError) as e:
-    raise UserError(f"could not load the --config file {path} ({' '.join(str(e).split())[:300]}).") from None
-  schema.validate(config)
-  return config
+  except CompileError as e:
+    fail(str(e), code=1)
+  except Exception as e:  # noqa: BLE001 (a tool's user gets one sentence, never a traceback)
+    fail(f"compiling failed unexpectedly: {_reason(e)}", code=1)
 
 
-def main(argv):
-  del argv  # [the program's name]: the flags' parsing refuses anything else
+def _compile_and_report(config) -> None:
   _quiet_libtpu()
   to_json = _JSON.value == "-"
   tables = sys.stderr if to_json else sys.stdout  # --json=-: stdout is the JSON report alone
-  try:
-    if not [name for name in (_TOPOLOGY.value or "").split(",") if name.strip()]:
-      raise UserError(f"--topology is empty; name the pod to compile for, e.g. --topology=v5e-64 (known pods: "
-                      f"{', '.join(chips.known_names())}).")
-    chosen = resolve_pods(_TOPOLOGY.value)
-    what = [w.strip() for w in _WHAT.value if w.strip()]
-    if not what or set(what) - set(PROGRAMS):
-      raise UserError(f"--what={','.join(_WHAT.value)}: choose one or more of step, eval, orbit.")
-    _check_json_path(_JSON.value)
-    config = _load_config()
-    reports = []
-    check_slices(_SLICES.value)
-    for pod in chosen:
-      report = compile_pod(config, pod, tuple(what), _SLICES.value)
-      print(format_report(report), file=tables, flush=True)
-      reports.append(report)
-    text = json.dumps(reports if len(reports) > 1 else reports[0], indent=2)
-    if to_json:
-      print(text, flush=True)
-    elif _JSON.value:
-      try:
-        with open(_JSON.value, "w") as f:
-          f.write(text + "\n")
-      except OSError as e:
-        raise UserError(f"could not write --json={_JSON.value} ({e.strerror or e}).") from None
-  except UserError as e:
-    _error(e)
-  except CompileError as e:
-    _error(str(e), code=1)
-  except KeyboardInterrupt:
-    _error("interrupted.", code=130)
-  except Exception as e:  # noqa: BLE001 (a tool's user gets one sentence, never a traceback)
-    _error(f"compiling failed unexpectedly: {_reason(e)}", code=1)
+  if not [name for name in (_TOPOLOGY.value or "").split(",") if name.strip()]:
+    raise UserError(f"--topology is empty; name the pod to compile for, e.g. --topology=v5e-64 (known pods: "
+                    f"{', '.join(chips.known_names())}).")
+  chosen = resolve_pods(_TOPOLOGY.value)
+  what = [w.strip() for w in _WHAT.value if w.strip()]
+  if not what or set(what) - set(PROGRAMS):
+    raise UserError(f"--what={','.join(_WHAT.value)}: choose one or more of step, eval, orbit.")
+  _check_json_path(_JSON.value)
+  check_slices(_SLICES.value)
+  reports = []
+  for pod in chosen:
+    report = compile_pod(config, pod, tuple(what), _SLICES.value)
+    print(format_report(report), file=tables, flush=True)
+    reports.append(report)
+  text = json.dumps(reports if len(reports) > 1 else reports[0], indent=2)
+  if to_json:
+    print(text, flush=True)
+  elif _JSON.value:
+    try:
+      with open(_JSON.value, "w") as f:
+        f.write(text + "\n")
+    except OSError as e:
+      raise UserError(f"could not write --json={_JSON.value} ({e.strerror or e}).") from None
 
 
 def run(argv: list[str] | None = None) -> None:
-  """`nerfpod aot ...`: `argv` as sys.argv has it (argv[0] the program's name; default sys.argv)."""
-  def parse(argv):
-    parse_flags("nerfpod aot", ABOUT, FLAGS, argv[1:], required=("config", "topology"),
-                examples={"config": "configs/default.py", "topology": "v5e-64", "what": "step,eval"})
-    return argv[:1]
-  app.run(main, argv=argv, flags_parser=parse)
+  """`nerfpod aot ...` and `python -m nerfpod.pod.aot ...` (argv: the words after it; None: sys.argv[1:])."""
+  Command("nerfpod aot", ABOUT, FLAGS, required=("config", "topology"), check=schema.validate,
+          examples={"config": "configs/default.py", "topology": "v5e-64", "what": "step,eval"}).run(argv, main)
 
 
 if __name__ == "__main__":

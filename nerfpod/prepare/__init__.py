@@ -31,14 +31,13 @@ import json
 import math
 import os
 import shutil
-import signal
 import sys
 import time
 import types
 
 from absl import flags
 
-from nerfpod.errors import UserError, fail, parse_flags
+from nerfpod.errors import Command, UserError
 from nerfpod.prepare import capture, frames, sfm
 from nerfpod.text import duration
 
@@ -127,11 +126,16 @@ flags.DEFINE_bool("skip_bad_images", False, "Photos: leave out those that are da
 flags.DEFINE_bool("verbose", False, "Show COLMAP's own log.", flag_values=FLAGS)
 
 
-def parse(argv) -> types.SimpleNamespace:
-  """The command line's flags (errors.parse_flags: --help, one sentence and exit 2 for a mistake)."""
-  parse_flags("nerfpod prepare", ABOUT, FLAGS, argv, required=("input", "out"),
-              examples={"input": "my_photos/", "out": "captures/mine"})
-  return types.SimpleNamespace(**FLAGS.flag_values_dict())
+def _after_ctrl_c() -> str:
+  """What Ctrl-C's sentence adds: the same command resumes from the finished stages (once --out is read)."""
+  if not FLAGS.is_parsed():
+    return ""
+  return (f"the same command resumes from the finished stages in {os.path.normpath(FLAGS.out)}.partial "
+          f"(--overwrite starts again)")
+
+
+COMMAND = Command("nerfpod prepare", ABOUT, FLAGS, required=("input", "out"),
+                  examples={"input": "my_photos/", "out": "captures/mine"}, after_ctrl_c=_after_ctrl_c)
 
 
 def _probe(folder: str):
@@ -361,23 +365,17 @@ def _versions() -> dict:
 
 
 def run(argv=None) -> int:
-  """`nerfpod prepare ...` and `python -m nerfpod.prepare ...`; argv: the arguments after `prepare`. Returns 0
-  when the capture is written; a user's mistake is one sentence on stderr and exit code 2; Ctrl-C exits 130,
-  keeping the finished stages for the same command to resume."""
-  args = parse(sys.argv[1:] if argv is None else argv)
-  try:
-    summary = prepare(args)
-  except UserError as e:
-    fail(e)
-  except KeyboardInterrupt:
-    print(f"nerfpod: interrupted; the same command resumes from the finished stages in "
-          f"{os.path.normpath(args.out)}.partial (--overwrite starts again)", file=sys.stderr, flush=True)
-    sys.exit(128 + signal.SIGINT)
-  print("nerfpod prepare: done")
-  for line in report(summary):
-    print("  " + line)
-  sys.stdout.flush()
-  warning = left_out_warning(summary)
-  if warning:
-    print(warning, file=sys.stderr, flush=True)
+  """`nerfpod prepare ...` and `python -m nerfpod.prepare ...`; argv: the arguments after `prepare` (None:
+  sys.argv[1:]). Returns 0 when the capture is written; a user's mistake is one sentence on stderr and exit code
+  2; Ctrl-C exits 130, keeping the finished stages for the same command to resume (errors.Command.run)."""
+  def work():
+    summary = prepare(types.SimpleNamespace(**FLAGS.flag_values_dict()))
+    print("nerfpod prepare: done")
+    for line in report(summary):
+      print("  " + line)
+    sys.stdout.flush()
+    warning = left_out_warning(summary)
+    if warning:
+      print(warning, file=sys.stderr, flush=True)
+  COMMAND.run(argv, work)
   return 0

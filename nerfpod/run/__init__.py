@@ -19,4 +19,24 @@
 
 Calls flow downward: run uses workdir/, render/, scenes/, nerf/ and the shared modules; nothing below it
 imports it (bench, view, export and pod, above it, do).
+
+MODES, here, is the one table of the modes (`nerfpod train|eval|render`, `python -m nerfpod.main --mode=...`):
+each one's function in `modes` and the one line its --help and `nerfpod --help` give. It imports nothing, so
+that the `nerfpod` command lists the modes without starting JAX.
 """
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class Mode:
+  function: str  # its function in nerfpod.run.modes, (config, workdir) -> ...
+  about: str     # the one line of `nerfpod NAME --help` and of `nerfpod --help`
+
+
+# A way to run on a workdir with a config (docs/architecture.md: how to add a mode).
+MODES = {
+    "train": Mode("train_and_evaluate",
+                  "train (resuming from the workdir), evaluate the held-out views, render the orbit"),
+    "eval": Mode("evaluate_workdir", "evaluate the workdir's newest checkpoint -> eval/metrics.json"),
+    "render": Mode("render_workdir", "render (or finish) the orbit of the workdir's newest checkpoint, and its videos"),
+}

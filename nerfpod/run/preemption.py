@@ -6,7 +6,8 @@ process had reached); with one process, a SIGTERM handler sets a flag. Either wa
 that step, whatever the checkpoint interval, and stops there.
 
 A first Ctrl-C (SIGINT) in training is a preemption too (the current step is saved, the run stops and exits
-with checkpoint.preempted_exit_code); a second one stops the process at once, like a kill.
+with checkpoint.preempted_exit_code); a second one stops the process at once, like a kill (exit 130). Ctrl-C
+outside training's steps is the command's (errors.Command.run).
 """
 import os
 import signal
@@ -14,6 +15,8 @@ import sys
 import threading
 
 import jax
+
+from nerfpod.errors import INTERRUPTED_EXIT_CODE
 
 
 def _service_reached(step: int) -> bool:
@@ -53,7 +56,7 @@ class Watch:
     self._interrupts += 1
     if self._interrupts > 1:
       print("nerfpod: interrupted again: stopping now, without saving", file=sys.stderr, flush=True)
-      os._exit(128 + signal.SIGINT)
+      os._exit(INTERRUPTED_EXIT_CODE)
     print("nerfpod: interrupted: saving the current step, then stopping (Ctrl-C again to stop at once)",
           file=sys.stderr, flush=True)
     if self._agree:

@@ -1,5 +1,6 @@
 """Scene loaders. `load(config.data)` returns a Scene whatever the format.
 
+    formats     the one table of formats, LOADERS: each one's loader, what it holds, how its files are told
     base        the one Scene type (splits of images, per-frame cameras, bounds, space), shards per host
     procedural  the built-in scene (no download)
     street      the built-in large scene: a street with its cameras along it (model.regions)
@@ -21,32 +22,10 @@ from absl import logging
 from nerfpod import storage
 from nerfpod.errors import UserError
 from nerfpod.scenes.base import SPACES, Scene, Shards, Split, with_pose_noise
+from nerfpod.scenes.formats import COLMAP_MODEL, LOADERS, Loader
 
 __all__ = ["CAPTURE_KINDS", "KINDS", "LOADERS", "Loader", "SPACES", "Scene", "Shards", "Split", "detect", "load"]
 
-
-@dataclasses.dataclass(frozen=True)
-class Loader:
-  """A scene format: its module here, imported only when a scene of the format is loaded (so that an optional
-  extra, pycolmap, is needed only then), whose `load(path, data_config, shards) -> Scene` is the one loader
-  signature; and what the rest of nerfpod knows of the format without loading a scene."""
-  module: str               # nerfpod.scenes.<module>
-  has_alpha: bool = False   # its images carry alpha (then training batches do): the pod tool's batch shapes
-  capture: bool = False     # a real capture: poses normalised by data.orient/center/scale, data.llffhold
-  in_memory: bool = False   # made whole in memory, then cut to a host's shard (else only its frames are read)
-  needs_path: bool = True   # read from data.path
-
-
-# data.kind -> its loader: adding a format is an entry here and its module (docs/architecture.md).
-LOADERS = {
-    "procedural": Loader("procedural", has_alpha=True, in_memory=True, needs_path=False),
-    "street": Loader("street", has_alpha=True, in_memory=True, needs_path=False),
-    "tiny": Loader("tiny", in_memory=True),
-    "blender": Loader("blender", has_alpha=True),
-    "llff": Loader("llff", capture=True),
-    "colmap": Loader("colmap", capture=True),
-    "nerfstudio": Loader("nerfstudio", capture=True),
-}
 KINDS = tuple(LOADERS) + ("auto",)  # data.kind's values ('auto': told by data.path's files, detect())
 CAPTURE_KINDS = tuple(kind for kind, loader in LOADERS.items() if loader.capture)
 IN_MEMORY_KINDS = tuple(kind for kind, loader in LOADERS.items() if loader.in_memory)
@@ -55,29 +34,30 @@ HAS_ALPHA = {kind: loader.has_alpha for kind, loader in LOADERS.items()}
 
 
 def detect(path: str) -> str:
-  """The format of the file or folder at `path`, from what it holds: a COLMAP sparse model (sparse/0/, sparse/
-  or the folder itself) -> colmap, also where a transforms.json (as nerfpod prepare writes beside the model) or
-  an LLFF poses_bounds.npy (multinerf too prefers COLMAP's poses) is beside it; transforms.json -> nerfstudio,
-  poses_bounds.npy -> llff, transforms_train.json -> blender, an .npz file -> tiny; a .json file is taken as a
-  nerfstudio transforms file.
+  """The format of the file or folder at `path`, from what it holds, by each format's `files` and `endings` in
+  LOADERS (scenes.formats), the lowest `precedence` first where a folder shows several: a COLMAP sparse model
+  (sparse/0/, sparse/ or the folder itself) -> colmap, also where a transforms.json (as nerfpod prepare writes
+  beside the model) or an LLFF poses_bounds.npy (multinerf too prefers COLMAP's poses) is beside it;
+  transforms.json -> nerfstudio, poses_bounds.npy -> llff, transforms_train.json -> blender, an .npz file -> tiny;
+  a .json file is taken as a nerfstudio transforms file.
 
   An incomplete COLMAP model (sparse/0/ lacking one of cameras, images, points3D) is skipped with a warning
   that names the missing files, in favour of a transforms.json or poses_bounds.npy beside it (the same
   capture's poses, written from that model by nerfpod prepare or LLFF's imgs2poses); with nothing else
   there it is refused, naming them. data.kind=colmap insists on the model."""
+  by_precedence = sorted(LOADERS.items(), key=lambda item: item[1].precedence)
   if storage.isfile(path):
-    if path.endswith(".npz"):
-      return "tiny"
-    if path.endswith(".json"):
-      return "nerfstudio"
+    found = next((kind for kind, loader in by_precedence if path.endswith(loader.endings)), None)
+    if found is not None:
+      return found
   elif storage.isdir(path):
     from nerfpod.scenes import colmap
-    if colmap.model_folder(path) is not None:
-      return "colmap"
-    found = next(((kind, name) for kind, name in (("nerfstudio", "transforms.json"), ("llff", "poses_bounds.npy"),
-                                                  ("blender", "transforms_train.json"))
-                  if storage.isfile(storage.join(path, name))), None)
-    broken = colmap.incomplete_model(path)
+
+    def holds(name: str) -> bool:
+      return colmap.model_folder(path) is not None if name == COLMAP_MODEL else storage.isfile(
+          storage.join(path, name))
+    found = next(((kind, name) for kind, loader in by_precedence for name in loader.files if holds(name)), None)
+    broken = colmap.incomplete_model(path) if found is None or found[1] != COLMAP_MODEL else None
     if broken is not None:
       folder, missing = broken
       if found is None:
@@ -91,9 +71,9 @@ def detect(path: str) -> str:
       return found[0]
   else:
     raise UserError(f"data.path {path!r} not found; set --config.data.path to a scene folder or file.")
-  raise UserError(f"cannot tell the format of {path!r}: it holds none of transforms.json, sparse/0/, "
-                  f"poses_bounds.npy, transforms_train.json; set --config.data.kind to one of "
-                  f"{', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
+  names = [name for _, loader in by_precedence for name in loader.files]
+  raise UserError(f"cannot tell the format of {path!r}: it holds none of {', '.join(names)}; set "
+                  f"--config.data.kind to one of {', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
 
 
 def load(data_config, shards: Shards | None = None) -> Scene:

@@ -21,6 +21,7 @@ from nerfpod.errors import UserError
 from nerfpod.nerf import poses as pose_math
 from nerfpod.nerf import cameras
 from nerfpod.nerf.cameras import Cameras
+from nerfpod.scenes.formats import LOADERS
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 UNBOUNDED_NEAR, UNBOUNDED_FAR = 0.2, 1e6  # mip-NeRF 360's ray bounds, in the normalised frame
@@ -138,15 +139,16 @@ def heldout_indices(n: int, llffhold: int) -> np.ndarray:
 def normalization(poses_Nx4x4: np.ndarray, bounds_Nx2: np.ndarray | None, data_config, kind: str) -> np.ndarray:
   """The capture -> scene similarity that data.orient, data.center and data.scale ask for (4x4).
 
-  'auto' means, for LLFF: the original's recentring on the average camera (orient 'llff', centre 'poses')
-  and its bounds rescale, s = 1 / (0.75 min near); for COLMAP and transforms.json: +z up, centred on the
-  point the cameras look at (or their mean where they look the same way), the farthest camera at distance 1.
-  A positive data.scale is a fixed factor instead.
+  'auto' means what the format's entry in LOADERS (scenes.formats) says: for LLFF, the original's recentring
+  on the average camera (orient 'llff', centre 'poses') and its bounds rescale, s = 1 / (0.75 min near); for
+  COLMAP and transforms.json: +z up, centred on the point the cameras look at (or their mean where they look
+  the same way), the farthest camera at distance 1. A positive data.scale is a fixed factor instead.
   """
+  loader = LOADERS[kind]
   poses = np.asarray(poses_Nx4x4, np.float64)
   positions = poses[:, :3, 3]
-  orient = data_config.orient if data_config.orient != "auto" else ("llff" if kind == "llff" else "up")
-  center = data_config.center if data_config.center != "auto" else ("poses" if kind == "llff" else "focus")
+  orient = data_config.orient if data_config.orient != "auto" else loader.auto_orient
+  center = data_config.center if data_config.center != "auto" else loader.auto_center
   if center == "focus":
     focus = pose_math.focus_point(poses)
     centre = positions.mean(0) if focus is None else focus
@@ -164,7 +166,7 @@ def normalization(poses_Nx4x4: np.ndarray, bounds_Nx2: np.ndarray | None, data_c
     rotation = np.eye(3)
   scale = float(data_config.scale)
   if scale <= 0:
-    if kind == "llff" and bounds_Nx2 is not None:
+    if loader.scale_by_bounds and bounds_Nx2 is not None:
       scale = 1.0 / (float(np.min(bounds_Nx2)) * 0.75)
     else:
       farthest = float(np.max(np.linalg.norm(positions - centre, axis=1)))
