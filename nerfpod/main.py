@@ -66,8 +66,8 @@ def main(config) -> int | None:
                          heartbeat_timeout_seconds=_HEARTBEAT.value,
                          shutdown_timeout_seconds=_SHUTDOWN.value, initialization_timeout=_INIT_TIMEOUT.value)
   from nerfpod.run import compilation, modes
-  from nerfpod.workdir import checkpoints
-  checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
+  from nerfpod.workdir import quiet
+  quiet.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
   compilation.tune_host(config)  # process-wide (glibc's malloc on a CPU): here, where the process starts
   result = getattr(modes, MODES[_MODE.value].function)(config, _WORKDIR.value)
   if _MODE.value == "train" and result is None:  # stopped early at a saved step: "run me again"

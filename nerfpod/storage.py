@@ -44,7 +44,7 @@ otherwise wait minutes before failing, or hang. bound_clients(checkpoint.storage
 starts, sets each client's own bound on a request that gets no answer: gcsfs's `requests_timeout` (through
 fsspec's configuration, for every gs:// file system made afterwards: etils.epath's and orbax's too), tensorstore's
 curl low-speed limit (no byte for that long ends a request; its environment variables, read when its HTTP
-transport starts; nerfpod.workdir.checkpoints bounds its gcs driver's retries), and GCS_TIMEOUT for
+transport starts; nerfpod.workdir.watchdog bounds its gcs driver's retries), and GCS_TIMEOUT for
 google-cloud-storage's calls (gcs_timeout(), gcs_retry(), gcs_retry_if_generation()). Those bound each request
 and, but for google-cloud-storage's, not all of a client's retries of it: what a run waits on is bounded by
 within(), a watchdog that leaves a call that does not return behind in a daemon thread and raises NoAnswer.

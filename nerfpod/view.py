@@ -53,7 +53,7 @@ from nerfpod import distributed
 from nerfpod.render import camera_path as camera_paths
 from nerfpod.render import renderer, video
 from nerfpod.run import trained as run_trained
-from nerfpod.workdir import checkpoints
+from nerfpod.workdir import failures, quiet
 from nerfpod.errors import Command, UserError
 from nerfpod.nerf import cameras, compositing, keyframes, pose_correction
 from nerfpod.nerf import regions as nerf_regions
@@ -187,7 +187,7 @@ class Viewer:
       # (the one door's: damaged steps are said once, remembered in `self.damaged` and left in place)
       newest = run_trained.newer(self.workdir, self.comps, self.step, self.damaged)
     except Exception as e:  # noqa: BLE001 (keep serving the checkpoint on screen)
-      reason = checkpoints.damage_reason(e)
+      reason = failures.reason(e)
       if reason != self._poll_error:
         print(f"nerfpod: view: could not read the newest checkpoint ({reason}); still showing step {self.step}, "
               f"trying again", file=sys.stderr, flush=True)
@@ -513,7 +513,7 @@ def run(argv=None):
   def serve():
     args = types.SimpleNamespace(**FLAGS.flag_values_dict())
     logging.set_verbosity(logging.WARNING)  # orbax and grain log at INFO; warnings (e.g. a scene's) stay shown
-    checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
+    quiet.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
     distributed.keep_off_absent_tpu()  # libtpu installed (the `tpu` extra) on a machine without a TPU: the CPU
     viewer = Viewer(args.workdir, args.host, args.port, args.max_resolution, args.coarse_resolution,
                     args.paths_dir, args.poll_seconds)

@@ -68,7 +68,7 @@ def damage_checkpoint(step_dir: pathlib.Path):
 
 
 # What orbax's reads, abandoned by a failed restore, would print after a command's one sentence (a report per
-# array) where nerfpod did not quiet them (checkpoints.quiet_abandoned_reads).
+# array) where nerfpod did not quiet them (workdir.quiet.quiet_abandoned_reads).
 ABANDONED_READ_REPORTS = ("Traceback", "Event loop is closed", "Exception ignored", "never retrieved",
                           "Task was destroyed")
 

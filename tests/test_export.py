@@ -14,7 +14,7 @@ from nerfpod import export as export_tool
 
 NEAR, FAR = 2.0, 6.0
 # Reading an mp4 back starts ffmpeg as a child process, which JAX (imported by other tests) warns about.
-pytestmark = pytest.mark.filterwarnings(r"ignore:os\.fork\(\) was called:RuntimeWarning")
+pytestmark = pytest.mark.filterwarnings("ignore::RuntimeWarning:subprocess")  # (by category and module)
 
 
 def _frame(index: int, num_frames: int, height: int, width: int) -> dict:

@@ -23,7 +23,7 @@ FLOORS = {
     "main": 7,
     "cli": 8,
 }
-PACKAGES = ("nerf", "scenes", "prepare", "render", "workdir", "run", "export", "pod")
+PACKAGES = ("nerf", "scenes", "prepare", "render", "monitor", "workdir", "run", "export", "pod")
 MAX_TOP_LEVEL_MODULES = 12
 
 
@@ -151,3 +151,11 @@ def test_one_restore_door_reads_the_checkpoints_of_a_trained_workdir():
   """Evaluation, rendering, the viewer and the exports restore through run/trained.py, never checkpoints'
   read-only restore directly."""
   assert _lines_matching(r"restore_newest\(", ("workdir/checkpoints.py", "run/trained.py")) == []
+
+
+def test_libraries_are_quieted_in_one_place_and_warnings_by_their_category():
+  """Log filters and the unraisable hook are installed by workdir/quiet.py only (the texts it still matches
+  live in workdir/library_texts.py, each pinned by tests/test_library_texts.py); a warning is filtered by its
+  category and module, never by its text."""
+  assert _lines_matching(r"addFilter\(|sys\.unraisablehook\s*=", ("workdir/quiet.py",)) == []
+  assert _lines_matching(r"filterwarnings\([^)]*message=", ()) == []

@@ -68,7 +68,8 @@ def test_within_waits_for_a_bucket_at_most_its_deadline_and_then_gives_up_on_it_
 
 def test_orbax_and_gcsfs_error_logs_of_a_storage_failure_are_dropped_and_others_pass():
   import logging
-  quiet = checkpoints._StorageFailureIsReported()
+  from nerfpod.workdir import quiet as quiet_lib
+  quiet = quiet_lib._StorageFailureIsReported()
 
   def record(error, level=logging.ERROR):
     try:

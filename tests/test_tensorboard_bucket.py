@@ -7,6 +7,7 @@ import socket
 import time
 
 from nerfpod import monitor
+from nerfpod.monitor import bucket_events
 
 FLUSHES = 40  # a run's flushes: the whole-file writer sends about FLUSHES / 2 times its events
 TAGS = ("train/loss", "train/psnr", "train/learning_rate")
@@ -126,14 +127,14 @@ def test_an_event_object_s_name_is_never_taken_from_another_upload(emulator):
   """Objects are created only where there is none of the name: a writer that finds its next name taken goes
   on to the one after it, unless the object there is its own upload (a retry of one that was stored)."""
   url = f"gs://{emulator.bucket}/runs/names/events.out.tfevents.1795800000.host"
-  first = monitor.BucketEventFile(url)
+  first = bucket_events.BucketEventFile(url)
   first.write(b"first")
   first.flush()
-  second = monitor.BucketEventFile(url)
+  second = bucket_events.BucketEventFile(url)
   second.number = 0  # as if it had listed the bucket before the first's upload
   second.write(b"second")
   second.flush()
-  again = monitor.BucketEventFile(url)
+  again = bucket_events.BucketEventFile(url)
   again.number = 1  # the second's upload again, as a client's retry sends it
   again.write(b"second")
   again.close()

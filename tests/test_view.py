@@ -136,9 +136,9 @@ def _warnings(capsys) -> list[str]:
 def test_a_damaged_checkpoint_is_skipped_at_start_and_when_polled_and_left_in_place(trained_workdir, tmp_path,
                                                                                      capsys, monkeypatch):
   from nerfpod import view
-  from nerfpod.workdir import checkpoints
+  from nerfpod.workdir import checkpoints, quiet
   # What `nerfpod view` does (view.run): orbax's reads abandoned by a failed restore report nothing.
-  monkeypatch.setattr(sys, "unraisablehook", checkpoints.quiet_abandoned_reads(sys.unraisablehook))
+  monkeypatch.setattr(sys, "unraisablehook", quiet.quiet_abandoned_reads(sys.unraisablehook))
   workdir = tmp_path / "run"
   shutil.copytree(trained_workdir, workdir)
   ckpts = workdir / "checkpoints"

@@ -22,6 +22,7 @@ import pytest
 import procs
 from conftest import smoke_config
 from nerfpod import monitor, schema
+from nerfpod.monitor import wandb_run, writer as monitor_writer
 from nerfpod.workdir import checkpoints, files as workdir_files
 
 OFFLINE = {"monitor.wandb.mode": "offline"}
@@ -198,7 +199,7 @@ class FakeTensorBoard:
 def test_wandb_gets_one_row_per_step_and_nothing_at_or_below_what_it_already_has(tmp_path):
   (tmp_path / "wandb.json").write_text(json.dumps({"id": "abc", "step": 10, "keys": ["train/loss"]}))
   run = FakeRun()
-  writer = monitor.Writer(FakeTensorBoard(), monitor.WandbRun(run, str(tmp_path), monitor.read_wandb_record(
+  writer = monitor.Writer(FakeTensorBoard(), wandb_run.WandbRun(run, str(tmp_path), wandb_run.read_wandb_record(
       str(tmp_path))))
   for step in (5, 10, 15):  # a resumed run re-trains 6..15; W&B got up to step 10's train/loss before
     writer.add_scalar("train/loss", 1.0 / step, step)
@@ -215,7 +216,7 @@ def test_wandb_gets_one_row_per_step_and_nothing_at_or_below_what_it_already_has
 def test_a_wandb_failure_mid_run_is_one_warning_and_tensorboard_goes_on(tmp_path, capsys):
   run = FakeRun(fail_at=1)
   tensorboard = FakeTensorBoard()
-  writer = monitor.Writer(tensorboard, monitor.WandbRun(run, str(tmp_path), {"id": "abc"}))
+  writer = monitor.Writer(tensorboard, wandb_run.WandbRun(run, str(tmp_path), {"id": "abc"}))
   for step in range(1, 6):
     writer.add_scalar("train/loss", 1.0 / step, step)
   writer.close(exit_code=0)
@@ -247,11 +248,11 @@ def test_wandb_without_network_is_one_warning_and_tensorboard_goes_on(tmp_path, 
 
 def test_images_become_uint8_as_tensorboard_shows_them():
   hwc = np.linspace(0.0, 1.0, 2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
-  out = monitor.to_uint8_hwc(hwc)
+  out = monitor_writer.to_uint8_hwc(hwc)
   assert out.dtype == np.uint8 and out.shape == (2, 3, 3) and out.min() == 0 and out.max() == 255
-  np.testing.assert_array_equal(monitor.to_uint8_hwc(np.moveaxis(hwc, -1, 0), "CHW"), out)
-  assert monitor.to_uint8_hwc(hwc[..., :1]).shape == (2, 3)  # one channel: grey
-  assert monitor.to_uint8_hwc(np.full((2, 2, 1), np.nan)).max() == 0
+  np.testing.assert_array_equal(monitor_writer.to_uint8_hwc(np.moveaxis(hwc, -1, 0), "CHW"), out)
+  assert monitor_writer.to_uint8_hwc(hwc[..., :1]).shape == (2, 3)  # one channel: grey
+  assert monitor_writer.to_uint8_hwc(np.full((2, 2, 1), np.nan)).max() == 0
 
 
 # --- whole runs -----------------------------------------------------------------------------------------------

@@ -102,8 +102,8 @@ def export(args) -> list[str] | dict:
     return module.export(args)
   module.check(args)
   from nerfpod import distributed  # import JAX: only for the kinds that need it
-  from nerfpod.workdir import checkpoints
-  checkpoints.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
+  from nerfpod.workdir import quiet
+  quiet.quiet_library_reports()  # orbax's reports of what nerfpod asked for, or said already
   distributed.keep_off_absent_tpu()
   distributed.initialize()  # several hosts (a TPU pod, JAX_* variables) render together; else one process
   from nerfpod.export import shared

@@ -112,9 +112,10 @@ def _even(image: np.ndarray) -> np.ndarray:
 
 @contextlib.contextmanager
 def quiet_fork_warning():
-  """ffmpeg runs as a child process (fork, then exec at once): JAX's warning about fork does not apply."""
+  """ffmpeg runs as a child process (fork, then exec at once): JAX's warning about fork does not apply. It is
+  a RuntimeWarning attributed to `subprocess`, which forks (tests/test_library_texts.py pins both)."""
   with warnings.catch_warnings():
-    warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+    warnings.filterwarnings("ignore", category=RuntimeWarning, module=r"subprocess\Z")
     yield
 
 

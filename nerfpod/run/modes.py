@@ -21,7 +21,7 @@ import jax
 
 from nerfpod import monitor, schema, storage
 from nerfpod.run import components, evaluate, orbit, train, trained
-from nerfpod.workdir import checkpoints, files as workdir_files, lock as workdir_lock
+from nerfpod.workdir import checkpoints, failures, files as workdir_files, lock as workdir_lock
 from nerfpod.errors import UserError
 
 
@@ -81,7 +81,7 @@ def _disk_full_is_one_sentence(workdir: str, training: bool):
   try:
     yield
   except Exception as e:  # noqa: BLE001 (orbax, tensorstore, tensorboardX and Python raise it differently)
-    if not checkpoints.disk_full(e):
+    if not failures.disk_full(e):
       raise
     if jax.process_index() == 0 and not storage.is_url(workdir):
       try:

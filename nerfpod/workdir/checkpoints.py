@@ -19,26 +19,20 @@ Damage: a finished step that does not read back whole (a file emptied or deleted
 non-finite values written by an older version) is set aside, renamed into DIR/checkpoints_damaged/ (never
 deleted), and the restore falls back to the newest step before it that reads back whole.
 
-A bucket that stops answering (or fails) mid-run: for a workdir in a bucket, what a training run waits on here
-(the opening of the checkpoints, the previous save when the next one is due, the last one at the end or at a
-preemption) is waited on for at most checkpoint.storage_timeout_s (nerfpod.storage.within); past it, or on a
-storage client's failure, the run stops with one storage.Stopped sentence naming the bucket, what failed and
-the newest committed checkpoint, the save under way left behind uncommitted. The arrays' tensorstore requests
-are retried TENSORSTORE_TRIES times at most (_BoundedRequests). A restore that the bucket fails is that
-sentence too, never a step set aside as damaged.
+A bucket that stops answering (or fails) mid-run: what a training run waits on in it is bounded
+(nerfpod.workdir.watchdog), and a restore that the bucket fails is its one storage.Stopped sentence, never a
+step set aside as damaged. What orbax reports of nerfpod's own doing is kept quiet by its settings here and by
+nerfpod.workdir.quiet.
 
 When to stop for a preemption is nerfpod.run.preemption's; the workdir's other files are nerfpod.workdir's.
 Paths go through etils.epath (as orbax's do), so a workdir may be a gs:// bucket.
 """
+import contextlib
 import dataclasses
 from typing import Any
-import errno
 import functools
 import logging
-import os
-import re
 import sys
-import traceback
 
 import jax
 import numpy as np
@@ -47,6 +41,7 @@ from etils import epath
 
 from nerfpod import storage
 from nerfpod.errors import UserError
+from nerfpod.workdir import failures, library_texts, watchdog
 from nerfpod.workdir.finite import all_finite
 
 def checkpoint_dir(workdir: str) -> epath.Path:
@@ -78,44 +73,6 @@ def latest_step(workdir: str) -> int | None:
   return steps[-1] if steps else None
 
 
-class _ReadOnlyIsAsked(logging.Filter):
-  """Drops orbax's warnings that a read-only manager is read-only (nerfpod asks for it: evaluation, rendering,
-  the viewer and the exports never write in a workdir); every other orbax message passes."""
-  QUIET = ("Given directory is read only", "CheckpointManagerOptions.read_only=True, setting")
-
-  def filter(self, record: logging.LogRecord) -> bool:
-    return not str(record.msg).startswith(self.QUIET)
-
-
-# How a full disk reads in the errors and logs of Python, tensorstore (its status carries errno 28, ENOSPC)
-# and a quota.
-DISK_FULL_TEXTS = ("No space left on device", "os_error_code='28'", "Disk quota exceeded")
-
-
-def disk_full(error: BaseException | None) -> bool:
-  """Whether `error`, or an error it was raised from, says the disk (or the user's quota) is full."""
-  seen = set()
-  while error is not None and id(error) not in seen:
-    seen.add(id(error))
-    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
-      return True
-    if any(text in str(error) for text in DISK_FULL_TEXTS):
-      return True
-    error = error.__cause__ or error.__context__
-  return False
-
-
-class _DiskFullIsReported(logging.Filter):
-  """Drops orbax's error logs (each with its traceback, up to 24 of them) of a save that failed on a full disk:
-  the run stops on it with one sentence (nerfpod.run.modes)."""
-
-  def filter(self, record: logging.LogRecord) -> bool:
-    if record.levelno < logging.ERROR:
-      return True
-    return not (disk_full(record.exc_info[1] if record.exc_info else None)
-                or any(text in record.getMessage() for text in DISK_FULL_TEXTS))
-
-
 def remove_cut_off_saves(workdir: str) -> list[str]:
   """Removes the temporary folders of saves that did not finish (process 0, with no save under way: a run
   that stops on a full disk), so that the space they hold is free; returns their names."""
@@ -124,8 +81,7 @@ def remove_cut_off_saves(workdir: str) -> list[str]:
     return []
   removed = []
   for path in directory.iterdir():
-    # orbax's temporary folder of a save under way: STEP.orbax-checkpoint-tmp, or with -TIMESTAMP after it
-    if re.search(r"\.orbax-checkpoint-tmp(-\d+)?$", path.name) or path.name == ROTATED:
+    if library_texts.is_cut_off_save(path.name) or path.name == ROTATED:
       path.rmtree()
       removed.append(path.name)
   return removed
@@ -141,54 +97,29 @@ def _register_array_handler(storage_timeout_s: float | None = None) -> None:
   cost). Several processes, or accelerators (whose replicas copy to the host in parallel), keep orbax's
   default. Either way the checkpoint holds the same arrays, and reads back the same. With
   `storage_timeout_s` (a training run whose workdir is in a bucket), the arrays' tensorstore requests are
-  bounded too (_BoundedRequests)."""
+  bounded too (watchdog.BoundedRequests)."""
   whole = jax.process_count() == 1 and jax.default_backend() == "cpu"
   if not whole and storage_timeout_s is None:
     return  # orbax's own
   options = {"use_replica_parallel": False} if whole else {}
   handler = (ocp.type_handlers.ArrayHandler(**options) if storage_timeout_s is None else
-             _BoundedRequests(storage_timeout_s, **options))
+             watchdog.BoundedRequests(storage_timeout_s, **options))
+  with _orbax_errors_only():  # (orbax warns of any override, wanted or not)
+    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
+
+
+@contextlib.contextmanager
+def _orbax_errors_only():
+  """Within it, orbax's logger (absl's) passes errors only: for what orbax warns of when nerfpod asks for it on
+  purpose (an override of its array handler, a read-only manager: nerfpod's readers never write in a
+  workdir)."""
   absl_logger = logging.getLogger("absl")
   level = absl_logger.level
-  absl_logger.setLevel(logging.ERROR)  # (orbax warns of any override, wanted or not)
+  absl_logger.setLevel(logging.ERROR)
   try:
-    ocp.type_handlers.register_type_handler(jax.Array, handler, override=True)
+    yield
   finally:
     absl_logger.setLevel(level)
-
-
-# tensorstore's gcs driver retries a request up to 32 times, waiting up to 32 s between tries: nerfpod's
-# arrays' requests are tried TENSORSTORE_TRIES times, at most checkpoint.storage_timeout_s apart (each try ends
-# after that long without a byte: storage.bound_clients), as gcsfs tries its own.
-TENSORSTORE_TRIES = 6
-
-
-class _BoundedRequests(ocp.type_handlers.ArrayHandler):
-  """orbax's ArrayHandler whose arrays' tensorstore requests are retried TENSORSTORE_TRIES times at most
-  (tensorstore's `gcs_request_retries` context resource, in a context whose parent is orbax's own, so that
-  its other resources stay shared)."""
-
-  def __init__(self, storage_timeout_s: float, **kwargs):
-    super().__init__(**kwargs)
-    self._retries = {"gcs_request_retries": {"max_retries": TENSORSTORE_TRIES - 1, "initial_delay": "1s",
-                                             "max_delay": f"{min(32.0, storage_timeout_s):g}s"}}
-
-  def _bounded(self, infos):
-    import tensorstore as ts
-    children = {}
-    for info in infos:
-      parent = info.ts_context
-      if parent is not None:
-        if id(parent) not in children:
-          children[id(parent)] = ts.Context(ts.Context.Spec(self._retries), parent=parent)
-        info.ts_context = children[id(parent)]
-    return infos
-
-  async def serialize(self, values, infos, args=None):
-    return await super().serialize(values, self._bounded(infos), args)
-
-  async def deserialize(self, infos, args=None):
-    return await super().deserialize(self._bounded(infos), args)
 
 
 @dataclasses.dataclass
@@ -220,6 +151,7 @@ class Checkpoints:
     # The newest max_to_keep steps, and any step pinned (the last one before a run of skipped steps).
     keep = None if read_only else cm.AnyPreservationPolicy([cm.LatestN(max_to_keep), _Pinned(self._pinned)])
     options = ocp.CheckpointManagerOptions(
+        save_interval_steps=0 if read_only else 1,  # (orbax's default, 1, is overridden, with a warning)
         preservation_policy=keep, enable_async_checkpointing=True, create=not read_only, read_only=read_only,
         cleanup_tmp_directories=not read_only,  # leftovers of a save cut off by a crash
         todelete_subdir=None if read_only else ROTATED,  # rename first, delete after (the module's docstring)
@@ -232,7 +164,9 @@ class Checkpoints:
     self._every_steps = every_steps
     _register_array_handler(self._timeout)
     def open_manager():
-      manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
+      # (a read-only manager's warning that it is read-only: asked for)
+      with _orbax_errors_only() if read_only else contextlib.nullcontext():
+        manager = ocp.CheckpointManager(self._directory, options=options, item_names=("state", "data"))
       if not read_only:
         self._delete_rotated()
       return manager
@@ -278,7 +212,7 @@ class Checkpoints:
     checkpoint: a run can come back on another number of hosts or devices. Without `step` (a training run
     resuming), a newest step that does not read back whole (missing or emptied files, non-finite values) is
     set aside into checkpoints_damaged/ with one line saying so, and the step before it is tried; a bucket
-    that fails meanwhile (storage_failure) is one storage.Stopped sentence instead, the step left as it is.
+    that fails meanwhile (failures.storage_failure) is one storage.Stopped sentence instead, the step left as it is.
     Readers that must not write go through restore_newest instead.
     """
     if step is not None:
@@ -287,12 +221,9 @@ class Checkpoints:
     damaged = []
 
     def set_aside(candidate: int, error: Exception) -> str:
-      reason = damage_reason(error)
-      if self._timeout is not None and storage_failure(error):  # the bucket failed, not the step: kept as it is
-        storage.mark_stopped(self._workdir)
-        raise storage.Stopped(f"the bucket {storage.bucket_of(self._workdir)} failed while reading the "
-                              f"checkpoint of step {candidate} ({reason}); it is left as it is: rerun the same "
-                              f"command once storage is back.") from None
+      reason = failures.reason(error)
+      if self._timeout is not None and failures.storage_failure(error):  # the bucket failed, not the step
+        raise watchdog.failed_reading(self._workdir, candidate, reason) from None
       damaged.append(f"step {candidate}: {reason}")
       return f"set aside as {self._set_aside(candidate)}; falling back to the step before it"
     found = newest_whole(self._directory, self.manager.all_steps(),
@@ -368,37 +299,18 @@ class Checkpoints:
     return started
 
   def _finish_save(self) -> None:
-    """Waits for the save under way, if any, to be committed (bounded: _bounded)."""
+    """Waits for the save under way, if any, to be committed (bounded: watchdog.bounded)."""
     if self._saving is not None:
       self._bounded(f"saving the checkpoint of step {self._saving}", self.manager.wait_until_finished)
       self._committed, self._saving = self._saving, None
 
   def _bounded(self, doing: str, work):
-    """work() (a part of `doing`, in words: "saving the checkpoint of step 20"). For a workdir in a bucket,
-    waited on for at most storage_timeout_s (storage.within); a bucket that gives no answer in that time, or
-    fails (storage_failure: an error of another kind is raised as it is), is one storage.Stopped sentence
-    naming it, what failed and the newest committed checkpoint."""
-    if self._timeout is None:
-      return work()
-    bucket = storage.bucket_of(self._workdir)
-    try:
-      return storage.within(self._workdir, self._timeout, work)
-    except storage.NoAnswer:
-      what = f"stopped answering while {doing} (no answer in {self._timeout:g} s)"
-    except UserError:
-      raise
-    except Exception as e:  # noqa: BLE001 (whatever orbax, tensorstore or gcsfs raise when storage fails)
-      if not storage_failure(e):
-        raise
-      what = f"failed while {doing} ({damage_reason(e)})"
-      storage.mark_stopped(self._workdir)  # (the run stops on it: its other calls there give up at once)
-    newest = (f"the newest committed checkpoint is step {self._committed}: rerun the same command once storage "
-              f"is back (it resumes from there)" if self._committed is not None else
-              "no checkpoint had been committed yet: rerun the same command once storage is back")
-    raise storage.Stopped(f"the bucket {bucket} {what}; {newest}.")
+    """work(), bounded for a workdir in a bucket (watchdog.bounded: one storage.Stopped sentence naming the
+    newest committed checkpoint)."""
+    return watchdog.bounded(self._workdir, self._timeout, doing, work, self._committed)
 
   def close(self) -> None:
-    """Waits for the last save to be complete on disk (bounded for a bucket: _bounded). Once. Where the
+    """Waits for the last save to be complete on disk (bounded for a bucket: watchdog.bounded). Once. Where the
     bucket stopped answering, waits for nothing (what was under way is left behind, never committed)."""
     if self._closed:
       return
@@ -428,7 +340,7 @@ def restore_newest(workdir: str, abstract_state, above: int = -1,
   def leave_in_place(step: int, error: Exception) -> str | None:
     if step not in finished_steps(workdir):
       return None
-    damaged[step] = damage_reason(error)
+    damaged[step] = failures.reason(error)
     return "left in place (a training run on this workdir sets it aside); falling back to the step before it"
   with Checkpoints(workdir, every_steps=1, max_to_keep=1, read_only=True) as ckpt:  # (a reader saves nothing)
     steps = [s for s in finished_steps(workdir) if s > above and s not in damaged]
@@ -454,7 +366,7 @@ def newest_whole(directory, steps, read, damaged_step) -> tuple[int, Any] | None
       then = damaged_step(step, e)
       if then is not None and jax.process_index() == 0:
         print(f"nerfpod: warning: the checkpoint of step {step} in {directory} does not read back whole "
-              f"({damage_reason(e)}); {then}", file=sys.stderr, flush=True)
+              f"({failures.reason(e)}); {then}", file=sys.stderr, flush=True)
   return None
 
 
@@ -464,147 +376,6 @@ def none_reads_back_whole(workdir: str, damaged: dict) -> UserError:
                    + "; ".join(f"step {s}: {r}" for s, r in sorted(damaged.items(), reverse=True))
                    + "); they are left in place: train again from scratch in a new --workdir (or rerun the "
                      "training command, which sets them aside and starts from scratch).")
-
-
-def damage_reason(error: BaseException) -> str:
-  """Why a read failed, in one line: the innermost cause's message (orbax wraps tensorstore's error, which
-  names the file and what is wrong with it, in one that names neither)."""
-  while error.__cause__ is not None:
-    error = error.__cause__
-  return " ".join(str(error).split())[:300] or type(error).__name__
-
-
-class _StorageFailureIsReported(logging.Filter):
-  """Drops the error logs, each with its traceback, of orbax's save threads and of gcsfs's retries whose error
-  is a storage client's failure to reach or hear from its service (a connection refused, reset or timed out,
-  an HTTP error, a tensorstore request given up): the error itself reaches the caller, and a run whose bucket
-  fails says so in one sentence (Checkpoints._bounded; storage._call for what a scene reads)."""
-
-  def filter(self, record: logging.LogRecord) -> bool:
-    return not (record.levelno >= logging.ERROR and record.exc_info and storage_failure(record.exc_info[1]))
-
-
-# tensorstore's status codes of a request that did not get through (an error raised in its C++ code begins
-# with its code).
-_UNREACHED_CODES = ("UNAVAILABLE", "DEADLINE_EXCEEDED", "ABORTED", "UNAUTHENTICATED", "PERMISSION_DENIED")
-
-
-def _storage_error_types() -> tuple:
-  """The exception types of the storage clients' failures to reach or hear from their services."""
-  kinds = [ConnectionError, TimeoutError]
-  for module, names in (("aiohttp", ("ClientError",)), ("requests.exceptions", ("RequestException",)),
-                        ("google.api_core.exceptions", ("GoogleAPIError",)),
-                        ("google.auth.exceptions", ("TransportError", "RefreshError")),
-                        ("gcsfs.retry", ("HttpError",)), ("fsspec.exceptions", ("FSTimeoutError",))):
-    found = sys.modules.get(module)  # (a client not imported raised nothing)
-    kinds += [getattr(found, name) for name in names if found is not None and hasattr(found, name)]
-  return tuple(kinds)
-
-
-def storage_failure(error: BaseException | None) -> bool:
-  """Whether `error`, or an error it was raised from, is a storage client's failure to reach or hear from its
-  service (_StorageFailureIsReported)."""
-  kinds = _storage_error_types()
-  seen = set()
-  while error is not None and id(error) not in seen:
-    seen.add(id(error))
-    if isinstance(error, kinds) or (isinstance(error, ValueError)
-                                     and str(error).split(":", 1)[0] in _UNREACHED_CODES):
-      return True
-    error = error.__cause__ or error.__context__
-  return False
-
-
-class _AbandonedReadTasks(logging.Filter):
-  """Drops asyncio's "... exception was never retrieved" for orbax's reads (an abandoned read that failed
-  too, reported when its task, or the future gathering several, is collected: a traceback per array), and
-  its "Task was destroyed but it is pending" for those still under way at exit. A task's line names the
-  coroutine's file; a gathering future's names none, so its exception's traceback is read too; a future
-  tensorstore itself failed has no traceback: its status-code message tells."""
-
-  def filter(self, record):
-    message = record.getMessage()
-    if message.startswith("Task was destroyed but it is pending"):  # one cut off before it failed
-      return not _in_orbax(message)
-    if "exception was never retrieved" not in message:
-      return True
-    error = record.exc_info[1] if record.exc_info else None
-    return not (_in_orbax(message) or _raised_in_orbax(error) or _tensorstore_status(error))
-
-
-# absl status codes, which begin the message of an error raised in tensorstore's C++ code.
-_STATUS_CODES = ("CANCELLED", "UNKNOWN", "INVALID_ARGUMENT", "DEADLINE_EXCEEDED", "NOT_FOUND", "ALREADY_EXISTS",
-                 "PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "FAILED_PRECONDITION", "ABORTED", "OUT_OF_RANGE",
-                 "UNIMPLEMENTED", "INTERNAL", "UNAVAILABLE", "DATA_LOSS", "UNAUTHENTICATED")
-
-
-def _tensorstore_status(error) -> bool:
-  """Whether `error` is one tensorstore set on a future from its C++ code (no Python frame, a status-code
-  message): a read orbax started and abandoned, where nothing else in a process awaits tensorstore futures
-  without their results."""
-  return (error is not None and error.__traceback__ is None
-          and str(error).split(":", 1)[0] in _STATUS_CODES)
-
-
-def _in_orbax(text: str) -> bool:
-  """Whether `text` (a file name, or a report naming one) names a file of orbax's."""
-  return f"{os.sep}orbax{os.sep}" in text
-
-
-def _raised_in_orbax(error) -> bool:
-  """Whether `error`, or an error it was raised from, passed through orbax's code."""
-  seen = set()
-  while error is not None and id(error) not in seen:
-    seen.add(id(error))
-    if any(_in_orbax(frame.filename) for frame in traceback.extract_tb(error.__traceback__)):
-      return True
-    error = error.__cause__ or error.__context__
-  return False
-
-
-def quiet_library_reports() -> None:
-  """Keeps what orbax, asyncio and tensorstore report about nerfpod's own doing out of a process's output: a
-  read-only manager's warnings that it is read-only (asked for: _ReadOnlyIsAsked), the error logs of a save that
-  failed on a full disk (the run says it in one sentence: _DiskFullIsReported), those of orbax's save threads and
-  gcsfs's retries on storage that failed (_StorageFailureIsReported: the run says it in one sentence) and the
-  reads orbax abandons when a restore fails (quiet_abandoned_reads). Each filter drops only those; every other
-  report passes. The entry points call it (nerfpod.main, the exports, the viewer), once per process; calling it
-  again changes nothing. The texts matched are pinned to the library versions that emit them by
-  tests/test_checkpoints.py."""
-  absl_log = logging.getLogger("absl")
-  for quiet in (_ReadOnlyIsAsked, _DiskFullIsReported, _StorageFailureIsReported):
-    if not any(isinstance(f, quiet) for f in absl_log.filters):
-      absl_log.addFilter(quiet())
-  for name in ("gcsfs", "fsspec"):  # (their loggers' records reach the root's handler, absl's, without absl's)
-    client_log = logging.getLogger(name)
-    if not any(isinstance(f, _StorageFailureIsReported) for f in client_log.filters):
-      client_log.addFilter(_StorageFailureIsReported())
-  sys.unraisablehook = quiet_abandoned_reads(sys.unraisablehook)
-
-
-def quiet_abandoned_reads(hook):
-  """`hook` (sys.unraisablehook), less the reports of the reads orbax abandons when a restore fails (a
-  damaged step): orbax stops at the first failed read and closes its event loop with the other reads still
-  under way, so each of those later reports "Event loop is closed" (from tensorstore's thread) or, at exit,
-  an unfinished coroutine: up to hundreds of lines after the one warning line that says what happened.
-  Also quiets asyncio's log of those reads that failed in turn (a logging filter, installed once). A hook
-  that is already one of these is returned as it is."""
-  if getattr(hook, "quiets_abandoned_reads", False):
-    return hook
-  asyncio_log = logging.getLogger("asyncio")
-  if not any(isinstance(f, _AbandonedReadTasks) for f in asyncio_log.filters):
-    asyncio_log.addFilter(_AbandonedReadTasks())
-
-  def quiet(unraisable):
-    error, trace = unraisable.exc_value, unraisable.exc_traceback
-    closed_loop = (isinstance(error, RuntimeError) and str(error) == "Event loop is closed" and trace is not None
-                   and trace.tb_frame.f_code.co_name == "call_soon_threadsafe")  # called from no Python frame
-    code = getattr(unraisable.object, "cr_code", None)
-    abandoned_read = code is not None and _in_orbax(code.co_filename)
-    if not (closed_loop or abandoned_read):
-      hook(unraisable)
-  quiet.quiets_abandoned_reads = True
-  return quiet
 
 
 def _saved_tree(path):
