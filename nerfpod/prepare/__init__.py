@@ -22,11 +22,13 @@ DIR.partial/: the same command again reuses its finished stages (the frames, the
 COLMAP database); --overwrite starts again. A user's mistake is one sentence on stderr and exit code 2.
 Measurements and every message: docs/prepare.md.
 
-Here: the command (its absl flags, read as every subcommand reads them: errors.parse_flags; the stages in
-order, resuming them, the report). The stages' work is in
+Here: the command (its absl flags, read as every subcommand reads them: errors.parse_flags; STAGES, the table of
+the stages in order, each resuming what the work folder holds by the one rule, Job.resume; the report). The
+stages' work is in
 frames (the input: photos, a video's frames), sfm (pycolmap: features, matching, mapping, the model kept)
 and capture (the capture folder's files); progress prints the progress lines.
 """
+import dataclasses
 import json
 import math
 import os
@@ -34,6 +36,7 @@ import shutil
 import sys
 import time
 import types
+import typing
 
 from absl import flags
 
@@ -197,9 +200,69 @@ def _load_state(work: str) -> dict:
     return {}
 
 
-def prepare(args) -> dict:
-  """The whole command: returns prepare.json's content."""
-  t0 = time.monotonic()
+@dataclasses.dataclass
+class Job:
+  """One prepare as its stages see it: the command's options (`args`), the input (`src`), the capture folder
+  (`out`) and the work folder beside it (`work`: the staged images, the COLMAP database, state.json) with its
+  `state` (the input's signature, and a record per stage begun: the settings it was begun with), the cameras
+  chosen; and what the stages find, in order: the image names and the input's `info`, the matching and the
+  pairs, the model kept (`best`, `note`, `choice`, `tried`), the capture written (`model`, `factors`), the
+  counts and the timings of prepare.json."""
+  args: types.SimpleNamespace
+  src: frames.Source
+  out: str
+  work: str
+  state: dict
+  cameras: str
+  camera_model: str
+  names: list = None
+  info: dict = None
+  matching: str = None
+  pairs: list = None
+  best: dict = None
+  note: str = None
+  choice: str = None
+  tried: list = None
+  model: capture.Model = None
+  factors: list = None
+  counts: dict = dataclasses.field(default_factory=dict)
+  timings: dict = dataclasses.field(default_factory=dict)
+
+  @property
+  def image_dir(self) -> str:
+    return os.path.join(self.work, "images")
+
+  @property
+  def db_path(self) -> str:
+    return os.path.join(self.work, "database.db")
+
+  @property
+  def capture_dir(self) -> str:
+    return os.path.join(self.work, "capture")
+
+  def save_state(self) -> None:
+    capture.write_json(os.path.join(self.work, STATE), self.state)
+
+  def resume(self, stage: str, key: dict, ready: bool = True) -> bool:
+    """The one resume rule: True where the work folder holds `stage` begun with this run's settings (`key`, and
+    `ready`: its work is there), to be reused or continued; else False, with the records of `stage` and of
+    every stage after it dropped from the state (the caller discards their work and records `key`)."""
+    stages = self.state["stages"]
+    if stages.get(stage, {}).get("key") == key and ready:
+      return True
+    for later in RESUMED[RESUMED.index(stage):]:
+      stages.pop(later, None)
+    return False
+
+  def begin(self, stage: str, record: dict) -> None:
+    """Records `stage` (its key, and what a later run reuses) in the state, saved."""
+    self.state["stages"][stage] = record
+    self.save_state()
+
+
+def _open_job(args) -> Job:
+  """The checks before any work (the input, --out, every photo decoded, pycolmap), the cameras chosen, and the
+  work folder with its state: reused where it holds an earlier run of the same input, else started again."""
   src = frames.scan_input(args.input)
   out = os.path.normpath(args.out)
   _check_out(out, args.overwrite, args.input)
@@ -229,121 +292,152 @@ def prepare(args) -> dict:
     os.makedirs(work)
     state = {}
   state["input"] = signature
-  stages = state.setdefault("stages", {})
-  image_dir, db_path = os.path.join(work, "images"), os.path.join(work, "database.db")
-  timings, counts = {}, {}
-  what = (f"{len(src.files)} photos in {src.path}" if src.kind == "photos" else
-          f"video {src.path} ({src.video['frames']} frames, {src.video['width']}x{src.video['height']}, "
-          f"{src.video['duration_s']:.1f} s)")
-  print(f"nerfpod prepare: {what} -> {out} ({args.threads} threads, seed {args.seed}; work in {work})", flush=True)
+  state.setdefault("stages", {})
+  return Job(args, src, out, work, state, cameras, camera_model)
 
-  def save_state():
-    capture._write_json(os.path.join(work, STATE), state)
 
-  # 1. images
+def _remove(path: str) -> None:
+  if os.path.exists(path):
+    os.remove(path)
+
+
+def _images(job: Job, label: str) -> None:
+  """A video's frames or the photos into the work folder's images/ (reused where they are there); new images
+  discard the features and matches (the database)."""
+  args, src = job.args, job.src
   key = {"num_frames": args.num_frames} if src.kind == "video" else {}
-  t = time.monotonic()
-  if stages.get("images", {}).get("key") == key and os.path.isdir(image_dir):
-    names, info = stages["images"]["names"], stages["images"]["info"]
-    print(f"[1/5] {'frames' if src.kind == 'video' else 'images'}: {len(names)} reused from the earlier run",
+  if job.resume("images", key, ready=os.path.isdir(job.image_dir)):
+    job.names, job.info = job.state["stages"]["images"]["names"], job.state["stages"]["images"]["info"]
+    print(f"{label} {'frames' if src.kind == 'video' else 'images'}: {len(job.names)} reused from the earlier run",
           flush=True)
   else:
     windows = len(frames.frame_windows(src.video["frames"], args.num_frames)) - 1 if src.kind == "video" else 0
-    print("[1/5] " + (f"frames: the sharpest of each of {windows} even windows in time" if src.kind == "video"
-                      else f"images: linking {len(src.files)} photos"), flush=True)
-    for later in ("images", "features", "matching"):
-      stages.pop(later, None)
-    if os.path.exists(db_path):
-      os.remove(db_path)
+    print(f"{label} " + (f"frames: the sharpest of each of {windows} even windows in time" if src.kind == "video"
+                         else f"images: linking {len(src.files)} photos"), flush=True)
+    _remove(job.db_path)
     try:
-      names, info = frames.stage_images(src, image_dir, args.num_frames)
+      job.names, job.info = frames.stage_images(src, job.image_dir, args.num_frames)
     except UserError:  # the input's fault (a video that breaks off): nothing here is worth keeping
-      shutil.rmtree(work, ignore_errors=True)
+      shutil.rmtree(job.work, ignore_errors=True)
       raise
-    stages["images"] = {"key": key, "names": names, "info": info}
-    save_state()
-  timings["frames" if src.kind == "video" else "images"] = time.monotonic() - t
-  counts["images"] = len(names)
+    job.begin("images", {"key": key, "names": job.names, "info": job.info})
+  job.counts["images"] = len(job.names)
 
-  # 2. features
-  key = {"cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size}
-  t = time.monotonic()
-  print(f"[2/5] features: SIFT on {len(names)} images, {'one shared' if cameras == 'shared' else 'one per image'} "
-        f"{camera_model} camera", flush=True)
-  if stages.get("features", {}).get("key") != key:  # not started with these settings: start them afresh
-    stages.pop("features", None)
-    stages.pop("matching", None)
-    if os.path.exists(db_path):
-      os.remove(db_path)
-    stages["features"] = {"key": key}
-    save_state()
-  counts.update(sfm.stage_features(db_path, image_dir, names, cameras, camera_model, args.max_image_size,
-                                   args.threads, args.seed))
-  timings["features"] = time.monotonic() - t
 
-  # 3. matching
-  matching = sfm.choose_matching(src.kind, len(names), args.matching)
-  pairs = sfm.image_pairs(len(names), matching)
-  key = {"matching": matching, "seed": args.seed}  # the seed of the verification's RANSAC
-  t = time.monotonic()
-  order = " (neighbours in time, and loop pairs)" if matching == "sequential" else ""
-  print(f"[3/5] matching: {matching}{order}, {len(pairs):,} pairs", flush=True)
-  if stages.get("matching", {}).get("key") != key:
-    if "matching" in stages:
-      sfm._count(db_path, lambda db: (db.clear_matches(), db.clear_two_view_geometries()))
-    stages["matching"] = {"key": key}
-    save_state()
-  counts.update(sfm.stage_matching(db_path, work, names, pairs, args.threads, args.seed))
-  timings["matching"] = time.monotonic() - t
+def _features(job: Job, label: str) -> None:
+  """SIFT features into the database; begun with other settings, it starts afresh (a new database)."""
+  args = job.args
+  key = {"cameras": job.cameras, "camera_model": job.camera_model, "max_image_size": args.max_image_size}
+  print(f"{label} features: SIFT on {len(job.names)} images, "
+        f"{'one shared' if job.cameras == 'shared' else 'one per image'} {job.camera_model} camera", flush=True)
+  if not job.resume("features", key):  # not started with these settings: start them afresh
+    _remove(job.db_path)
+    job.begin("features", {"key": key})
+  job.counts.update(sfm.stage_features(job.db_path, job.image_dir, job.names, job.cameras, job.camera_model,
+                                       args.max_image_size, args.threads, args.seed))
 
-  # 4. mapping
-  t = time.monotonic()
-  print("[4/5] mapping: " + (f"the {args.mapper} mapper" if args.mapper != "auto" else
-                              "the incremental mapper (and the global one if it leaves over 5% out)"), flush=True)
-  best, note, choice, tried = sfm.stage_mapping(db_path, work, image_dir, len(names), args.mapper, args.seed)
-  timings["mapping"] = time.monotonic() - t
-  needed = max(sfm.MIN_IMAGES, math.ceil(args.min_registered * len(names)))
-  if best["registered"] < needed:
-    raise UserError(sfm.too_few_message(best["registered"], len(names), needed, tried, matching, work))
-  rec = best["reconstruction"]
 
-  # 5. writing
-  t = time.monotonic()
-  print("[5/5] writing the capture", flush=True)
-  capture_dir = os.path.join(work, "capture")
-  model, factors = capture.stage_writing(capture_dir, image_dir, rec)
-  timings["writing"] = time.monotonic() - t
-  registered = set(model.names)
-  counts.update({"registered": len(model.names), "unregistered": [n for n in names if n not in registered],
-                 "points": int(rec.num_points3D()),
-                 "reprojection_error_px": float(rec.compute_mean_reprojection_error()),
-                 "track_length": float(rec.compute_mean_track_length()),
-                 "other_models": best["models"] - 1, "other_models_images": best["others"]})
+def _matching(job: Job, label: str) -> None:
+  """The image pairs matched and verified; begun with other settings, its matches are cleared first."""
+  args = job.args
+  job.matching = sfm.choose_matching(job.src.kind, len(job.names), args.matching)
+  job.pairs = sfm.image_pairs(len(job.names), job.matching)
+  key = {"matching": job.matching, "seed": args.seed}  # the seed of the verification's RANSAC
+  order = " (neighbours in time, and loop pairs)" if job.matching == "sequential" else ""
+  print(f"{label} matching: {job.matching}{order}, {len(job.pairs):,} pairs", flush=True)
+  begun = "matching" in job.state["stages"]
+  if not job.resume("matching", key):
+    if begun:
+      sfm.clear_matches(job.db_path)
+    job.begin("matching", {"key": key})
+  job.counts.update(sfm.stage_matching(job.db_path, job.work, job.names, job.pairs, args.threads, args.seed))
+
+
+def _mapping(job: Job, label: str) -> None:
+  """The mappers on the matches, and the model kept (sfm.stage_mapping; run whole every time); fewer images
+  registered than --min_registered asks (and sfm.MIN_IMAGES) is one sentence."""
+  args = job.args
+  print(f"{label} mapping: " + (f"the {args.mapper} mapper" if args.mapper != "auto" else
+                                "the incremental mapper (and the global one if it leaves over 5% out)"), flush=True)
+  job.best, job.note, job.choice, job.tried = sfm.stage_mapping(job.db_path, job.work, job.image_dir,
+                                                                len(job.names), args.mapper, args.seed)
+  needed = max(sfm.MIN_IMAGES, math.ceil(args.min_registered * len(job.names)))
+  if job.best["registered"] < needed:
+    raise UserError(sfm.too_few_message(job.best["registered"], len(job.names), needed, job.tried, job.matching,
+                                        job.work))
+
+
+def _writing(job: Job, label: str) -> None:
+  """The capture's files into the work folder's capture/."""
+  print(f"{label} writing the capture", flush=True)
+  job.model, job.factors = capture.stage_writing(job.capture_dir, job.image_dir, job.best["reconstruction"])
+
+
+class Stage(typing.NamedTuple):
+  """A stage of prepare: its name (in prepare.json's timings; a video's `images` is `frames`), and `run(job,
+  label)`, which prints its line, beginning with `label` ('[i/5]'), and does it, resuming what the work folder
+  holds of it (Job.resume)."""
+  name: str
+  run: typing.Callable
+
+
+STAGES = (Stage("images", _images), Stage("features", _features), Stage("matching", _matching),
+          Stage("mapping", _mapping), Stage("writing", _writing))
+RESUMED = ("images", "features", "matching")  # the stages a run resumes, in order (state.json's records)
+
+
+def prepare(args) -> dict:
+  """The whole command: returns prepare.json's content."""
+  t0 = time.monotonic()
+  job = _open_job(args)
+  src = job.src
+  what = (f"{len(src.files)} photos in {src.path}" if src.kind == "photos" else
+          f"video {src.path} ({src.video['frames']} frames, {src.video['width']}x{src.video['height']}, "
+          f"{src.video['duration_s']:.1f} s)")
+  print(f"nerfpod prepare: {what} -> {job.out} ({args.threads} threads, seed {args.seed}; work in {job.work})",
+        flush=True)
+  for number, stage in enumerate(STAGES, 1):
+    t = time.monotonic()
+    stage.run(job, f"[{number}/{len(STAGES)}]")
+    job.timings["frames" if stage.name == "images" and src.kind == "video" else stage.name] = time.monotonic() - t
+  return _finish(job, t0)
+
+
+def _finish(job: Job, t0: float) -> dict:
+  """prepare.json written into the capture, which then replaces --out whole; returns its content."""
+  args, src, best, rec, note = job.args, job.src, job.best, job.best["reconstruction"], job.note
+  registered = set(job.model.names)
+  job.counts.update({"registered": len(job.model.names),
+                     "unregistered": [n for n in job.names if n not in registered],
+                     "points": int(rec.num_points3D()),
+                     "reprojection_error_px": float(rec.compute_mean_reprojection_error()),
+                     "track_length": float(rec.compute_mean_track_length()),
+                     "other_models": best["models"] - 1, "other_models_images": best["others"]})
   if best["others"]:
     note += f"; {best['models'] - 1} smaller model(s) held {best['others']} images it lacks"
-  timings["total"] = time.monotonic() - t0
+  job.timings["total"] = time.monotonic() - t0
   summary = {
       "version": 1,
-      "out": out,
-      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **info,
+      "out": job.out,
+      "input": {"path": os.path.abspath(src.path), "kind": src.kind, **job.info,
                 **({"damaged_left_out": src.damaged} if src.damaged else {})},
-      "options": {"num_frames": args.num_frames, "matching": matching, "mapper": args.mapper,
-                  "cameras": cameras, "camera_model": camera_model, "max_image_size": args.max_image_size,
+      "options": {"num_frames": args.num_frames, "matching": job.matching, "mapper": args.mapper,
+                  "cameras": job.cameras, "camera_model": job.camera_model, "max_image_size": args.max_image_size,
                   "min_registered": args.min_registered, "threads": args.threads, "seed": args.seed},
       "versions": _versions(),
-      "counts": counts,
-      "mapping": sfm.mapping_record(best, note, choice, tried),
-      "downscales": factors,
-      "forward_facing": capture.looks_forward_facing(model.c2w_opencv()),
-      "timings_s": {k: round(v, 2) for k, v in timings.items()},
+      "counts": job.counts,
+      "mapping": sfm.mapping_record(best, note, job.choice, job.tried),
+      "downscales": job.factors,
+      "forward_facing": capture.looks_forward_facing(job.model.c2w_opencv()),
+      "timings_s": {k: round(v, 2) for k, v in job.timings.items()},
   }
-  capture._write_json(os.path.join(capture_dir, capture.PREPARE_JSON), summary)
+  capture.write_json(os.path.join(job.capture_dir, capture.PREPARE_JSON), summary)
   # Only now does --out appear, whole: an earlier capture there (--overwrite) is replaced.
-  if os.path.isdir(out):
-    shutil.rmtree(out)
-  os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-  os.replace(capture_dir, out)
-  shutil.rmtree(work, ignore_errors=True)
+  if os.path.isdir(job.out):
+    shutil.rmtree(job.out)
+  os.makedirs(os.path.dirname(os.path.abspath(job.out)), exist_ok=True)
+  os.replace(job.capture_dir, job.out)
+  shutil.rmtree(job.work, ignore_errors=True)
   return summary
 
 

@@ -165,11 +165,12 @@ def stage_writing(capture: str, image_dir: str, rec) -> tuple[Model, list[int]]:
         done += 1
         progress.update(done)
   np.save(os.path.join(capture, "poses_bounds.npy"), poses_bounds(model))
-  _write_json(os.path.join(capture, "transforms.json"), transforms_json(model))
+  write_json(os.path.join(capture, "transforms.json"), transforms_json(model))
   return model, factors
 
 
-def _write_json(path: str, obj):
+def write_json(path: str, obj):
+  """Writes `obj` as JSON to `path` whole: to a .tmp file beside it, then renamed over it."""
   tmp = path + ".tmp"
   with open(tmp, "w") as f:
     json.dump(obj, f, indent=1)

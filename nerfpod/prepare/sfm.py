@@ -479,6 +479,12 @@ def camera_poses(rec) -> dict:
   return poses
 
 
+def clear_matches(db_path: str) -> None:
+  """Removes the matches and the verified pairs from the COLMAP database at `db_path`; its images and features
+  stay (matching again with other settings reuses them)."""
+  _count(db_path, lambda db: (db.clear_matches(), db.clear_two_view_geometries()))
+
+
 def _count(db_path: str, fn):
   import pycolmap
   db = pycolmap.Database.open(db_path)

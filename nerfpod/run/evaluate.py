@@ -1,6 +1,9 @@
 """Held-out evaluation: render the views of a split; PSNR, SSIM and LPIPS per view and on average, under
 the plain protocol and, for runs with per-frame parameters, theirs (nerfpod.run.protocols)."""
 
+import dataclasses
+from typing import Any
+
 import jax
 import numpy as np
 
@@ -115,111 +118,235 @@ def evaluate(comps, params, workdir: str, step: int, writer=None) -> dict:
   the given one, metrics from the fitted pose, each view's fitted correction beside them). Neither fit is made
   for a model of several regions, whose fields their programs do not shard."""
   config = comps.config
-  split = comps.scene.split(config.eval.split)
   evaluator, why_not = _lpips_evaluator(comps)
-  plain = _Scores(evaluator, comps.mesh.size)
-  similarity = protocols.gauge(params, comps.scene.split("train").poses)
-  aligned = None if similarity is None else _Scores(evaluator, comps.mesh.size)
-  ordered = compilation.gradient_mean_is_ordered(config)
-  fit = protocols.has_codes(params) and config.eval.appearance_steps > 0 and comps.model.regions == 1
-  if fit:
-    fitter = protocols.make_code_fitter(comps.render_model, comps.mesh, comps.near, comps.far, comps.background,
-                                        config.eval.appearance_lr, ordered)
-    half, half_mean = _Scores(evaluator, comps.mesh.size), _Scores(evaluator, comps.mesh.size)
-  fit_poses = comps.model.regions == 1 and (
-      config.eval.pose_fit == "always" or (config.eval.pose_fit == "refined" and similarity is not None))
-  if fit_poses:
-    pose_fitter = protocols.make_pose_fitter(comps.render_model, comps.mesh, comps.near, comps.far,
-                                             comps.background, config.eval.pose_lr, config.eval.pose_steps, ordered)
-    optimised, corrections = _Scores(evaluator, comps.mesh.size), []
+  run = _Evaluation(comps, params, comps.scene.split(config.eval.split), evaluator, why_not,
+                    protocols.gauge(params, comps.scene.split("train").poses))
+  chosen = [protocol for protocol in (kind.set_up(run) for kind in PROTOCOLS) if protocol is not None]
   for index, out in render_views(comps, params):
-    rgb = np.clip(out["rgb"], 0.0, 1.0)
-    truth = split.image(index)
-    entry = {"index": index, "name": split.names[index]}
-    plain.add(entry, rgb, truth)
+    view = _View({"index": index, "name": run.split.names[index]}, run.split.image(index),
+                 run.split.poses[index], run.split.cameras[index], np.clip(out["rgb"], 0.0, 1.0))
     if writer is not None and index < 3:
-      writer.add_image(f"eval/{index}/rgb", np.concatenate([rgb, truth], 1), step,
-                       dataformats="HWC")
+      writer.add_image(f"eval/{index}/rgb", np.concatenate([view.rgb, view.truth], 1), step, dataformats="HWC")
       writer.add_image(f"eval/{index}/depth", video.depth_image(out["depth"], comps.near, comps.far)[..., None],
                        step, dataformats="HWC")
-    pose, intr = split.poses[index], split.cameras[index]
-    if similarity is not None:
-      pose = alignment.transform_poses(pose, *similarity)
-      out = renderer.render_image(comps.renderer, params, comps.mesh, pose, intr, config.data.pixel_center,
-                                  config.eval.chunk)
-      aligned.add(entry, np.clip(out["rgb"], 0.0, 1.0), truth)
-    if fit:
-      half_mean.add(entry, _right_half(np.clip(out["rgb"], 0.0, 1.0)), _right_half(truth))
-      code = protocols.fit_code(fitter, params, comps.mesh, pose, intr, truth, config.data.pixel_center,
-                                config.eval.appearance_steps, config.eval.appearance_rays,
-                                seed=config.train.seed * 1_000_003 + index)
-      origins, directions = (_right_half(x) for x in cameras.image_rays(pose, intr, config.data.pixel_center))
-      got = renderer.render_rays(comps.renderer, protocols.with_code(params, code), comps.mesh,
-                                 origins.reshape(-1, 3), directions.reshape(-1, 3), config.eval.chunk)
-      half.add(entry, np.clip(got["rgb"].reshape(origins.shape), 0.0, 1.0), _right_half(truth))
-    if fit_poses:
-      fitted, correction = protocols.fit_pose(pose_fitter, params, comps.mesh, pose, intr, truth,
-                                              config.data.pixel_center, config.eval.pose_steps,
-                                              config.eval.pose_rays, seed=config.train.seed * 1_000_003 + index)
-      out = renderer.render_image(comps.renderer, params, comps.mesh, fitted, intr, config.data.pixel_center,
-                                  config.eval.chunk)
-      optimised.add(entry, np.clip(out["rgb"], 0.0, 1.0), truth)
-      corrections.append(protocols.describe_correction(correction))
-  views, mean = plain.result()
+    for protocol in chosen:
+      view = protocol.add(view)
   result = {"step": int(step), "scene": comps.scene.name, "split": config.eval.split,
-            "lpips_net": None if evaluator is None else evaluator.net, "views": views, "mean": mean,
-            "protocol": protocols.PLAIN}
-  if why_not:
-    result["lpips_note"] = why_not
-  if aligned is not None:
-    aligned_views, aligned_mean = aligned.result()
-    result["poses_aligned"] = {"protocol": protocols.ALIGNED, "similarity": protocols.describe_gauge(similarity),
-                               "views": aligned_views, "mean": aligned_mean}
-  if fit:
-    half_views, half_means = half.result()
-    mean_views, mean_means = half_mean.result()
-    for view, before in zip(half_views, mean_views):
-      view["mean_code"] = {name: before[name] for name in METRICS}
-    result["appearance_half"] = {
-        "protocol": protocols.APPEARANCE_HALF, "cameras": "plain" if similarity is None else "aligned",
-        "steps": int(config.eval.appearance_steps), "lr": float(config.eval.appearance_lr),
-        "rays_per_step": int(config.eval.appearance_rays), "views": half_views, "mean": half_means,
-        "mean_code": mean_means}
-  if fit_poses:
-    optimised_views, optimised_mean = optimised.result()
-    for view, correction in zip(optimised_views, corrections):
-      view["correction"] = correction
-    result["poses_optimised"] = {
-        "protocol": protocols.POSES_OPTIMISED, "cameras": "plain" if similarity is None else "aligned",
-        "steps": int(config.eval.pose_steps), "lr": float(config.eval.pose_lr),
-        "rays_per_step": int(config.eval.pose_rays), "views": optimised_views, "mean": optimised_mean,
-        "correction": {name: float(np.median([c[name] for c in corrections])) for name in ("rotation_deg",
-                                                                                           "translation")}}
+            "lpips_net": None if evaluator is None else evaluator.net}
+  blocks = []  # (protocol, its block of the result)
+  for protocol in chosen:
+    if protocol.key is None:  # the plain protocol's, at the top level
+      result.update(protocol.result())
+    else:
+      result[protocol.key] = protocol.result()
+    blocks.append((protocol, result if protocol.key is None else result[protocol.key]))
   if jax.process_index() == 0:
     workdir_files.write_json(storage.path(workdir) / "eval" / "metrics.json", result)  # local path or gs://
     if writer is not None:
       for name in METRICS:
-        for key, tag in ((None, ""), ("poses_aligned", "aligned/"), ("appearance_half", "appearance_half/"),
-                         ("poses_optimised", "poses_optimised/")):
-          block = result if key is None else result.get(key)
-          if block is not None and block["mean"][name] is not None:
-            writer.add_scalar(f"eval/{config.eval.split}/{tag}{name}", block["mean"][name], step)
+        for protocol, block in blocks:
+          if block["mean"][name] is not None:
+            writer.add_scalar(f"eval/{config.eval.split}/{protocol.tag}{name}", block["mean"][name], step)
       writer.flush()
-    print(f"eval {config.eval.split}: {len(views)} views, {_summary(result['mean'])}"
-          + (f" (no LPIPS: {why_not})" if why_not else ""), flush=True)
-    if "poses_aligned" in result:
-      print(f"eval {config.eval.split}, held-out cameras aligned: {_summary(result['poses_aligned']['mean'])}",
-            flush=True)
-    if "appearance_half" in result:
-      block = result["appearance_half"]
-      print(f"eval {config.eval.split}, right halves: codes fitted on the left halves {_summary(block['mean'])}; "
-            f"the mean code {_summary(block['mean_code'])}", flush=True)
-    if "poses_optimised" in result:
-      block = result["poses_optimised"]
-      print(f"eval {config.eval.split}, held-out cameras fitted to their images: {_summary(block['mean'])} "
-            f"(median correction {block['correction']['rotation_deg']:.3f} deg, "
-            f"{block['correction']['translation']:.4f} units)", flush=True)
+    for protocol, block in blocks:
+      print(protocol.summary(config.eval.split, block), flush=True)
   return result
+
+
+@dataclasses.dataclass(frozen=True)
+class _Evaluation:
+  """What the protocols of one evaluation share: the run's components and parameters, the evaluated split,
+  the LPIPS evaluator (None: `why_not` says why) and the gauge of the refined cameras (protocols.gauge; None
+  where the run has no pose refinement)."""
+  comps: Any
+  params: Any
+  split: Any
+  evaluator: Any
+  why_not: str | None
+  similarity: tuple | None
+
+  def scores(self) -> _Scores:
+    """A new protocol's scores, LPIPS in batches of as many views as the mesh has devices."""
+    return _Scores(self.evaluator, self.comps.mesh.size)
+
+  def render(self, pose, intr):
+    """The whole image seen from `pose` with `intr`, clipped to [0, 1]."""
+    config = self.comps.config
+    out = renderer.render_image(self.comps.renderer, self.params, self.comps.mesh, pose, intr,
+                                config.data.pixel_center, config.eval.chunk)
+    return np.clip(out["rgb"], 0.0, 1.0)
+
+  def seed(self, index: int) -> int:
+    """The seed of view `index`'s fits (their rays drawn at random)."""
+    return self.comps.config.train.seed * 1_000_003 + index
+
+  @property
+  def cameras(self) -> str:
+    """Which held-out cameras the fits start from: 'plain' (as given) or 'aligned'."""
+    return "plain" if self.similarity is None else "aligned"
+
+
+@dataclasses.dataclass(frozen=True)
+class _View:
+  """A held-out view as a protocol is given it: its entry (index, name), its image, and the camera the
+  protocols after the aligned one start from (the given pose, or the aligned one) with the rendering from it."""
+  entry: dict
+  truth: np.ndarray
+  pose: np.ndarray
+  intr: Any
+  rgb: np.ndarray
+
+
+class _Plain:
+  """protocols.PLAIN: the whole image, the given pose, the mean appearance code; "views" and "mean" at the
+  top level of metrics.json (with "lpips_note" where LPIPS cannot be computed)."""
+  key, tag = None, ""
+
+  @classmethod
+  def set_up(cls, run: _Evaluation):
+    return cls(run)
+
+  def __init__(self, run: _Evaluation):
+    self.run, self.scores = run, run.scores()
+
+  def add(self, view: _View) -> _View:
+    self.scores.add(view.entry, view.rgb, view.truth)
+    return view
+
+  def result(self) -> dict:
+    views, mean = self.scores.result()
+    return {"views": views, "mean": mean, "protocol": protocols.PLAIN,
+            **({"lpips_note": self.run.why_not} if self.run.why_not else {})}
+
+  def summary(self, split: str, block: dict) -> str:
+    return (f"eval {split}: {len(block['views'])} views, {_summary(block['mean'])}"
+            + (f" (no LPIPS: {self.run.why_not})" if self.run.why_not else ""))
+
+
+class _Aligned:
+  """protocols.ALIGNED (runs with pose refinement): the held-out camera mapped by the gauge; the protocols
+  after it start from the aligned pose and its rendering."""
+  key, tag = "poses_aligned", "aligned/"
+
+  @classmethod
+  def set_up(cls, run: _Evaluation):
+    return None if run.similarity is None else cls(run)
+
+  def __init__(self, run: _Evaluation):
+    self.run, self.scores = run, run.scores()
+
+  def add(self, view: _View) -> _View:
+    pose = alignment.transform_poses(view.pose, *self.run.similarity)
+    view = dataclasses.replace(view, pose=pose, rgb=self.run.render(pose, view.intr))
+    self.scores.add(view.entry, view.rgb, view.truth)
+    return view
+
+  def result(self) -> dict:
+    views, mean = self.scores.result()
+    return {"protocol": protocols.ALIGNED, "similarity": protocols.describe_gauge(self.run.similarity),
+            "views": views, "mean": mean}
+
+  def summary(self, split: str, block: dict) -> str:
+    return f"eval {split}, held-out cameras aligned: {_summary(block['mean'])}"
+
+
+class _AppearanceHalf:
+  """protocols.APPEARANCE_HALF (runs with appearance codes and eval.appearance_steps > 0, one region): each
+  view's code fitted on its left half, metrics on its right half, beside the mean code's on that half."""
+  key, tag = "appearance_half", "appearance_half/"
+
+  @classmethod
+  def set_up(cls, run: _Evaluation):
+    config, comps = run.comps.config, run.comps
+    if not (protocols.has_codes(run.params) and config.eval.appearance_steps > 0 and comps.model.regions == 1):
+      return None
+    return cls(run, protocols.make_code_fitter(comps.render_model, comps.mesh, comps.near, comps.far,
+                                               comps.background, config.eval.appearance_lr,
+                                               compilation.gradient_mean_is_ordered(config)))
+
+  def __init__(self, run: _Evaluation, fitter):
+    self.run, self.fitter = run, fitter
+    self.half, self.half_mean = run.scores(), run.scores()
+
+  def add(self, view: _View) -> _View:
+    run, config = self.run, self.run.comps.config
+    self.half_mean.add(view.entry, _right_half(view.rgb), _right_half(view.truth))
+    code = protocols.fit_code(self.fitter, run.params, run.comps.mesh, view.pose, view.intr, view.truth,
+                              config.data.pixel_center, config.eval.appearance_steps, config.eval.appearance_rays,
+                              seed=run.seed(view.entry["index"]))
+    origins, directions = (_right_half(x) for x in cameras.image_rays(view.pose, view.intr,
+                                                                      config.data.pixel_center))
+    got = renderer.render_rays(run.comps.renderer, protocols.with_code(run.params, code), run.comps.mesh,
+                               origins.reshape(-1, 3), directions.reshape(-1, 3), config.eval.chunk)
+    self.half.add(view.entry, np.clip(got["rgb"].reshape(origins.shape), 0.0, 1.0), _right_half(view.truth))
+    return view
+
+  def result(self) -> dict:
+    config = self.run.comps.config
+    half_views, half_means = self.half.result()
+    mean_views, mean_means = self.half_mean.result()
+    for view, before in zip(half_views, mean_views):
+      view["mean_code"] = {name: before[name] for name in METRICS}
+    return {"protocol": protocols.APPEARANCE_HALF, "cameras": self.run.cameras,
+            "steps": int(config.eval.appearance_steps), "lr": float(config.eval.appearance_lr),
+            "rays_per_step": int(config.eval.appearance_rays), "views": half_views, "mean": half_means,
+            "mean_code": mean_means}
+
+  def summary(self, split: str, block: dict) -> str:
+    return (f"eval {split}, right halves: codes fitted on the left halves {_summary(block['mean'])}; "
+            f"the mean code {_summary(block['mean_code'])}")
+
+
+class _PosesOptimised:
+  """protocols.POSES_OPTIMISED (eval.pose_fit, one region): each held-out camera's pose fitted to its whole
+  image from the aligned pose (or the given one), metrics from the fitted pose, its correction beside them."""
+  key, tag = "poses_optimised", "poses_optimised/"
+
+  @classmethod
+  def set_up(cls, run: _Evaluation):
+    config, comps = run.comps.config, run.comps
+    if not (comps.model.regions == 1 and (config.eval.pose_fit == "always" or
+                                          (config.eval.pose_fit == "refined" and run.similarity is not None))):
+      return None
+    return cls(run, protocols.make_pose_fitter(comps.render_model, comps.mesh, comps.near, comps.far,
+                                               comps.background, config.eval.pose_lr, config.eval.pose_steps,
+                                               compilation.gradient_mean_is_ordered(config)))
+
+  def __init__(self, run: _Evaluation, fitter):
+    self.run, self.fitter = run, fitter
+    self.scores, self.corrections = run.scores(), []
+
+  def add(self, view: _View) -> _View:
+    run, config = self.run, self.run.comps.config
+    fitted, correction = protocols.fit_pose(self.fitter, run.params, run.comps.mesh, view.pose, view.intr,
+                                            view.truth, config.data.pixel_center, config.eval.pose_steps,
+                                            config.eval.pose_rays, seed=run.seed(view.entry["index"]))
+    self.scores.add(view.entry, run.render(fitted, view.intr), view.truth)
+    self.corrections.append(protocols.describe_correction(correction))
+    return view
+
+  def result(self) -> dict:
+    config = self.run.comps.config
+    views, mean = self.scores.result()
+    for view, correction in zip(views, self.corrections):
+      view["correction"] = correction
+    return {"protocol": protocols.POSES_OPTIMISED, "cameras": self.run.cameras,
+            "steps": int(config.eval.pose_steps), "lr": float(config.eval.pose_lr),
+            "rays_per_step": int(config.eval.pose_rays), "views": views, "mean": mean,
+            "correction": {name: float(np.median([c[name] for c in self.corrections]))
+                           for name in ("rotation_deg", "translation")}}
+
+  def summary(self, split: str, block: dict) -> str:
+    return (f"eval {split}, held-out cameras fitted to their images: {_summary(block['mean'])} "
+            f"(median correction {block['correction']['rotation_deg']:.3f} deg, "
+            f"{block['correction']['translation']:.4f} units)")
+
+
+# The protocols, in the order each view passes through them (the fits start from the aligned camera) and
+# their blocks and lines come: each with set_up(run) (None where it does not apply to the run), add(view)
+# (the view the next protocols get), result() (its block of metrics.json; `key` None: the top level),
+# summary(split, block) (its console line) and `tag` (its TensorBoard scalars' prefix).
+PROTOCOLS = (_Plain, _Aligned, _AppearanceHalf, _PosesOptimised)
 
 
 def _summary(mean: dict) -> str:

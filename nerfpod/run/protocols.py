@@ -16,7 +16,8 @@ learned something per training frame that a held-out frame has no value of.
                      image, so what it removes is registration: a field that holds the scene, seen from a
                      camera a little off the one its frame would put there
 
-evaluate.py renders and scores each; this module holds what they need: the aligned held-out poses and the
+evaluate.py renders and scores each, one object per protocol in a list (evaluate.PROTOCOLS: its set-up,
+a view added, its result, its summary line); this module holds what they need: the aligned held-out poses and the
 code and pose fits, compiled programs over the run's mesh like the renderer (rays sharded over its batch axes,
 the gradient averaged), so they span the whole slice on a pod as every program does.
 """

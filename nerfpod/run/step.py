@@ -1,6 +1,8 @@
 """The train step: step(state, batch, key) -> (state, metrics), sharded over the device mesh.
 
     make_train_step    the jitted step from its pieces (model, optimiser, mesh, ray bounds) and its Options
+    field_loss, local_step, accumulate   its pieces: the one-field loss (_region_loss_fn: a region model's), one
+                       device's share of the step, the micro-batches' gradient accumulation
     Options            the loss's settings, micro-batches and the backend's policy; Options.of(config, ...)
     for_program        the step of a config's Components (runs and the pod tool)
     compile_fitted     compiled for Components' shapes, with train.microbatches=0 fitted to a memory budget
@@ -9,6 +11,7 @@
 import concurrent.futures
 import dataclasses
 import functools
+import typing
 
 import jax
 import jax.numpy as jnp
@@ -109,117 +112,156 @@ def make_train_step(model, optimizer, mesh, near: float, far: float, background,
   and the exports render every level whole, as the step does from `end` on.
   """
   background = jnp.asarray(background, jnp.float32)
-  random_background, microbatches = options.random_background, options.microbatches
-  interlevel_weight, distortion_weight = options.interlevel_weight, options.distortion_weight
-  ordered_mean, update_under_cond = options.ordered_mean, options.update_under_cond
-  if update_under_cond is None:
-    update_under_cond = compilation.update_under_cond()
-  # Every axis of the mesh: DATA_AXIS on one slice; (SLICE_AXIS, DATA_AXIS) on several, where the mean runs
-  # within each slice (ICI) and then across the slices (DCN): see distributed.ordered_mean, and for the
-  # all-reduce, docs/scale.md#multi-slice.
+  # The options as this step applies them: the backend's policy resolved, and the global norm clipped by the
+  # step only where the optimiser does not (model.regions > 1: make_optimizer(clip=False)).
+  options = dataclasses.replace(
+      options, grad_clip=options.grad_clip if model.regions > 1 else 0.0,
+      update_under_cond=(compilation.update_under_cond() if options.update_under_cond is None
+                         else options.update_under_cond))
+  if model.regions > 1:
+    loss_fn = _region_loss_fn(model, mesh, near, far, background, options)
+    reductions = _region_reductions(mesh, options.ordered_mean)
+  else:
+    loss_fn = functools.partial(field_loss, model, near, far, background, options)
+    reductions = _data_reductions(mesh, options.ordered_mean)
+  step = functools.partial(local_step, optimizer, options, jax.value_and_grad(loss_fn, has_aux=True), reductions)
+  state_spec = train_state.state_specs(model, optimizer, mesh)  # P() but for a region model's region axis
+  step = jax.shard_map(step, mesh=mesh, in_specs=(state_spec, distributed.batch_spec(mesh), P()),
+                       out_specs=(state_spec, P()))
+  return jax.jit(step, donate_argnums=0, compiler_options=options.compiler_options)
+
+
+def field_loss(model, near: float, far: float, background, options: Options, params, batch, key, step):
+  """(loss, (mses, extra)) of the one-field model (model.regions == 1) on this device's rays: the sum of its
+  levels' mean squared errors (`mses`, one per level, coarse first) and, with proposal sampling, the weighted
+  interlevel and distortion losses (`extra`, with proposal_diagnostics). `step`: the state's, for the
+  coarse-to-fine opening and the proposal weights' annealing."""
+  # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
+  uniforms = [round_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count,
+                             options.single_jitter)
+              for i, count in enumerate(model.sample_counts())]
+  target, ray_background = _targets(batch, key, background, options)
+  levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms,
+                       frames=batch.get("frame"),  # per-frame appearance and pose corrections, where on
+                       opened=_opened(model, options, step), anneal=_anneal(options, step))
+  mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
+  loss = jnp.sum(mses)
+  extra = {}
+  final = levels[-1]
+  if "proposals" in final:
+    # The proposals learn to bound the NeRF's weights (a fixed target for them: no gradient into the NeRF
+    # from this loss); the photometric loss reaches only the NeRF (sample positions carry no gradient).
+    target_weights = jax.lax.stop_gradient(final["weights"])
+    radii = options.interlevel_blur or (None,) * len(final["proposals"])  # None: mip-NeRF 360's loss
+    extra["interlevel"] = sum(jnp.mean(stepfun.interlevel_loss(final["s_edges"], target_weights, p["s_edges"],
+                                                               p["weights"], radius))
+                              for radius, p in zip(radii, final["proposals"]))
+    extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
+    loss = loss + options.interlevel_weight * extra["interlevel"] + options.distortion_weight * extra["distortion"]
+    extra.update(proposal_diagnostics(final))
+  return loss, (mses, extra)
+
+
+def _targets(batch, key, background, options: Options):
+  """(target colours, background colours) of the batch's rays: the batch's and the scene's background, or
+  with `random_background` and a batch that carries alpha, each ray recomposited on a random colour (stream
+  2 of `key`)."""
+  target, ray_background = batch["rgb"], background
+  if options.random_background and "alpha" in batch:
+    ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
+    target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
+  return target, ray_background
+
+
+def _opened(model, options: Options, step):
+  """The NeRF field's hash-grid level weights at `step` (options.coarse_to_fine), None where it is off."""
+  if not options.coarse_to_fine:
+    return None
+  return encodings.coarse_to_fine_weights(step, *options.coarse_to_fine, model.model_config.hashgrid.num_levels)
+
+
+class Reductions(typing.NamedTuple):
+  """How the step's values cross devices: `vary` makes the replicated parameters device-varying (each device
+  then differentiates its own rays' loss; differentiating the replicated value directly would make shard_map
+  sum the cotangents across devices already, and the mean would then give N times the mean), `reduce` takes
+  the mean of (grads, loss, mses, extra) over the devices, `norm` is the gradients' global norm."""
+  vary: typing.Callable
+  reduce: typing.Callable
+  norm: typing.Callable
+
+
+def _data_reductions(mesh, ordered_mean: bool) -> Reductions:
+  """The one-field step's Reductions over every axis of the mesh: DATA_AXIS on one slice; (SLICE_AXIS,
+  DATA_AXIS) on several, where the mean runs within each slice (ICI) and then across the slices (DCN): see
+  distributed.ordered_mean, and for the all-reduce (not `ordered_mean`), docs/scale.md#multi-slice."""
   axes = distributed.batch_axes(mesh)
   axis_sizes = tuple(mesh.shape[name] for name in mesh.axis_names)
 
-  def opened(step):
-    if not options.coarse_to_fine:
-      return None
-    return encodings.coarse_to_fine_weights(step, *options.coarse_to_fine, model.model_config.hashgrid.num_levels)
-
-  def loss_fn(params, batch, key, step):
-    # Round i's numbers come from stream i (0: coarse/stratified, 1: fine), skipping 2 (the backgrounds).
-    uniforms = [round_uniforms(jax.random.fold_in(key, i if i < 2 else i + 1), batch["ray_ids"], count,
-                               options.single_jitter)
-                for i, count in enumerate(model.sample_counts())]
-    target, ray_background = batch["rgb"], background
-    if random_background and "alpha" in batch:
-      ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
-      target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
-    levels = model.apply(params, batch["origins"], batch["directions"], near, far, ray_background, *uniforms,
-                         frames=batch.get("frame"),  # per-frame appearance and pose corrections, where on
-                         opened=opened(step), anneal=_anneal(options, step))
-    mses = jnp.stack([jnp.mean((level["rgb"] - target)**2) for level in levels])
-    loss = jnp.sum(mses)
-    extra = {}
-    final = levels[-1]
-    if "proposals" in final:
-      # The proposals learn to bound the NeRF's weights (a fixed target for them: no gradient into the NeRF
-      # from this loss); the photometric loss reaches only the NeRF (sample positions carry no gradient).
-      target_weights = jax.lax.stop_gradient(final["weights"])
-      radii = options.interlevel_blur or (None,) * len(final["proposals"])  # None: mip-NeRF 360's loss
-      extra["interlevel"] = sum(jnp.mean(stepfun.interlevel_loss(final["s_edges"], target_weights, p["s_edges"],
-                                                                 p["weights"], radius))
-                                for radius, p in zip(radii, final["proposals"]))
-      extra["distortion"] = jnp.mean(stepfun.distortion_loss(final["s_edges"], final["weights"]))
-      loss = loss + interlevel_weight * extra["interlevel"] + distortion_weight * extra["distortion"]
-      extra.update(proposal_diagnostics(final))
-    return loss, (mses, extra)
-
-  # Parameters made device-varying (below), the gradients' and metrics' reduction, the gradients' norm.
-  vary = lambda params: jax.lax.pcast(params, axes, to="varying")  # noqa: E731
   def reduce(tree):
     if ordered_mean:
       return distributed.ordered_mean(tree, mesh.axis_names, axis_sizes)
     return jax.lax.pmean(tree, axes)
-  norm = optax.tree.norm
-  if model.regions > 1:
-    loss_fn = _region_loss_fn(model, mesh, near, far, background, options)
-    vary, reduce, norm = _region_reductions(mesh, ordered_mean)
 
-  value_and_grad = jax.value_and_grad(loss_fn, has_aux=True)
+  return Reductions(lambda params: jax.lax.pcast(params, axes, to="varying"), reduce, optax.tree.norm)
 
-  def accumulate(params, batch, key, step):
-    """(loss, mses), grads of the mean over this device's rays, one micro-batch at a time."""
-    if microbatches == 1:
-      return value_and_grad(params, batch, key, step)
-    slices = jax.tree.map(lambda x: x.reshape((microbatches, -1) + x.shape[1:]), batch)
-    def body(total, micro):
-      value, grads = value_and_grad(params, micro, key, step)
-      return jax.tree.map(lambda a, b: a + b / microbatches, total, (value, grads)), None
-    zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(value_and_grad, params,
-                                                        jax.tree.map(lambda x: x[0], slices), key, step))
-    return jax.lax.scan(body, zeros, slices)[0]
 
-  def local_step(state, batch, key):
-    key = jax.random.fold_in(key, state.step)
-    # Differentiate w.r.t. a device-varying view of the replicated parameters: each device then gets the
-    # gradient of its own rays' loss. (Differentiating the replicated value directly would make shard_map
-    # sum the cotangents across devices already, and the pmean below would then give N times the mean.)
-    params = vary(state.params)
-    (loss, (mses, extra)), grads = accumulate(params, batch, key, state.step)
-    grads, loss, mses, extra = reduce((grads, loss, mses, extra))
-    # A non-finite loss or gradient never reaches the state: the step is skipped (the parameters and Adam's
-    # moments and count stay as they were; the data moves on) and counted in metrics["skipped"]. The test is
-    # read before the update, off the loss and the gradients' global norm (finite only where every gradient
-    # and the sum of their squares are): the update then takes one pass over the parameters and moments
-    # (under a conditional, or fused with the select), where a test of the new state would take three. A
-    # finite gradient gives a finite update (Adam's eps > 0; the sum of squares bounds the second moment),
-    # so the state stays finite; checkpoints.Checkpoints.save checks it again before any save.
-    grad_norm = norm(grads)
-    finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
-    if model.regions > 1 and options.grad_clip > 0:  # optax.clip_by_global_norm's, on every region's norm
-      grads = jax.tree.map(lambda g: jnp.where(grad_norm < options.grad_clip, g,
-                                               g / grad_norm.astype(g.dtype) * options.grad_clip), grads)
+def accumulate(value_and_grad, microbatches: int, params, batch, key, step):
+  """((loss, aux), grads) of `value_and_grad` for the mean over this device's rays, in `microbatches`
+  sequential slices whose values and gradients are averaged (one call where it is 1)."""
+  if microbatches == 1:
+    return value_and_grad(params, batch, key, step)
+  slices = jax.tree.map(lambda x: x.reshape((microbatches, -1) + x.shape[1:]), batch)
+  def body(total, micro):
+    value, grads = value_and_grad(params, micro, key, step)
+    return jax.tree.map(lambda a, b: a + b / microbatches, total, (value, grads)), None
+  zeros = jax.tree.map(jnp.zeros_like, jax.eval_shape(value_and_grad, params,
+                                                      jax.tree.map(lambda x: x[0], slices), key, step))
+  return jax.lax.scan(body, zeros, slices)[0]
 
-    def update(operands):
-      grads, params, opt_state = operands
-      updates, opt_state = optimizer.update(grads, opt_state, params)
-      return optax.apply_updates(params, updates), opt_state
 
-    operands = (grads, state.params, state.opt_state)
-    if update_under_cond:
-      params, opt_state = jax.lax.cond(finite, update, lambda operands: operands[1:], operands)
-    else:
-      params, opt_state = jax.tree.map(lambda new, old: jnp.where(finite, new, old), update(operands),
-                                       (state.params, state.opt_state))
-    metrics = {"loss": loss, "mse": mses[-1], "psnr": mse_to_psnr(mses[-1]),
-               "psnr_coarse": mse_to_psnr(mses[0]), "grad_norm": grad_norm,
-               "skipped": 1 - finite.astype(jnp.int32), **extra}
-    return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
+def local_step(optimizer, options: Options, value_and_grad, reductions: Reductions, state: TrainState, batch, key):
+  """One device's share of the step (make_train_step's shard_map of it, whose `options` are resolved):
+  gradients of its rays' loss (`value_and_grad`, of the device-varying parameters), their mean over the
+  devices (`reductions`), and the update where the loss and gradients are finite."""
+  key = jax.random.fold_in(key, state.step)
+  params = reductions.vary(state.params)
+  (loss, (mses, extra)), grads = accumulate(value_and_grad, options.microbatches, params, batch, key, state.step)
+  grads, loss, mses, extra = reductions.reduce((grads, loss, mses, extra))
+  # A non-finite loss or gradient never reaches the state: the step is skipped (the parameters and Adam's
+  # moments and count stay as they were; the data moves on) and counted in metrics["skipped"]. The test is
+  # read before the update, off the loss and the gradients' global norm (finite only where every gradient
+  # and the sum of their squares are): the update then takes one pass over the parameters and moments
+  # (under a conditional, or fused with the select), where a test of the new state would take three. A
+  # finite gradient gives a finite update (Adam's eps > 0; the sum of squares bounds the second moment),
+  # so the state stays finite; checkpoints.Checkpoints.save checks it again before any save.
+  grad_norm = reductions.norm(grads)
+  finite = jnp.isfinite(loss) & jnp.isfinite(grad_norm)
+  if options.grad_clip > 0:  # optax.clip_by_global_norm's, on every region's norm
+    grads = jax.tree.map(lambda g: jnp.where(grad_norm < options.grad_clip, g,
+                                             g / grad_norm.astype(g.dtype) * options.grad_clip), grads)
+  params, opt_state = _update_if(finite, optimizer, options.update_under_cond,
+                                 (grads, state.params, state.opt_state))
+  metrics = {"loss": loss, "mse": mses[-1], "psnr": mse_to_psnr(mses[-1]),
+             "psnr_coarse": mse_to_psnr(mses[0]), "grad_norm": grad_norm,
+             "skipped": 1 - finite.astype(jnp.int32), **extra}
+  return TrainState(step=state.step + 1, params=params, opt_state=opt_state), metrics
 
-  state_spec = train_state.state_specs(model, optimizer, mesh)  # P() but for a region model's region axis
-  step = jax.shard_map(local_step, mesh=mesh, in_specs=(state_spec, distributed.batch_spec(mesh), P()),
-                       out_specs=(state_spec, P()))
-  return jax.jit(step, donate_argnums=0, compiler_options=options.compiler_options)
+
+def _update_if(finite, optimizer, under_cond: bool, operands):
+  """(params, opt_state) after `optimizer`'s update of operands (grads, params, opt_state) where `finite`,
+  else as they were: with `under_cond` the update is not even computed (jax.lax.cond), without it the old
+  values are selected after the update."""
+  update = functools.partial(_update, optimizer)
+  if under_cond:
+    return jax.lax.cond(finite, update, lambda operands: operands[1:], operands)
+  return jax.tree.map(lambda new, old: jnp.where(finite, new, old), update(operands), operands[1:])
+
+
+def _update(optimizer, operands):
+  """(params, opt_state) after `optimizer`'s update of operands (grads, params, opt_state)."""
+  grads, params, opt_state = operands
+  updates, opt_state = optimizer.update(grads, opt_state, params)
+  return optax.apply_updates(params, updates), opt_state
 
 
 def _anneal(options: Options, step):
@@ -284,10 +326,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
       return jax.vmap(lambda r: round_uniforms(jax.random.fold_in(stream_key, r), batch["ray_ids"], n,
                                                options.single_jitter))(ids)
     uniforms = [region_uniforms(i if i < 2 else i + 1, n) for i, n in enumerate(model.sample_counts())]
-    target, ray_background = batch["rgb"], background
-    if options.random_background and "alpha" in batch:
-      ray_background = per_ray_uniforms(jax.random.fold_in(key, 2), batch["ray_ids"], 3)
-      target = target + (1.0 - batch["alpha"][:, None]) * (ray_background - background)
+    target, ray_background = _targets(batch, key, background, options)
     partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
                                 frames=batch.get("frame"), anneal=_anneal(options, step), method="render_partials")
     out = regions.composite_regions(gather(partials), ray_background)
@@ -308,8 +347,8 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   return loss_fn
 
 
-def _region_reductions(mesh, ordered_mean: bool):
-  """(vary, reduce, norm) of the region step: `vary` makes the parameters device-varying where the gradient
+def _region_reductions(mesh, ordered_mean: bool) -> Reductions:
+  """The region step's Reductions: `vary` makes the parameters device-varying where the gradient
   of each device's own loss is wanted (a region's over the batch's axes: they already vary over the region
   axis; the replicated ones, per-frame tables, over the region axis too); `reduce` sums the replicated
   parameters' gradients over the region axis (each device's holds its own regions' part) and takes the mean
@@ -356,7 +395,7 @@ def _region_reductions(mesh, ordered_mean: bool):
     shared = sum((s for s, own in pairs if not own), jnp.zeros(()))
     return jnp.sqrt(jax.lax.psum(sharded, distributed.REGION_AXIS) + shared)
 
-  return vary, reduce, norm
+  return Reductions(vary, reduce, norm)
 
 
 def for_program(comps: Components, microbatches: int, backend: str | None = None):
