@@ -366,6 +366,10 @@ FIELDS: dict[str, Field] = _declare({
         "gather elsewhere; docs/pod-compile.md)"),
     "compile.matmul_max_rows": (30000, integer(0, example=30000),
         "'matmul' applies to dense levels of at most this many rows"),
+    "compile.hashgrid_layout": ("rows", choice("rows", "lane_dense"),
+        "hash-grid lookups: 'rows' ((N, 8) corner rows, (N, 8, F) values) or 'lane_dense' (samples the minor "
+        "dimension: (8, N), (F, 8, N); the same values and parameters, so a checkpoint restores under either; "
+        "docs/pod-compile.md)"),
 
     "mesh.slices": (0, integer(0, example=2),
         "TPU slices joined by the data-centre network (DCN) the mesh spans; 0: as many as the devices report "

@@ -6,6 +6,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental.layout import Layout, with_layout_constraint
 
 
 def positional_encoding(x_Nx3, num_frequencies: int):
@@ -29,10 +30,14 @@ def hash_indices(corners, table_size: int):
   table size. uint32 arithmetic wraps around, as in the reference implementation. Returns int32 indices
   (...) in [0, table_size).
   """
-  c = corners.astype(jnp.uint32)
-  h = c[..., 0] * jnp.uint32(_PRIMES[0])
-  h = h ^ (c[..., 1] * jnp.uint32(_PRIMES[1]))
-  h = h ^ (c[..., 2] * jnp.uint32(_PRIMES[2]))
+  return _spatial_hash(corners[..., 0], corners[..., 1], corners[..., 2], table_size)
+
+
+def _spatial_hash(c0, c1, c2, table_size: int):
+  """hash_indices of corners given as their three coordinate arrays (any one shape)."""
+  h = c0.astype(jnp.uint32) * jnp.uint32(_PRIMES[0])
+  h = h ^ (c1.astype(jnp.uint32) * jnp.uint32(_PRIMES[1]))
+  h = h ^ (c2.astype(jnp.uint32) * jnp.uint32(_PRIMES[2]))
   return (h % jnp.uint32(table_size)).astype(jnp.int32)
 
 
@@ -62,10 +67,19 @@ def trilinear_corners_and_weights(x_Nx3, resolution: int):
 def grid_indices(corners, resolution: int, table_size: int):
   """Table rows (...) of grid corners (..., 3): dense (one row per vertex) where the level fits, else the
   spatial hash."""
+  return _grid_rows(corners[..., 0], corners[..., 1], corners[..., 2], resolution, table_size)
+
+
+def _grid_rows(c0, c1, c2, resolution: int, table_size: int):
+  """grid_indices of corners given as their three coordinate arrays (any one shape)."""
   side = resolution + 1
   if side**3 <= table_size:
-    return corners[..., 0] * side * side + corners[..., 1] * side + corners[..., 2]
-  return hash_indices(corners, table_size)
+    return c0 * side * side + c1 * side + c2
+  return _spatial_hash(c0, c1, c2, table_size)
+
+
+# compile.hashgrid_layout's values: how a hash grid's lookup lays out its arrays (HashGridEncoding.layout).
+LAYOUTS = ("rows", "lane_dense")
 
 
 def _symmetric_uniform(scale):
@@ -88,34 +102,51 @@ class HashGridEncoding(nn.Module):
 
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
   materialize: bool = False  # the points, and each level's corner rows, kept in memory (materialized: CPUs)
+  layout: str = "rows"  # compile.hashgrid_layout: 'rows' or 'lane_dense' (per-sample arrays sample-minor)
 
   @nn.compact
   def __call__(self, x_Nx3, scales_N=None, opened_L=None):
     """The features (N, num_levels * features_per_level); with `scales_N`, each point's footprint (a standard
     deviation, in the unit cube's units), each level's features weighted by level_weights (Zip-NeRF); with
     `opened_L` (num_levels,), each level's features (and so its gradients) times its weight
-    (coarse_to_fine_weights)."""
+    (coarse_to_fine_weights).
+
+    `layout` 'lane_dense' computes the same features with every per-sample array sample-minor and each table
+    read features-major: the parameters are the same (rows, F) arrays in either layout (a TPU lays a (rows, 2)
+    array out features-major already, `{0,1:T(2,128)}`), so a checkpoint restores under either
+    (docs/pod-compile.md, "Lane-dense hash-grid lookups")."""
+    if self.layout not in LAYOUTS:
+      raise ValueError(f"unknown hash-grid layout {self.layout!r}; one of {', '.join(LAYOUTS)}")
     table_size = 2**self.log2_table_size
     if self.materialize:
       x_Nx3 = materialized(x_Nx3)
+    lane_dense = self.layout == "lane_dense"
+    x_3xN = x_Nx3.T if lane_dense else None
     outputs = []
     resolutions = level_resolutions(self.num_levels, self.base_resolution, self.max_resolution)
     for level, res in enumerate(resolutions):
       rows = min(table_size, (res + 1)**3)
       table = self.param(f"level_{level}", _symmetric_uniform(1e-4), (rows, self.features_per_level))
-      if rows == (res + 1)**3 and rows <= self.matmul_max_rows:
-        feats = dense_level_matmul(table, x_Nx3, res)
-      else:
-        feats = level_gather(table, x_Nx3, res, self.materialize)
-      if scales_N is not None:
-        feats = feats * level_weights(scales_N, res)[..., None]
+      by_matmul = rows == (res + 1)**3 and rows <= self.matmul_max_rows
+      if lane_dense:  # features (F, N)
+        feats = (dense_level_matmul_lane_dense(table, x_3xN, res) if by_matmul else
+                 level_gather_lane_dense(table, x_3xN, res, self.materialize))
+        if scales_N is not None:
+          feats = feats * level_weights(scales_N, res)[None, :]
+      else:  # features (N, F)
+        feats = dense_level_matmul(table, x_Nx3, res) if by_matmul else level_gather(table, x_Nx3, res,
+                                                                                     self.materialize)
+        if scales_N is not None:
+          feats = feats * level_weights(scales_N, res)[..., None]
       if opened_L is not None:
         feats = feats * opened_L[level]
       outputs.append(feats)
+    if lane_dense:
+      return jnp.concatenate(outputs, axis=0).T
     return jnp.concatenate(outputs, axis=-1)
 
 
-def materialized(x_NxD):
+def materialized(x_NxD, axis: int = -1):
   """x itself, every bit of it, computed as the matmul x @ I (each value is 1 * x_i plus zeros, exact at full
   precision; integer arrays in integer arithmetic), so that XLA keeps it in memory.
 
@@ -124,9 +155,14 @@ def materialized(x_NxD):
   times per level, a third of a CPU train step (configs/tiny_fast.py, docs/results.md), and each corner's row
   (its hash) once per feature in the lookup and again for the gradient's scatter. A dot's output is not fused
   into its consumers, so they read it instead. A float array's gradient, the same product with the
-  cotangents, is exact too; an integer array (a row number) has none."""
-  eye = jnp.eye(x_NxD.shape[-1], dtype=x_NxD.dtype)
-  return jnp.dot(x_NxD, eye, precision=jax.lax.Precision.HIGHEST, preferred_element_type=x_NxD.dtype)
+  cotangents, is exact too; an integer array (a row number) has none. `axis`: the dimension the identity
+  multiplies, the last (x @ I) or the first (I @ x, for the sample-minor arrays of the lane-dense layout)."""
+  if axis not in (-1, 0, x_NxD.ndim - 1):
+    raise ValueError(f"materialized multiplies the first or the last dimension, not {axis}")
+  dot = functools.partial(jnp.dot, precision=jax.lax.Precision.HIGHEST, preferred_element_type=x_NxD.dtype)
+  if axis == 0 and x_NxD.ndim > 1:
+    return dot(jnp.eye(x_NxD.shape[0], dtype=x_NxD.dtype), x_NxD)
+  return dot(x_NxD, jnp.eye(x_NxD.shape[-1], dtype=x_NxD.dtype))
 
 
 def level_weights(scales_N, resolution: int):
@@ -199,6 +235,81 @@ def dense_level_matmul(table_RxF, x_Nx3, resolution: int):
   by_last = einsum("nk,ijkf->nijf", w[:, 2], grid)       # the matmul
   by_middle = einsum("nj,nijf->nif", w[:, 1], by_last)
   return einsum("ni,nif->nf", w[:, 0], by_middle)
+
+
+# The lane-dense layout (compile.hashgrid_layout='lane_dense'). A TPU lays an array out in tiles of 8 x 128
+# values over its two minor dimensions: a minor dimension of 2 (a (rows, 2) table, the (N, 8, 2) corner values)
+# or of 8 (the (N, 8) rows and weights) fills 2 or 8 of each tile row's 128 lanes wherever XLA keeps that
+# order. Here the samples are the minor dimension of every per-sample array (points (3, N), rows and weights
+# (8, N), corner values (F, 8, N), features (F, N)) and the tables are read features-major. The parameters stay
+# (rows, F) arrays: a TPU lays them out features-major already (`{0,1:T(2,128)}`: each feature's column
+# contiguous), and a checkpoint serves either layout. The values are the rows layout's: the same products and
+# sums of the same numbers (tests/test_hashgrid_layout.py compares both, values and gradients).
+
+
+def trilinear_corners_and_weights_lane_dense(x_3xN, resolution: int):
+  """trilinear_corners_and_weights, sample-minor: corners (3, 8, N) int32 (axis, corner, sample) and weights
+  (8, N), in the same corner order and by the same arithmetic (each weight the product of its three axis
+  weights, in axis order)."""
+  scaled = x_3xN * resolution
+  base = jnp.clip(jnp.floor(scaled), 0, resolution - 1)
+  frac = scaled - base
+  offsets = jnp.asarray(np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]).T[:, :, None],
+                        jnp.int32)                                   # (3, 8, 1)
+  corners = base.astype(jnp.int32)[:, None, :] + offsets
+  w = jnp.where(offsets == 1, frac[:, None, :], 1.0 - frac[:, None, :])
+  return corners, jnp.prod(w, axis=0)
+
+
+def features_major(x_RxF):
+  """x (rows, F), laid out features-major: its dims pinned major to minor as (F, rows), so that XLA stores each
+  feature's column contiguously, the rows across the lanes (jax.experimental.layout; the cotangent is pinned
+  alike). Values are untouched: on any backend it is x."""
+  return with_layout_constraint(x_RxF, Layout(major_to_minor=(1, 0)))
+
+
+def level_gather_lane_dense(table_RxF, x_3xN, resolution: int, materialize: bool = False):
+  """level_gather in the lane-dense layout: a level's features (F, N) from its table (rows, F) and sample-minor
+  points (3, N).
+
+  The corner rows (8, N) are gathered as one list of 8 N row numbers (the TPU's own gather form: whole rows of
+  the table), the values pinned features-major, (F, 8 N), that is (F, 8, N) (features_major), weighted by the
+  (8, N) trilinear weights and summed over the corners; the gradient is the same scatter-add of (F, 8, N)
+  cotangents, pinned alike. Without the pin XLA re-orders the transposes into the gather's (8 N, F) form with F
+  minor (2 values in each 128-lane tile row). Row numbers lie in the table by construction (corners clipped to
+  the grid, hashes modulo its size), and the gather is told so (`promise_in_bounds`: no bounds mask).
+  `materialize` as level_gather's (the rows computed once into memory)."""
+  corners, weights = trilinear_corners_and_weights_lane_dense(x_3xN, resolution)
+  rows = _grid_rows(corners[0], corners[1], corners[2], resolution, table_RxF.shape[0])  # (8, N)
+  if materialize:
+    rows = materialized(rows, axis=0)
+  values = table_RxF.at[rows.reshape(-1)].get(mode="promise_in_bounds")      # (8 N, F)
+  values = features_major(values).T.reshape(table_RxF.shape[1], *rows.shape)  # (F, 8, N)
+  return jnp.sum(weights[None] * values, axis=1)
+
+
+def axis_weights_lane_dense(x_3xN, resolution: int):
+  """axis_weights, sample-minor: (3, side, N), by the same arithmetic."""
+  scaled = x_3xN * resolution
+  base = jnp.clip(jnp.floor(scaled), 0, resolution - 1)
+  frac = scaled - base
+  vertex = jnp.arange(resolution + 1, dtype=x_3xN.dtype)[:, None]
+  lower = (vertex == base[:, None, :]).astype(x_3xN.dtype)
+  upper = (vertex == base[:, None, :] + 1).astype(x_3xN.dtype)
+  return lower * (1.0 - frac[:, None, :]) + upper * frac[:, None, :]
+
+
+def dense_level_matmul_lane_dense(table_RxF, x_3xN, resolution: int):
+  """dense_level_matmul in the lane-dense layout: features (F, N) of a dense level from its table (rows, F),
+  read features-major, by the matmul (F side^2, side) @ (side, N) over the last axis and two per-point
+  reductions; the gradient again matmuls."""
+  side = resolution + 1
+  w = axis_weights_lane_dense(x_3xN, resolution)                        # (3, side, N)
+  grid = table_RxF.T.reshape(table_RxF.shape[1], side, side, side)      # rows are c0 side^2 + c1 side + c2
+  einsum = functools.partial(jnp.einsum, precision=jax.lax.Precision.HIGHEST)
+  by_last = einsum("kn,fijk->fijn", w[2], grid)       # the matmul
+  by_middle = einsum("jn,fijn->fin", w[1], by_last)
+  return einsum("in,fin->fn", w[0], by_middle)
 
 
 def spherical_harmonics_deg4(dirs_Nx3):

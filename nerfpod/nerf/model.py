@@ -83,6 +83,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     return (self.num_samples,) + ((self.num_importance,) if self.num_importance else ())
   grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
   grid_materialize: bool = False  # hash grid: its points and corner rows kept in memory (CPUs)
+  grid_layout: str = "rows"  # hash grid: its lookup's layout (compile.hashgrid_layout; the same parameters)
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes, opened=None):
     points = self._points(origins, directions, t_RxS)
@@ -166,7 +167,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
                                    matmul_max_rows=self.grid_matmul_max_rows,
-                                   materialize=self.grid_materialize)
+                                   materialize=self.grid_materialize, layout=self.grid_layout)
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes, opened)
     if self.num_importance == 0:
       return [coarse]
@@ -182,7 +183,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
                                    matmul_max_rows=self.grid_matmul_max_rows,
-                                   materialize=self.grid_materialize)
+                                   materialize=self.grid_materialize, layout=self.grid_layout)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes, opened)
     return [coarse, fine]
 
@@ -231,6 +232,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
         proposal_samples=tuple(self.proposal_samples), proposal_padding=self.proposal_padding,
         grid_matmul_max_rows=self.grid_matmul_max_rows, grid_materialize=self.grid_materialize,
+        grid_layout=self.grid_layout,
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far, anneal)
 
@@ -270,7 +272,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
       points = self._points(origins, directions, t_mids)
       field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                          matmul_max_rows=self.grid_matmul_max_rows,
-                                         materialize=self.grid_materialize)
+                                         materialize=self.grid_materialize, layout=self.grid_layout)
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
       proposals.append({"s_edges": s_edges, "weights": weights, "saturated": saturated_share(sigma)})
@@ -282,7 +284,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize=self.grid_materialize)
+                              materialize=self.grid_materialize, layout=self.grid_layout)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
                        **self._footprints(origins, directions, t_mids), **_opened(opened))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
@@ -310,6 +312,7 @@ class RegionRenderer(nn.Module):
   near_gradient_distance: float
   grid_materialize: bool = False
   proposal_padding: float = 0.0
+  grid_layout: str = "rows"
 
   @nn.compact
   def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
@@ -333,7 +336,7 @@ class RegionRenderer(nn.Module):
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                            matmul_max_rows=self.grid_matmul_max_rows,
-                                           materialize=self.grid_materialize)
+                                           materialize=self.grid_materialize, layout=self.grid_layout)
         sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
@@ -349,7 +352,7 @@ class RegionRenderer(nn.Module):
     points = points_of(t_points)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize=self.grid_materialize)
+                              materialize=self.grid_materialize, layout=self.grid_layout)
     rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
                                 self.near_gradient_distance)
@@ -476,7 +479,8 @@ def from_config(config, ndc_camera=None, backend: str | None = None, num_frames:
               proposal_samples=tuple(render.proposal_samples), proposal_padding=float(render.proposal_padding),
               ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
               grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
-              grid_materialize=backend == "cpu", num_frames=int(num_frames),
+              grid_materialize=backend == "cpu", grid_layout=str(config.compile.hashgrid_layout),
+              num_frames=int(num_frames),
               pose_refine=bool(config.train.pose_refine),
               near_gradient_distance=float(config.train.near_gradient_distance),
               pixel_angle=float(pixel_angle) if scale_aware else 0.0,

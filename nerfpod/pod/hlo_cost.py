@@ -18,8 +18,9 @@ instruction itself:
   vector unit, whose peak Google does not publish: it is costed by its memory traffic only;
 - bytes are each op's operands and results as laid out in HBM (padded to the layout's tiles, which the HLO
   names), except that a gather moves only the slices it gathers, a scatter only its updates (read and
-  written), a dynamic slice or update only its slice; each slice counts at least one tile row of its
-  operand's layout (the unit XLA lays memory out in);
+  written), a dynamic slice or update only its slice, an asynchronous slice (`slice-start`, whose result
+  tuple names its whole source) only its slice read and written; each slice counts at least one tile row of
+  its operand's layout (the unit XLA lays memory out in);
 - indices: a gather or scatter (alone or in a fusion) also takes time per slice it gathers or scatters (the
   result's batch dims, those not in `offset_dims`; the updates' not in `update_window_dims`), at the chip's
   measured rate (chips.Chip.gather_indices_per_s), `vmem_gather_speedup` times faster where its table is in
@@ -56,8 +57,8 @@ _LINE = re.compile(r"^\s*(ROOT\s+)?%?([\w.\-]+)\s*=\s*(.+?)\s+([a-z][\w\-]*)\((.
 # A host transfer to the megascale runtime: the cross-slice (DCN) part of a multi-slice collective.
 _MEGASCALE = re.compile(r'_xla_megascale_transfer_type="?(\w+)')
 _FREE = {"parameter", "constant", "get-tuple-element", "tuple", "bitcast", "after-all", "partition-id",
-         "replica-id", "iota", "copy-done", "all-reduce-done", "all-gather-done", "collective-permute-done",
-         "async-done", "async-update", "send-done", "recv-done", "opt-barrier"}
+         "replica-id", "iota", "copy-done", "slice-done", "all-reduce-done", "all-gather-done",
+         "collective-permute-done", "async-done", "async-update", "send-done", "recv-done", "opt-barrier"}
 COLLECTIVES = ("all-reduce", "all-gather", "reduce-scatter", "all-to-all", "collective-permute",
                "collective-broadcast", "ragged-all-to-all")
 # Passes of the bf16 matmul unit a float32 dot takes at each precision (DEFAULT: one bf16 pass on TPU).
@@ -400,6 +401,13 @@ class HloProgram:
     if instr.opcode == "copy-start":  # an asynchronous copy: its result tuple holds destination and source
       destination = instr.shape[0].hbm_bytes if hbm else instr.shape[0].bytes
       return flops, self._operand_bytes_from(operands, hbm) + destination, False
+    if instr.opcode == "slice-start" and len(instr.shape) > 1:
+      # An asynchronous slice (XLA moves a table into VMEM so, piece by piece): its result tuple holds its
+      # source (the whole array, not moved), the slice and a context; it reads the slice of the source and
+      # writes the slice (its -done is free, as a copy-done).
+      source, destination = instr.shape[0], instr.shape[1]
+      read = 0 if hbm and source.in_vmem else destination.bytes
+      return flops, read + (destination.hbm_bytes if hbm else destination.bytes), False
     if instr.opcode in ("dynamic-slice", "slice"):
       return flops, (0 if into_vmem else instr.bytes_out) + instr.bytes_in(hbm), False
     if instr.opcode == "dynamic-update-slice":
