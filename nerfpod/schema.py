@@ -1,5 +1,5 @@
 """The one config schema: every field of every config, declared once in FIELDS (its default, the values it may
-hold and what it means), and the rules between fields.
+hold, what it means and whether it may change when a run resumes a workdir), and the rules between fields.
 
 `defaults()` is the config of every field at its default: configs/default.py, which every other config starts
 from. `python -m nerfpod.schema` prints every field as its override, with its default, range and meaning.
@@ -31,13 +31,14 @@ class ConfigError(UserError):
 @dataclasses.dataclass(frozen=True)
 class Field:
   """What a config field may hold: `accepts(value)` says whether it is valid, `means` says what is; and, once
-  declared in FIELDS, its `default` and `doc` (what it means, one line)."""
+  declared in FIELDS, its `default`, `doc` (what it means, one line) and whether it is `resumable`."""
   accepts: Callable[[Any], bool]
   means: str    # "an integer >= 1", ...: completes "must be ..."
   example: Any  # a valid value, shown in the message
   bad: tuple = ()  # invalid values that a command line can give (for the tests that walk every field)
   default: Any = None
   doc: str = ""
+  resumable: bool = False  # may differ between a workdir's config and the run that resumes it (RESUMABLE)
 
   def message(self, name: str, value) -> str | None:
     if self.accepts(value):
@@ -148,16 +149,28 @@ def pose_noise() -> Field:
                "() or (degrees, units): two numbers >= 0", (1.0, 0.03), ((-1.0, 0.0), (1.0,), (1.0, 0.0, 0.0)))
 
 
+# A field entry's fourth item: the field may change when a run resumes a workdir (workdir.files.check_compatible
+# refuses any other difference). Such a field changes neither shapes nor the trajectory's inputs (the step
+# count, the cadence of logs and checkpoints, evaluation, the orbit, compilation, the mesh, monitoring, the
+# host's image budget, the samples of renderings that train nothing); or it is one of the proposal sampler's
+# guards, which change no state, only where samples go from the resume on: a run whose sampling collapsed is
+# resumed with them (docs/training.md). docs/scale.md lists them (tests/test_schema.py holds it to this).
+RESUMABLE = "resumable"
+
+
 def _declare(table: dict) -> dict[str, Field]:
-  """{name: (default, field, doc)} -> {name: the field with its default and doc}."""
-  return {name: dataclasses.replace(field, default=default, doc=doc)
-          for name, (default, field, doc) in table.items()}
+  """{name: (default, field, doc[, RESUMABLE])} -> {name: the field with its default, doc and resumable}."""
+  out = {}
+  for name, (default, field, doc, *marks) in table.items():
+    assert set(marks) <= {RESUMABLE}, (name, marks)
+    out[name] = dataclasses.replace(field, default=default, doc=doc, resumable=RESUMABLE in marks)
+  return out
 
 
 # Every field of every config, declared once: "section.name": (its default, the values it may hold, what it means
-# with its unit). The defaults are the default job's (configs/default.py is `defaults()`); the other configs
-# start from it. The order is the config's own (config.json sorts it; the orbit archive's copy keeps it).
-# `python -m nerfpod.schema` prints them all.
+# with its unit[, RESUMABLE where it may change on resuming]). The defaults are the default job's
+# (configs/default.py is `defaults()`); the other configs start from it. The order is the config's own
+# (config.json sorts it; the orbit archive's copy keeps it). `python -m nerfpod.schema` prints them all.
 FIELDS: dict[str, Field] = _declare({
     "data.kind": ("procedural", choice(*scenes.KINDS),
         "scene format: 'procedural' and 'street' (built in), 'tiny' (npz), 'blender' (folder), captures 'llff', 'colmap', "
@@ -183,7 +196,7 @@ FIELDS: dict[str, Field] = _declare({
         "training frames split into this many shards (frame i -> i mod shards); each host reads only its own: a "
         "multiple of every host count the run may use"),
     "data.host_memory_gib": (0.0, number(0.0, example=64.0),
-        "images a host may hold (its shards + held-out), GiB; 0: half its memory"),
+        "images a host may hold (its shards + held-out), GiB; 0: half its memory", RESUMABLE),
     "data.pose_noise": ((), pose_noise(),
         "(degrees, units): every training camera turned by this angle about a random axis through its centre "
         "and shifted this far in a random direction (held-out cameras exact), to measure pose refinement where "
@@ -201,7 +214,7 @@ FIELDS: dict[str, Field] = _declare({
         "views get the codes' mean; 0: off"),
     "model.trunc_exp": (False, boolean(),
         "the hash-grid fields' density exp(min(h, 15)) keeps its gradient above the clamp (nerfacto's trunc_exp), "
-        "so a saturated density can come down; false: zero gradient there"),
+        "so a saturated density can come down; false: zero gradient there", RESUMABLE),
     "model.regions": (1, integer(1, 4096, example=4),
         "fields, one per convex region of space, parameters sharded over the mesh's region axis (NeRF-XL, "
         "docs/scale.md#scenes-bigger-than-one-chip); a divisor of the device count; 1: one field everywhere"),
@@ -253,7 +266,7 @@ FIELDS: dict[str, Field] = _declare({
     "render.eval_samples": (0, integer(0, example=48),
         "render.num_samples of every rendering that trains nothing (evaluation, previews, orbits, the viewer, "
         "exports): more than in training gives a finer quadrature of the same field (docs/training.md); 0: "
-        "render.num_samples"),
+        "render.num_samples", RESUMABLE),
     "render.proposal_samples": ((32,), integers(2),
         "intervals per ray of each proposal round, e.g. (64, 32): the NeRF field then gets render.num_samples "
         "intervals drawn from the last; (): no proposals, render.num_samples stratified samples "
@@ -261,7 +274,7 @@ FIELDS: dict[str, Field] = _declare({
     "render.proposal_padding": (0.0, number(0.0, example=0.01),
         "added to every interval's weight of a proposal histogram before the next round draws from it "
         "(nerfacto: 0.01): some samples always follow the previous round's intervals, so resampling cannot trap "
-        "the NeRF's window in one interval (docs/training.md); 0: the raw histogram"),
+        "the NeRF's window in one interval (docs/training.md); 0: the raw histogram", RESUMABLE),
     "render.last_delta": (0.0, number(0.0, example=1e10),
         "length of the last sample's interval, world units (the paper: 1e10, opaque at the far end: use it only "
         "with a fixed background colour)"),
@@ -274,7 +287,7 @@ FIELDS: dict[str, Field] = _declare({
         "samples even in distance ('linear'), in 1/distance ('inverse'), or in distance up to 1 and in "
         "1/distance beyond ('piecewise', nerfacto's initial sampler)"),
 
-    "train.num_steps": (1500, integer(0, example=1000), "optimiser steps"),
+    "train.num_steps": (1500, integer(0, example=1000), "optimiser steps", RESUMABLE),
     "train.batch_size": (1024, integer(1, example=4096), "rays per step, over all devices of all hosts"),
     "train.microbatches": (1, integer(0),
         "slices each device's rays are processed in (gradient accumulation); 0: as few as fit the memory (XLA's "
@@ -302,7 +315,7 @@ FIELDS: dict[str, Field] = _declare({
         "them; (): mip-NeRF 360's loss (no better on the cup and the fox: docs/results.md)"),
     "train.proposal_anneal_steps": (0, integer(0, example=1000),
         "the proposal weights are raised to a power rising from 0 to 1 over this many steps before resampling "
-        "(nerfacto: 1,000, slope 10): early samples spread over the whole ray; 0: no annealing"),
+        "(nerfacto: 1,000, slope 10): early samples spread over the whole ray; 0: no annealing", RESUMABLE),
     "train.single_jitter": (False, boolean(),
         "one random offset per ray and sampling round, shared by all its strata (nerfacto's single jitter), "
         "rather than one per stratum"),
@@ -339,100 +352,109 @@ FIELDS: dict[str, Field] = _declare({
         "start to end (BARF's coarse-to-fine, the coarsest level always on), so that early pose corrections "
         "follow the scene's coarse shape; (): every level from the first step"),
     "train.seed": (0, integer(0), "seeds the parameters, the ray batches and the stratified jitter"),
-    "train.log_every": (100, integer(1, example=100), "steps between TensorBoard scalars and console lines"),
+    "train.log_every": (100, integer(1, example=100),
+        "steps between TensorBoard scalars and console lines", RESUMABLE),
     "train.image_every": (500, integer(0, example=500),
-        "steps between rendered held-out views in TensorBoard; 0: never"),
+        "steps between rendered held-out views in TensorBoard; 0: never", RESUMABLE),
     "train.max_nonfinite_steps": (20, integer(1, example=20),
         "stop (exit 2) after this many steps in a row with a non-finite loss or gradient; each such step is "
-        "skipped, its update never reaches the state"),
+        "skipped, its update never reaches the state", RESUMABLE),
     "train.profile_steps": ((), step_range(),
         "(first, last): a jax.profiler trace of these steps into the workdir (TensorBoard's profile tab, xprof); "
-        "(): none"),
+        "(): none", RESUMABLE),
 
     "compile.cpu_ynnpack": (False, boolean(),
         "CPU: let XLA hand dots to YNNPACK (its default); off, the steps ran faster on a 2-core CPU "
-        "(docs/results.md). Ignored on TPU/GPU."),
+        "(docs/results.md). Ignored on TPU/GPU.", RESUMABLE),
     "compile.cpu_memory_gib": (3.0, number(above=0.0, example=3.0),
         "CPU: memory the train step may use (all of a process's simulated devices together) when "
-        "train.microbatches=0; accelerators use their own size"),
+        "train.microbatches=0; accelerators use their own size", RESUMABLE),
     "compile.cpu_reuse_host_memory": (True, boolean(),
         "CPU: glibc's malloc keeps freed memory for the next step instead of unmapping it (faster steps on "
-        "2 cores for more peak memory; docs/results.md)"),
+        "2 cores for more peak memory; docs/results.md)", RESUMABLE),
     "compile.gradient_mean": ("auto", choice("auto", "ordered", "pmean"),
         "'ordered' (the same bits on any topology: log2(N) exchanges), 'pmean' (one all-reduce) or 'auto' "
-        "(ordered on CPU, pmean on TPU/GPU; docs/scale.md)"),
+        "(ordered on CPU, pmean on TPU/GPU; docs/scale.md)", RESUMABLE),
     "compile.hashgrid_lookup": ("auto", choice("auto", "gather", "matmul"),
         "hash-grid levels: 'gather', 'matmul' (dense levels, no gather or scatter) or 'auto' (matmul on TPU, "
-        "gather elsewhere; docs/pod-compile.md)"),
+        "gather elsewhere; docs/pod-compile.md)", RESUMABLE),
     "compile.matmul_max_rows": (30000, integer(0, example=30000),
-        "'matmul' applies to dense levels of at most this many rows"),
+        "'matmul' applies to dense levels of at most this many rows", RESUMABLE),
     "compile.hashgrid_layout": ("rows", choice("rows", "lane_dense"),
         "hash-grid lookups: 'rows' ((N, 8) corner rows, (N, 8, F) values) or 'lane_dense' (samples the minor "
         "dimension: (8, N), (F, 8, N); the same values and parameters, so a checkpoint restores under either; "
-        "docs/pod-compile.md)"),
+        "docs/pod-compile.md)", RESUMABLE),
 
     "mesh.slices": (0, integer(0, example=2),
         "TPU slices joined by the data-centre network (DCN) the mesh spans; 0: as many as the devices report "
-        "(1 on CPU; a count > 1 there simulates slices, docs/scale.md#multi-slice)"),
+        "(1 on CPU; a count > 1 there simulates slices, docs/scale.md#multi-slice)", RESUMABLE),
 
     "checkpoint.every_steps": (500, integer(1, example=500),
-        "steps between (asynchronous) checkpoints; one is always saved at the end"),
-    "checkpoint.max_to_keep": (3, integer(1, example=3), "newest checkpoints kept on disk"),
+        "steps between (asynchronous) checkpoints; one is always saved at the end", RESUMABLE),
+    "checkpoint.max_to_keep": (3, integer(1, example=3), "newest checkpoints kept on disk", RESUMABLE),
     "checkpoint.preempted_exit_code": (75, integer(3, 125, example=75),
         'exit status after a preemption/SIGTERM/Ctrl-C saved a step (75: EX_TEMPFAIL of sysexits.h, "try again": '
-        'schedulers requeue on it)'),
+        'schedulers requeue on it)', RESUMABLE),
     "checkpoint.storage_timeout_s": (20.0, number(above=0.0, example=20.0),
         "seconds a gs:// workdir's storage may leave a request, or a checkpoint save training waits on, "
-        "unanswered before the run stops with one sentence (exit 69); below a pod's SIGTERM grace period"),
+        "unanswered before the run stops with one sentence (exit 69); below a pod's SIGTERM grace period", RESUMABLE),
 
-    "eval.split": ("test", choice("test", "val", "train"), "held-out split the final metrics are computed on"),
-    "eval.max_views": (0, integer(0), "evaluate at most this many views of the split; 0: all"),
+    "eval.split": ("test", choice("test", "val", "train"),
+        "held-out split the final metrics are computed on", RESUMABLE),
+    "eval.max_views": (0, integer(0), "evaluate at most this many views of the split; 0: all", RESUMABLE),
     "eval.chunk": (4096, integer(1, example=4096),
-        "rays rendered per device call, over all devices (bounds memory)"),
+        "rays rendered per device call, over all devices (bounds memory)", RESUMABLE),
     "eval.lpips_net": ("alex", choice("alex", "vgg", "none"),
-        "LPIPS network: 'alex' (the papers'), 'vgg', or 'none'; needs nerfpod[lpips]"),
+        "LPIPS network: 'alex' (the papers'), 'vgg', or 'none'; needs nerfpod[lpips]", RESUMABLE),
     "eval.appearance_steps": (100, integer(0, example=100),
         "with appearance codes, NeRF-W's protocol: Adam steps fitting each held-out view's code on its left half "
-        "(metrics on its right half, eval/metrics.json's appearance_half); 0: not fitted"),
-    "eval.appearance_lr": (0.01, number(above=0.0, example=0.01), "learning rate of that fit (Adam)"),
+        "(metrics on its right half, eval/metrics.json's appearance_half); 0: not fitted", RESUMABLE),
+    "eval.appearance_lr": (0.01, number(above=0.0, example=0.01), "learning rate of that fit (Adam)", RESUMABLE),
     "eval.appearance_rays": (1024, integer(1, example=1024),
-        "random rays of the left half per step of that fit (rounded up to a multiple of the device count)"),
+        "random rays of the left half per step of that fit (rounded up to a multiple of the device count)",
+        RESUMABLE),
     "eval.pose_fit": ("refined", choice("refined", "always", "never"),
         "BARF's test-time pose optimisation of each held-out camera (the field frozen; eval/metrics.json's "
         "poses_optimised): for runs with train.pose_refine ('refined'), for every run ('always': the same "
-        "protocol for a run without, to compare), or 'never'"),
+        "protocol for a run without, to compare), or 'never'", RESUMABLE),
     "eval.pose_steps": (100, integer(1, example=100),
-        "Adam steps of that fit, each on eval.pose_rays random pixels of the whole view"),
+        "Adam steps of that fit, each on eval.pose_rays random pixels of the whole view", RESUMABLE),
     "eval.pose_lr": (1e-3, number(above=0.0, example=1e-3),
-        "learning rate of that fit (radians and scene units), decayed log-linearly to a tenth at its last step"),
+        "learning rate of that fit (radians and scene units), decayed log-linearly to a tenth at its last step",
+        RESUMABLE),
     "eval.pose_rays": (1024, integer(1, example=1024),
-        "random rays of the view per step of that fit (rounded up to a multiple of the device count)"),
+        "random rays of the view per step of that fit (rounded up to a multiple of the device count)", RESUMABLE),
 
-    "orbit.render_after_training": (True, boolean(), "render the orbit (archive + videos) when training ends"),
+    "orbit.render_after_training": (True, boolean(),
+        "render the orbit (archive + videos) when training ends", RESUMABLE),
     "orbit.path": ("orbit", choice("orbit", "spiral", "ellipse", "file"),
         "camera path: 'orbit' (the tutorial's circle), 'spiral' (LLFF's, from the capture's cameras), 'ellipse' "
-        "(mip-NeRF 360's), 'file' (orbit.path_file)"),
-    "orbit.path_file": ("", text(), "orbit.path=file: a nerfstudio camera_path.json (its size, fov and fps rule)"),
+        "(mip-NeRF 360's), 'file' (orbit.path_file)", RESUMABLE),
+    "orbit.path_file": ("", text(),
+        "orbit.path=file: a nerfstudio camera_path.json (its size, fov and fps rule)", RESUMABLE),
     "orbit.num_frames": (120, integer(1, example=120),
-        "frames of the path (orbit: over one full turn; spiral: over two turns)"),
+        "frames of the path (orbit: over one full turn; spiral: over two turns)", RESUMABLE),
     "orbit.elevation": (-30.0, number(-90.0, 90.0, example=-30.0),
-        "degrees, the tutorial's sign: -30 is 30 degrees above the z = 0 plane"),
+        "degrees, the tutorial's sign: -30 is 30 degrees above the z = 0 plane", RESUMABLE),
     "orbit.radius": (4.0, number(above=0.0, example=4.0),
-        "distance of the cameras from the origin they look at, world units"),
-    "orbit.width": (0, integer(0), "frame width, pixels; 0: the eval split's"),
-    "orbit.height": (0, integer(0), "frame height, pixels; 0: from the width with the eval split's aspect"),
-    "orbit.focal": (0.0, number(0.0), "focal length, pixels; 0: the eval split's field of view at this width"),
+        "distance of the cameras from the origin they look at, world units", RESUMABLE),
+    "orbit.width": (0, integer(0), "frame width, pixels; 0: the eval split's", RESUMABLE),
+    "orbit.height": (0, integer(0),
+        "frame height, pixels; 0: from the width with the eval split's aspect", RESUMABLE),
+    "orbit.focal": (0.0, number(0.0),
+        "focal length, pixels; 0: the eval split's field of view at this width", RESUMABLE),
     "orbit.chunk": (4096, integer(1, example=4096),
-        "rays each host feeds per call of the whole-slice renderer (bounds memory)"),
-    "orbit.fps": (30.0, number(above=0.0, example=30.0), "frames per second of the exported videos"),
+        "rays each host feeds per call of the whole-slice renderer (bounds memory)", RESUMABLE),
+    "orbit.fps": (30.0, number(above=0.0, example=30.0), "frames per second of the exported videos", RESUMABLE),
 
     # monitor: TensorBoard always; Weights & Biases as well (the wandb extra)
     "monitor.wandb.mode": ("disabled", choice("disabled", "online", "offline"),
-        "'online', 'offline' (a local run folder for `wandb sync`) or 'disabled'"),
-    "monitor.wandb.project": ("", text(), "W&B project; '': $WANDB_PROJECT, else 'nerfpod'"),
-    "monitor.wandb.entity": ("", text(), "W&B user or team; '': $WANDB_ENTITY, else your default entity"),
-    "monitor.wandb.name": ("", text(), "the run's display name; '': $WANDB_NAME, else the workdir's folder name"),
-    "monitor.wandb.tags": ((), strings(), 'the run\'s tags, e.g. ("lego", "hashgrid"); (): $WANDB_TAGS'),
+        "'online', 'offline' (a local run folder for `wandb sync`) or 'disabled'", RESUMABLE),
+    "monitor.wandb.project": ("", text(), "W&B project; '': $WANDB_PROJECT, else 'nerfpod'", RESUMABLE),
+    "monitor.wandb.entity": ("", text(), "W&B user or team; '': $WANDB_ENTITY, else your default entity", RESUMABLE),
+    "monitor.wandb.name": ("", text(),
+        "the run's display name; '': $WANDB_NAME, else the workdir's folder name", RESUMABLE),
+    "monitor.wandb.tags": ((), strings(), 'the run\'s tags, e.g. ("lego", "hashgrid"); (): $WANDB_TAGS', RESUMABLE),
 })
 
 
@@ -456,6 +478,30 @@ def describe() -> str:
   return "\n".join(f"--config.{name}={_show(field.default)}  ({field.means})\n"
                    + textwrap.fill(field.doc, 100, initial_indent="    ", subsequent_indent="    ")
                    for name, field in FIELDS.items())
+
+
+def resumable(name: str) -> bool:
+  """Whether the field `name` may differ between a workdir's config and the run that resumes it (RESUMABLE).
+  A name this version does not know (a field a workdir's config.json holds that was since removed) may where
+  every field of its section may (e.g. any `eval.` name)."""
+  return FIELDS[name].resumable if name in FIELDS else _resumable_section(name.split(".")[0])
+
+
+def _resumable_section(section: str) -> bool:
+  """Whether the section has fields and every one of them may change on resuming."""
+  fields = [field for name, field in FIELDS.items() if name.split(".")[0] == section]
+  return bool(fields) and all(field.resumable for field in fields)
+
+
+def resumable_names() -> list[str]:
+  """The fields that may change on resuming, in FIELDS' order, a section whose every field may as `section.*`
+  (as the refusal of another config lists them, and docs/scale.md)."""
+  out = []
+  for name, field in FIELDS.items():
+    section = name.split(".")[0]
+    if field.resumable:
+      out.append(f"{section}.*" if _resumable_section(section) else name)
+  return list(dict.fromkeys(out))
 
 
 def _rules(c: dict) -> list[str]:

@@ -11,7 +11,6 @@ import pytest
 from conftest import smoke_config
 from nerfpod import distributed
 from nerfpod.nerf import alignment, cameras, pose_correction
-from nerfpod.nerf import model as nerf_model
 from nerfpod.render import metrics, renderer
 from nerfpod.run import components, evaluate, protocols, train_state
 
@@ -115,7 +114,7 @@ def test_pinned_mean_keeps_the_corrections_mean_at_zero_and_leaves_the_field_alo
 def _tiny_model():
   config = smoke_config(**{"render.proposal_samples": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
                            "render.num_samples": 8})
-  model = nerf_model.from_config(config, num_frames=5)
+  model = components.make_model(config, num_frames=5)
   origins = jnp.asarray([[0.0, 0.0, 4.0]] * 2, jnp.float32)
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2),
                                                        2.0, 6.0, jnp.ones(3))
@@ -155,7 +154,7 @@ def test_the_pose_fit_finds_a_held_out_camera_again_and_never_changes_the_field(
   both its turn and its centre, is the start pose moved by the correction it reports, and the field's
   parameters are the same arrays, equal, afterwards."""
   config = smoke_config(**{"render.proposal_samples": (), "render.num_samples": 16})
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   origins = jnp.asarray([[0.0, 0.0, 4.0]] * 2, jnp.float32)
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2),
                                                        2.0, 6.0, jnp.ones(3))

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import smoke_config
 from nerfpod.nerf import encodings
-from nerfpod.nerf import model as nerf_model
+from nerfpod.run import components
 
 HAS_LIBTPU = importlib.util.find_spec("libtpu") is not None
 
@@ -126,7 +126,7 @@ def test_an_unknown_layout_is_refused():
 
 def _model(layout):
   config = smoke_config(**{"compile.hashgrid_layout": layout})
-  return nerf_model.from_config(config, backend="cpu")
+  return components.make_model(config, backend="cpu")
 
 
 def test_the_model_renders_the_same_in_either_layout_and_each_restores_the_others_parameters():

@@ -7,6 +7,7 @@ import pytest
 from conftest import smoke_config
 from nerfpod.nerf import fields
 from nerfpod.nerf import model as nerf_model
+from nerfpod.run import components
 
 
 def _rays(n=64, seed=0):
@@ -29,7 +30,7 @@ def _hierarchical(field="mlp", dtype="float32", importance=24):
                            "model.mlp.skips": (1,), "model.use_viewdirs": True, "render.num_samples": 16,
                            "render.num_importance": importance, "model.compute_dtype": dtype,
                            "render.proposal_samples": ()})
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   origins, directions = _rays()
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0,
                                                       jnp.ones(3))
@@ -109,7 +110,7 @@ def _proposal_model(field="hashgrid", proposal_samples=(12, 8), num_samples=6):
   config = smoke_config(**{"model.field": field, "model.mlp.depth": 2, "model.mlp.width": 16,
                            "model.mlp.skips": (), "model.use_viewdirs": True,
                            "render.num_samples": num_samples, "render.proposal_samples": proposal_samples})
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   origins, directions = _rays(32)
   directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)  # near 2 .. far 6 crosses the box
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0,

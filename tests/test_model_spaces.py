@@ -11,6 +11,7 @@ import pytest
 from conftest import smoke_config
 from nerfpod.nerf import cameras, coord
 from nerfpod.nerf import model as nerf_model
+from nerfpod.run import components
 
 
 class _OpaqueBeyond(nn.Module):
@@ -27,7 +28,7 @@ def _model(monkeypatch, surface, space, spacing, samples, importance=0, ndc_came
   config = smoke_config(**{"render.space": space, "render.spacing": spacing, "render.num_samples": samples,
                            "render.num_importance": importance, "model.field": "mlp",
                            "render.proposal_samples": ()})
-  return nerf_model.from_config(config, ndc_camera)
+  return components.make_model(config, ndc_camera)
 
 
 def _camera_rays(n=64):
@@ -64,7 +65,7 @@ def test_ndc_model_takes_view_directions_from_the_world_rays(monkeypatch):
   config = smoke_config(**{"render.space": "ndc", "render.num_samples": 4, "model.field": "mlp",
                            "render.proposal_samples": ()})
   camera = (intr.fx, intr.fy, intr.width, intr.height)
-  model = nerf_model.from_config(config, camera)
+  model = components.make_model(config, camera)
 
   @jax.jit
   def render(origins, directions):
@@ -116,7 +117,6 @@ def test_inverse_spacing_is_even_in_inverse_distance(monkeypatch):
 
 
 def test_ndc_is_refused_for_a_scene_not_framed_as_a_forward_facing_capture():
-  from nerfpod.run import components
   from nerfpod.errors import UserError
   with pytest.raises(UserError, match="render.space=ndc needs a forward-facing capture framed as LLFF"):
     components.build(smoke_config(**{"render.space": "ndc"}))
@@ -139,7 +139,7 @@ def _proposal_model(monkeypatch, surface, space, spacing, proposal, samples, ndc
   config = smoke_config(**{"render.space": space, "render.spacing": spacing, "render.num_samples": samples,
                            "render.num_importance": 0, "render.proposal_samples": proposal,
                            "model.field": "mlp"})
-  return nerf_model.from_config(config, ndc_camera), seen
+  return components.make_model(config, ndc_camera), seen
 
 
 def test_proposal_sampling_in_contracted_space_with_inverse_spacing(monkeypatch):

@@ -12,7 +12,6 @@ from conftest import smoke_config
 from nerfpod import data, distributed, schema, scenes
 from nerfpod.run import components, step, train_state
 from nerfpod.errors import UserError
-from nerfpod.nerf import model as nerf_model
 
 
 def test_two_slices_make_a_slice_major_mesh_in_host_order_and_one_slice_the_mesh_of_today():
@@ -122,7 +121,7 @@ def test_a_tree_is_averaged_in_one_exchange_per_dtype_with_each_leafs_own_bits()
 
 def _train(mesh, config, num_steps, ordered=True):
   scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   optimizer = train_state.make_optimizer(config.train)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, step.Options(ordered_mean=ordered))

@@ -10,10 +10,9 @@ from jax.sharding import Mesh
 
 from conftest import smoke_config
 from nerfpod import data, distributed, scenes
-from nerfpod.run import step, train_state
+from nerfpod.run import components, step, train_state
 from nerfpod.workdir import checkpoints
 from nerfpod.nerf import cameras, pose_correction
-from nerfpod.nerf import model as nerf_model
 
 BOTH = {"model.appearance_dim": 4, "train.pose_refine": True}
 
@@ -236,7 +235,6 @@ def test_make_optimizer_preconditions_the_corrections_only():
 
 
 def test_train_pose_precondition_builds_the_training_cameras_matrices_or_identities_without_a_scene():
-  from nerfpod.run import components
   config = smoke_config(**{"train.pose_refine": True, "train.pose_precondition": True})
   scene = scenes.load(config.data)
   train = scene.split("train")
@@ -252,7 +250,7 @@ def test_train_pose_precondition_builds_the_training_cameras_matrices_or_identit
 
 def _model_and_params(overrides, num_frames=5):
   config = smoke_config(**{"render.proposal_samples": (), "model.use_viewdirs": True, **overrides})
-  model = nerf_model.from_config(config, num_frames=num_frames)
+  model = components.make_model(config, num_frames=num_frames)
   rng = np.random.default_rng(4)
   origins = jnp.asarray(rng.normal(size=(32, 3)) * 0.1 + [0.0, 0.0, 4.0], jnp.float32)
   directions = jnp.asarray(rng.normal(size=(32, 3)) * 0.1 + [0.0, 0.0, -1.0], jnp.float32)
@@ -297,7 +295,7 @@ def _stepper(mesh, config, optimizer):
   """(split, model, the compiled step) of a config: built once for a test's several runs of the same step."""
   scene = scenes.load(config.data)
   split = scene.split("train")
-  model = nerf_model.from_config(config, num_frames=len(split))
+  model = components.make_model(config, num_frames=len(split))
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, step.Options(random_background=True))
   return split, model, step_fn
 

@@ -14,7 +14,7 @@ import pytest
 
 from conftest import smoke_config
 from nerfpod.nerf import fields, model as nerf_model, stepfun
-from nerfpod.run import step as train_step
+from nerfpod.run import components, step as train_step
 
 INTERVALS, SAMPLES, HEAVY = 96, 48, 40  # the proposal's intervals, the NeRF's samples, the heavy interval
 
@@ -155,7 +155,7 @@ def _spiked_model(padding: float):
   """The default config's smoke model (one proposal round of 16, 16 NeRF samples) with its proposal field's
   density raised by e^8 everywhere (a spike): the proposal's weight piles into the ray's first intervals."""
   config = smoke_config(**{"render.proposal_padding": padding})
-  model = nerf_model.from_config(config, backend="cpu")
+  model = components.make_model(config, backend="cpu")
   rays = 64
   key = jax.random.PRNGKey(0)
   origins = jnp.tile(jnp.array([[0.0, 0.0, 4.0]]), (rays, 1))

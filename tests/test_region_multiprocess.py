@@ -30,8 +30,8 @@ def test_two_processes_end_at_one_processs_parameters(tmp_path, regions):
   assert "2 process(es), 8 device(s)" in pod.output(0)
   # regions.json: where each region's fields live, as the model cut them (model.region_cut=grid over the box).
   from conftest import smoke_config
-  from nerfpod.nerf import model as nerf_model
-  want_cut = nerf_model.partition(smoke_config(**overrides))
+  from nerfpod.run import components
+  want_cut = components.region_partition(smoke_config(**overrides))
   for workdir in ("one", "pod"):
     saved = json.loads((tmp_path / workdir / "regions.json").read_text())
     assert saved["cut"] == "grid" and saved["count"] == len(saved["regions"]) == regions

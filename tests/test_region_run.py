@@ -10,8 +10,7 @@ import pytest
 
 from conftest import smoke_config
 from nerfpod import monitor
-from nerfpod.nerf import model as nerf_model
-from nerfpod.run import modes
+from nerfpod.run import components, modes
 from nerfpod.workdir import checkpoints
 
 OVERRIDES = {"model.regions": 4, "train.num_steps": 6, "train.batch_size": 64, "checkpoint.every_steps": 3,
@@ -64,7 +63,7 @@ def test_a_region_run_trains_saves_evaluates_and_resumes_to_the_same_bits(whole,
   assert json.loads((whole / "eval" / "metrics.json").read_text())["mean"] == metrics["mean"]
   # regions.json against the cut built here: a grid of 4 over the hash grid's box.
   saved = json.loads((whole / "regions.json").read_text())
-  want = nerf_model.partition(config)
+  want = components.region_partition(config)
   assert saved["cut"] == "grid" and saved["count"] == len(saved["regions"]) == 4 == want.size
   np.testing.assert_allclose([[p["normal"] for p in r["planes"]] for r in saved["regions"]], want.normals_KxPx3,
                              atol=1e-7)

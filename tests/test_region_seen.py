@@ -9,7 +9,6 @@ import pytest
 from conftest import smoke_config
 from nerfpod.errors import UserError
 from nerfpod.nerf import cameras, regions
-from nerfpod.nerf import model as nerf_model
 from nerfpod.run import components
 from nerfpod.scenes.base import Split
 
@@ -36,7 +35,7 @@ def _one_camera_comps(centres=None, cut="cameras", count=3, y=0.0):
   intr = cameras.Intrinsics(32, 32, 160.0, 160.0, 16.0, 16.0)
   split = Split.from_images(np.zeros((1, 32, 32, 3), np.uint8), pose[None].astype(np.float32), intr, ("a",))
   scene = types.SimpleNamespace(split=lambda name: split)
-  partition = regions.voronoi(np.float32(centres)) if cut == "cameras" else nerf_model.partition(config)
+  partition = regions.voronoi(np.float32(centres)) if cut == "cameras" else components.region_partition(config)
   return types.SimpleNamespace(config=config, scene=scene, model=types.SimpleNamespace(partition=partition),
                                near=0.5, far=6.0)
 

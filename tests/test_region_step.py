@@ -15,7 +15,7 @@ from nerfpod import data, distributed, scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
 from nerfpod.nerf import regions
-from nerfpod.run import step, train_state
+from nerfpod.run import components, step, train_state
 
 
 def _config(**overrides):
@@ -37,9 +37,9 @@ def _rays(count=64, seed=0):
 def test_regions_one_is_the_one_field_model():
   """model.regions=1, whatever the region settings say (a cut around the cameras, each region's own box), is the
   one-field model: its parameters have no region axis and its renders are the plain config's, bit for bit."""
-  one = nerf_model.from_config(_config(**{"model.regions": 1, "model.region_cut": "cameras",
+  one = components.make_model(_config(**{"model.regions": 1, "model.region_cut": "cameras",
                                           "model.region_box": "own"}))
-  plain = nerf_model.from_config(_config(**{"model.regions": 1}))
+  plain = components.make_model(_config(**{"model.regions": 1}))
   assert one.regions == 1 and one.region_planes == ()  # NeRF's defaults: the model it always was
   origins, directions = _rays()
   init = lambda model: jax.jit(model.init)(jax.random.key(0), origins, directions, 2.0, 6.0, jnp.zeros(3))  # noqa: E731
@@ -56,7 +56,7 @@ def test_regions_one_is_the_one_field_model():
 def test_each_device_share_of_the_regions_composites_to_the_whole_model():
   """The model's own rendering of all K regions equals rendering the regions in two halves, each with its half
   of the stacked parameters only (a device's share), composited after."""
-  model = nerf_model.from_config(_config())
+  model = components.make_model(_config())
   origins, directions = _rays()
   params = model.init(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
   stacked = params["params"]["regions"]
@@ -88,7 +88,7 @@ def _batches(config, steps, with_frames=False):
 
 def _run(mesh, config, steps, optimizer, grad_clip=0.0):
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
-  model = nerf_model.from_config(config, num_frames=100 if per_frame else 0)
+  model = components.make_model(config, num_frames=100 if per_frame else 0)
   scene, batches = _batches(config, steps, per_frame)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
@@ -137,7 +137,7 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
       np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
   assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
   params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
-  initial = jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(components.make_model(config), sgd, 0, one).params)
   moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
   assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
@@ -164,7 +164,7 @@ def test_each_device_holds_one_kth_of_the_region_fields():
   """Per-device parameter (and Adam moment) bytes, read off the state's shardings: the region fields' 1/K on
   each device of a (2 data x 4 regions) mesh, against the whole model replicated on every device."""
   config = _config(**{"model.regions": 4})
-  model, adam = nerf_model.from_config(config), optax.adam(1e-2)
+  model, adam = components.make_model(config), optax.adam(1e-2)
 
   def per_device_bytes(shapes, where):
     total = 0
@@ -186,7 +186,7 @@ def test_each_device_holds_one_kth_of_the_region_fields():
 
 def test_the_region_renderer_renders_each_devices_regions_as_the_whole_model():
   config = _config(**{"model.regions": 4})
-  model, sgd = nerf_model.from_config(config), optax.sgd(1.0)
+  model, sgd = components.make_model(config), optax.sgd(1.0)
   origins, directions = _rays(count=64, seed=2)
   from nerfpod.render import renderer
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
@@ -204,7 +204,7 @@ def test_the_region_renderer_renders_each_devices_regions_as_the_whole_model():
 def test_checkpoints_restore_the_region_fields_split_over_any_region_mesh(tmp_path):
   from nerfpod.workdir import checkpoints
   config = _config(**{"model.regions": 4})
-  model, adam = nerf_model.from_config(config), optax.adam(1e-2)
+  model, adam = components.make_model(config), optax.adam(1e-2)
   state = train_state.initial_state(model, adam, 0, _region_mesh((2, 4)))
   with checkpoints.Checkpoints(str(tmp_path), 1, 2) as ckpt:
     assert ckpt.save(1, state, {"next_step": 1})
@@ -244,7 +244,7 @@ def test_regions_cut_around_the_cameras():
   config = _config(**{"model.regions": 3, "model.region_cut": "cameras"})
   angles = np.linspace(0, 2 * np.pi, 30, endpoint=False)
   cameras = np.stack([4 * np.cos(angles), 4 * np.sin(angles), np.ones_like(angles)], -1)
-  model = nerf_model.from_config(config, camera_positions=cameras)
+  model = components.make_model(config, camera_positions=cameras)
   part = model.partition
   assert part.size == 3
   # Each camera lies in the region of its nearest k-means centre, and the centres share out the ring.
@@ -252,7 +252,7 @@ def test_regions_cut_around_the_cameras():
   centres = regions.kmeans(cameras[:, :2], 3)
   np.testing.assert_array_equal(which, np.argmin(((cameras[:, None, :2] - centres[None])**2).sum(-1), axis=1))
   assert min(np.bincount(which, minlength=3)) >= 8
-  assert nerf_model.from_config(config).partition.size == 3  # without cameras: a placeholder ring
+  assert components.make_model(config).partition.size == 3  # without cameras: a placeholder ring
 
 
 def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(tmp_path):
@@ -283,7 +283,7 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
                jax.device_get(state_8.params), jax.device_get(state_1.params))
   # SGD at a learning rate of 1 moves the parameters by the clipped gradient: its global norm is the limit.
-  initial = jax.device_get(train_state.initial_state(nerf_model.from_config(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(components.make_model(config), sgd, 0, one).params)
   moved = jax.tree.map(lambda a, b: np.sum((np.asarray(a, np.float64) - b) ** 2), jax.device_get(state_8.params),
                        initial)
   np.testing.assert_allclose(np.sqrt(sum(jax.tree.leaves(moved))), 0.005, rtol=1e-3)
@@ -293,8 +293,8 @@ def test_each_regions_resampling_is_padded_and_annealed_inside_its_segment():
   """render.proposal_padding and the annealing exponent reach every region's rounds: the NeRF's intervals move
   (wider windows with padding, or with the weights annealed to w^0) and stay inside each region's segment."""
   origins, directions = _rays()
-  plain = nerf_model.from_config(_config())
-  padded = nerf_model.from_config(_config(**{"render.proposal_padding": 0.05}))
+  plain = components.make_model(_config())
+  padded = components.make_model(_config(**{"render.proposal_padding": 0.05}))
   params = jax.jit(plain.init)(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
   ids = jnp.arange(4)
   # (Jitted: one program per model and annealing, not hundreds of operations compiled one by one.)

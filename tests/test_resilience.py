@@ -16,7 +16,7 @@ import pytest
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from conftest import smoke_config
-from nerfpod import distributed
+from nerfpod import distributed, schema
 from nerfpod.run import evaluate, modes, preemption, train
 from nerfpod.workdir import checkpoints, files as workdir_files
 from nerfpod.run.step import Options, make_train_step
@@ -134,9 +134,9 @@ def test_a_non_finite_loss_skips_the_update_and_the_loop_stops_after_too_many_in
                            "model.mlp.skips": (), "train.batch_size": 64,
                            "render.proposal_samples": ()})
   from nerfpod.run import train_state
-  from nerfpod.nerf import model as nerf_model
+  from nerfpod.run import components
   mesh = _mesh(2)
-  model, optimizer = nerf_model.from_config(config), optax.adam(1e-2)
+  model, optimizer = components.make_model(config), optax.adam(1e-2)
   state = train_state.initial_state(model, optimizer, 0, mesh)
   rng = np.random.default_rng(0)
   batch = {"origins": np.tile([0.0, 0.0, 4.0], (64, 1)).astype(np.float32),
@@ -264,8 +264,11 @@ def test_a_refused_resume_leaves_config_json_as_it_was(tmp_path):
   with pytest.raises(UserError, match=r"different config: model.hashgrid.hidden_width \(16 -> 8\)") as refused:
     modes.train_and_evaluate(smoke_config(**{"model.hashgrid.hidden_width": 8}), str(tmp_path))
   assert (tmp_path / "config.json").read_bytes() == before
-  # The sentence names what may change, the proposal guards a collapse warning asks for among them.
-  assert "render.proposal_padding, train.proposal_anneal_steps, model.trunc_exp may change" in str(refused.value)
+  # The sentence names what may change (the schema's RESUMABLE fields, in its order), the proposal guards a
+  # collapse warning asks for among them.
+  names = schema.resumable_names()
+  assert {"render.proposal_padding", "train.proposal_anneal_steps", "model.trunc_exp"} <= set(names)
+  assert f"(only {', '.join(names)} may change on resuming)." in str(refused.value)
 
 
 def test_checkpoints_without_their_config_json_are_refused_and_left_as_they_were(tmp_path):

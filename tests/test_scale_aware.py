@@ -11,7 +11,7 @@ import pytest
 from conftest import smoke_config
 from nerfpod import schema
 from nerfpod.nerf import coord, encodings
-from nerfpod.nerf import model as nerf_model
+from nerfpod.run import components
 
 
 def test_level_weights_are_zip_nerfs_erf_one_at_zero_footprint_and_falling_with_the_cells():
@@ -68,7 +68,7 @@ def _model_and_rays(**overrides):
 def test_a_vanishing_pixel_angle_renders_as_the_plain_model_and_a_large_one_blurs_the_fine_levels():
   no_proposals = {"render.proposal_samples": ()}  # the weighting is the NeRF field's grid's: a smaller program
   config, origins, directions = _model_and_rays(**no_proposals)
-  plain = nerf_model.from_config(smoke_config(**no_proposals))
+  plain = components.make_model(smoke_config(**no_proposals))
 
   @jax.jit  # one program, not each of the initialisation's operations compiled on its own
   def init(key):
@@ -81,30 +81,29 @@ def test_a_vanishing_pixel_angle_renders_as_the_plain_model_and_a_large_one_blur
   params = init(jax.random.key(0))
   render = lambda model: jax.jit(model.apply)(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]  # noqa: E731
   want = render(plain)
-  tiny = render(nerf_model.from_config(config, pixel_angle=1e-9))
+  tiny = render(components.make_model(config, pixel_angle=1e-9))
   for key in ("rgb", "depth", "acc"):
     np.testing.assert_allclose(tiny[key], want[key], rtol=1e-5, atol=1e-6)
-  blurred = render(nerf_model.from_config(config, pixel_angle=0.5))
+  blurred = render(components.make_model(config, pixel_angle=0.5))
   assert float(jnp.max(jnp.abs(blurred["rgb"] - want["rgb"]))) > 1e-3  # the footprints reached the field
 
 
 def test_footprints_grow_with_distance_and_shrink_with_the_contraction():
   config, origins, directions = _model_and_rays(**{"render.space": "contract", "model.hashgrid.bound": 2.0})
-  model = nerf_model.from_config(config, pixel_angle=0.01)
+  model = components.make_model(config, pixel_angle=0.01)
   t = jnp.array([[0.5, 1.0, 2.0, 10.0]])
   o, d = jnp.zeros((1, 3)), jnp.array([[0.0, 0.0, -2.0]])  # |d| = 2: distances 1, 2, 4, 20
   got = np.asarray(model._footprints(o, d, t)["scales_N"])
   distance = np.array([1.0, 2.0, 4.0, 20.0])
   shrink = np.where(distance <= 1, 1.0, np.cbrt((2 * distance - 1) ** 2) / distance ** 2)
   np.testing.assert_allclose(got, 0.01 / np.sqrt(12.0) * distance * shrink, rtol=1e-6)
-  assert nerf_model.from_config(smoke_config(), pixel_angle=0.01).pixel_angle == 0.0  # off: no footprints
+  assert components.make_model(smoke_config(), pixel_angle=0.01).pixel_angle == 0.0  # off: no footprints
 
 
 def test_the_model_needs_the_scenes_pixel_angle_and_takes_the_median_focal_length():
   with pytest.raises(ValueError, match="pixel angle"):
-    nerf_model.from_config(smoke_config(**{"model.hashgrid.scale_aware": True}))
+    components.make_model(smoke_config(**{"model.hashgrid.scale_aware": True}))
   from nerfpod import scenes
-  from nerfpod.run import components
   config = smoke_config()
   scene = scenes.load(config.data)
   cams = scene.split("train").cameras

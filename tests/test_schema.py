@@ -1,5 +1,6 @@
 """The config schema: every field of every config is checked before any work, one sentence per mistake."""
 import json
+import re
 
 import ml_collections
 import pytest
@@ -205,3 +206,14 @@ def test_config_error_lists_every_mistake():
   with pytest.raises(schema.ConfigError) as error:
     schema.validate(config)
   assert [m.split("=")[0] for m in error.value.messages] == ["train.log_every", "orbit.fps"]
+
+
+def test_the_fields_a_resume_may_change_are_the_schemas_and_the_docs_list_them_all():
+  """RESUMABLE is each field's own; docs/scale.md's list of what may change on resuming says the same."""
+  names = schema.resumable_names()
+  assert {"train.num_steps", "data.host_memory_gib", "render.eval_samples", "eval.*", "monitor.*"} <= set(names)
+  assert not {"train.seed", "data.shards", "model.field", "render.num_samples"} & set(names)
+  assert schema.resumable("eval.a_field_since_removed") and not schema.resumable("train.a_field_since_removed")
+  paragraph = (REPO / "docs" / "scale.md").read_text().split("**Resuming with another config.**")[1]
+  listed = re.findall(r"`([a-z_.*]+)`", " ".join(paragraph.split(" Only ")[1].split(" may change ")[0].split()))
+  assert sorted(listed) == sorted(names)

@@ -11,13 +11,12 @@ from jax.sharding import PartitionSpec as P
 
 from conftest import smoke_config
 from nerfpod import data, distributed, scenes
-from nerfpod.run import compilation, step, train_state
-from nerfpod.nerf import model as nerf_model
+from nerfpod.run import compilation, components, step, train_state
 
 
 def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_options=None, hlo=None):
   scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
                                   step.Options(microbatches=microbatches, compiler_options=compiler_options))
@@ -89,7 +88,7 @@ def _with_biases(params, density_bias, rgb_bias):
 def test_random_background_makes_transparency_the_only_fit_for_empty_space():
   config = smoke_config(**{"train.batch_size": 64, "render.proposal_samples": ()})
   mesh = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   optimizer = optax.sgd(0.0)  # only the loss matters here
   params = jax.device_get(train_state.initial_state(model, optimizer, 0, mesh).params)
   rays = {"origins": np.tile([[0.0, 0.0, 4.0]], (64, 1)).astype(np.float32),
@@ -151,7 +150,7 @@ def test_proposal_step_is_compiled_once_and_reports_its_losses():
                            "train.batch_size": 64, "train.distortion_weight": 0.01})
   mesh = distributed.make_mesh()
   scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   optimizer = train_state.make_optimizer(config.train)
   state = train_state.initial_state(model, optimizer, 0, mesh)
   # Placed as the step returns it: replicated, spelt P(None, ...) per axis (the fresh state's P() is the same
@@ -184,7 +183,7 @@ def test_gradient_mean_ordered_or_one_all_reduce_same_result_and_the_choice_by_b
   mesh = distributed.make_mesh()
   optimizer = train_state.make_optimizer(config.train)
   scene = scenes.load(config.data)
-  model = nerf_model.from_config(config)
+  model = components.make_model(config)
   dataset = data.ray_batches(scene.split("train"), 0, 128, slice(0, 128), 0.5, 1)
   batch = {k: jax.device_put(v, distributed.batch_sharding(mesh)) for k, v in dataset[0].items() if k != "step"}
   results, hlos = [], []
@@ -213,7 +212,7 @@ def _one_batch(config):
   batch = dict(data.ray_batches(scene.split("train"), 0, size, slice(0, size), 0.5, 1)[0])
   batch.pop("step")
   batch = jax.tree.map(lambda x: jax.device_put(x, distributed.batch_sharding(mesh)), batch)
-  return scene, nerf_model.from_config(config), train_state.make_optimizer(config.train), mesh, batch
+  return scene, components.make_model(config), train_state.make_optimizer(config.train), mesh, batch
 
 
 @pytest.fixture(scope="module")

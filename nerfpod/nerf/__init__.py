@@ -15,5 +15,7 @@
     paths            camera paths from a capture's own cameras (spiral, ellipse)
     keyframes        camera paths through keyframes a user placed
 
-No JAX device, mesh, file or config here: plain arrays and flax modules in, arrays out.
+No JAX device or backend, mesh, file or config reading here: plain arrays and flax modules in, arrays out. The
+model and its fields are handed the config's `model` section as a value; nerfpod.run.components.make_model reads
+the config and the backend and builds the model.
 """

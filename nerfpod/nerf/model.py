@@ -57,7 +57,7 @@ regions: a device's own); nerf_regions.composite_regions composites them in ray 
 renders every region and composites: one device holding the whole model. K = 1 is the model above, unchanged.
   Randomness comes in as arrays of uniform numbers, one (R, n) array per round of `sample_counts()` (none:
   deterministic evaluation), so the module is a pure function of its inputs. Every attribute comes from
-  the config (`from_config`).
+  the config (nerfpod.run.components.make_model).
   """
   model_config: Any
   num_samples: int
@@ -155,7 +155,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
     if self.space == "ndc":
       if self.ndc_camera is None:
-        raise ValueError("render.space='ndc' needs the scene's camera (from_config(..., ndc_camera=...))")
+        raise ValueError("render.space='ndc' needs the scene's camera (make_model(..., ndc_camera=...))")
       origins_Rx3, directions_Rx3 = coord.ndc_rays(origins_Rx3, directions_Rx3, *self.ndc_camera, near=1.0)
     if self.model_config.field == "hashgrid" and self.space != "contract":  # bounded: sample inside its box
       near, far = sampling.clip_to_box(origins_Rx3, directions_Rx3, near, far,
@@ -420,75 +420,3 @@ def _per_point(codes_RxA, sample_shape) -> tuple:
     return ()
   return (jnp.broadcast_to(codes_RxA[..., None, :], sample_shape + codes_RxA.shape[-1:]).reshape(
       -1, codes_RxA.shape[-1]),)
-
-
-def grid_matmul_max_rows(config, backend: str) -> int:
-  """How many rows a hash-grid level may have to be looked up by matmuls on `backend` (0: all gather).
-
-  compile.hashgrid_lookup 'auto' takes matmuls on TPUs, where gathers and scatter-adds are slow
-  (docs/pod-compile.md has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row cheaply). The
-  parameters are the same either way, so a checkpoint moves freely between backends.
-  """
-  lookup = config.compile.hashgrid_lookup
-  if lookup == "auto":
-    lookup = "matmul" if backend == "tpu" else "gather"
-  return config.compile.matmul_max_rows if lookup == "matmul" else 0
-
-
-def partition(config, camera_positions_Nx3=None) -> nerf_regions.Partition:
-  """The regions of `config.model.regions` cut as model.region_cut says: 'grid', cells of the ground plane
-  over the hash grid's box [-bound, bound]^2 (model.hashgrid.bound); 'cameras', the Voronoi cells of the
-  k-means centres of the training cameras' positions in the ground plane (`camera_positions_Nx3`; None, a
-  placeholder ring of cameras of the same cost: the pod compile tool's)."""
-  count = config.model.regions
-  if config.model.region_cut == "grid":
-    return nerf_regions.grid(count, config.model.hashgrid.bound)
-  if camera_positions_Nx3 is None:
-    angles = 2 * np.pi * np.arange(count) / count
-    return nerf_regions.voronoi(np.stack([np.cos(angles), np.sin(angles)], -1))
-  ground = np.asarray(camera_positions_Nx3, np.float64)[:, :2]
-  return nerf_regions.voronoi(nerf_regions.kmeans(ground, count))
-
-
-def _as_tuples(part: nerf_regions.Partition) -> tuple:
-  """A partition as nested tuples (a flax module's attributes are hashed)."""
-  nested = lambda x: tuple(map(nested, x)) if isinstance(x, list) else x  # noqa: E731
-  return tuple(nested(np.asarray(a).tolist()) for a in part)
-
-
-def from_config(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0,
-                camera_positions=None, pixel_angle: float = 0.0) -> NeRF:
-  """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
-  JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
-  whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera).
-  `num_frames`: the training frames, each with its own appearance code (model.appearance_dim > 0) and pose
-  correction (train.pose_refine); at least 1 where either is on. `camera_positions` (N, 3): the training
-  cameras' centres, where model.region_cut='cameras' cuts the regions around them. `pixel_angle`: a pixel's
-  width at distance 1 (radians: 1 / focal length in pixels), the footprints of model.hashgrid.scale_aware
-  (needed there; unused elsewhere)."""
-  if (config.model.appearance_dim or config.train.pose_refine) and num_frames < 1:
-    raise ValueError("model.appearance_dim and train.pose_refine need the training frame count (num_frames)")
-  scale_aware = config.model.field == "hashgrid" and config.model.hashgrid.scale_aware
-  if scale_aware and not pixel_angle > 0:
-    raise ValueError("model.hashgrid.scale_aware needs the scene's pixel angle (pixel_angle)")
-  dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
-  backend = backend or jax.default_backend()
-  render = config.render
-  return NeRF(model_config=config.model, num_samples=render.num_samples, num_importance=render.num_importance,
-              last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
-              proposal_samples=tuple(render.proposal_samples), proposal_padding=float(render.proposal_padding),
-              ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
-              grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
-              grid_materialize=backend == "cpu", grid_layout=str(config.compile.hashgrid_layout),
-              num_frames=int(num_frames),
-              pose_refine=bool(config.train.pose_refine),
-              near_gradient_distance=float(config.train.near_gradient_distance),
-              pixel_angle=float(pixel_angle) if scale_aware else 0.0,
-              **_region_attributes(config, camera_positions))
-
-
-def _region_attributes(config, camera_positions) -> dict:
-  """NeRF's region attributes: none where model.regions is 1 (the one-field model, as it always was)."""
-  if config.model.regions == 1:
-    return {}
-  return {"regions": int(config.model.regions), "region_planes": _as_tuples(partition(config, camera_positions))}

@@ -4,7 +4,8 @@
 mesh, the model, the optimiser, the ray bounds, the train state's and the batch's shapes and placement
 (`jax.eval_shape` of the initialisation: nothing is computed until a run needs real parameters) and the
 compiled renderer: one frozen Components. Every mode starts from these same pieces, so a checkpoint written
-by one mode restores in any other. `build_program(config, mesh, backend)` is the same without a scene: what
+by one mode restores in any other. `make_model(config)` is the NeRF model the config describes for the backend
+(nerfpod.nerf reads neither). `build_program(config, mesh, backend)` is the same without a scene: what
 the pod compile tool compiles, on a TPU topology's devices. The train state, its optimiser and schedule are
 nerfpod.run.train_state's.
 """
@@ -165,6 +166,80 @@ def pose_preconditioners(config, scene: scenes.Scene | None, num_frames: int) ->
   return pose_correction.preconditioners(train.poses, train.cameras, near, far)
 
 
+def grid_matmul_max_rows(config, backend: str) -> int:
+  """How many rows a hash-grid level may have to be looked up by matmuls on `backend` (0: all gather).
+
+  compile.hashgrid_lookup 'auto' takes matmuls on TPUs, where gathers and scatter-adds are slow
+  (docs/pod-compile.md has the cost-model figures), and gathers elsewhere (a CPU or GPU gathers a row
+  cheaply). The parameters are the same either way, so a checkpoint moves freely between backends.
+  """
+  lookup = config.compile.hashgrid_lookup
+  if lookup == "auto":
+    lookup = "matmul" if backend == "tpu" else "gather"
+  return config.compile.matmul_max_rows if lookup == "matmul" else 0
+
+
+def region_partition(config, camera_positions_Nx3=None) -> nerf_regions.Partition:
+  """The regions of `config.model.regions` cut as model.region_cut says: 'grid', cells of the ground plane
+  over the hash grid's box [-bound, bound]^2 (model.hashgrid.bound); 'cameras', the Voronoi cells of the
+  k-means centres of the training cameras' positions in the ground plane (`camera_positions_Nx3`; None, a
+  placeholder ring of cameras of the same cost: the pod compile tool's)."""
+  count = config.model.regions
+  if config.model.region_cut == "grid":
+    return nerf_regions.grid(count, config.model.hashgrid.bound)
+  if camera_positions_Nx3 is None:
+    angles = 2 * np.pi * np.arange(count) / count
+    return nerf_regions.voronoi(np.stack([np.cos(angles), np.sin(angles)], -1))
+  ground = np.asarray(camera_positions_Nx3, np.float64)[:, :2]
+  return nerf_regions.voronoi(nerf_regions.kmeans(ground, count))
+
+
+def _as_tuples(part: nerf_regions.Partition) -> tuple:
+  """A partition as nested tuples (a flax module's attributes are hashed)."""
+  nested = lambda x: tuple(map(nested, x)) if isinstance(x, list) else x  # noqa: E731
+  return tuple(nested(np.asarray(a).tolist()) for a in part)
+
+
+def make_model(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0,
+               camera_positions=None, pixel_angle: float = 0.0) -> nerf_model.NeRF:
+  """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
+  JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
+  whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera).
+  `num_frames`: the training frames, each with its own appearance code (model.appearance_dim > 0) and pose
+  correction (train.pose_refine); at least 1 where either is on. `camera_positions` (N, 3): the training
+  cameras' centres, where model.region_cut='cameras' cuts the regions around them. `pixel_angle`: a pixel's
+  width at distance 1 (radians: 1 / focal length in pixels), the footprints of model.hashgrid.scale_aware
+  (needed there; unused elsewhere)."""
+  if (config.model.appearance_dim or config.train.pose_refine) and num_frames < 1:
+    raise ValueError("model.appearance_dim and train.pose_refine need the training frame count (num_frames)")
+  scale_aware = config.model.field == "hashgrid" and config.model.hashgrid.scale_aware
+  if scale_aware and not pixel_angle > 0:
+    raise ValueError("model.hashgrid.scale_aware needs the scene's pixel angle (pixel_angle)")
+  dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
+  backend = backend or jax.default_backend()
+  render = config.render
+  return nerf_model.NeRF(
+      model_config=config.model, num_samples=render.num_samples, num_importance=render.num_importance,
+      last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
+      proposal_samples=tuple(render.proposal_samples), proposal_padding=float(render.proposal_padding),
+      ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
+      grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
+      grid_materialize=backend == "cpu", grid_layout=str(config.compile.hashgrid_layout),
+      num_frames=int(num_frames),
+      pose_refine=bool(config.train.pose_refine),
+      near_gradient_distance=float(config.train.near_gradient_distance),
+      pixel_angle=float(pixel_angle) if scale_aware else 0.0,
+      **_region_attributes(config, camera_positions))
+
+
+def _region_attributes(config, camera_positions) -> dict:
+  """NeRF's region attributes: none where model.regions is 1 (the one-field model, as it always was)."""
+  if config.model.regions == 1:
+    return {}
+  return {"regions": int(config.model.regions),
+          "region_planes": _as_tuples(region_partition(config, camera_positions))}
+
+
 def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Components:
   """The step's and renderer's pieces for `config` on `mesh` (any devices: a TPU topology's too), the model
   formulated and compiled for `backend` (default JAX's). With `scene`, its ray bounds, NDC camera,
@@ -185,7 +260,7 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
-  model = nerf_model.from_config(config, ndc, backend, num_frames, cameras, pixel_angle)
+  model = make_model(config, ndc, backend, num_frames, cameras, pixel_angle)
   optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1,  # regions: the step's
                                          pose_preconditioners=pose_preconditioners(config, scene, num_frames))
   return Components(config, mesh, model, optimizer, float(near), float(far), background,

@@ -17,22 +17,13 @@ import ml_collections
 from nerfpod import schema, storage
 from nerfpod.errors import UserError
 
-# Fields that may differ when resuming a workdir: they change neither shapes nor the trajectory's inputs; and
-# the proposal sampler's guards, which change no state, only where samples go from the resume on: a run whose
-# sampling collapsed is resumed with them (docs/training.md).
-RESUMABLE_CHANGES = ("train.num_steps", "train.log_every", "train.image_every", "train.max_nonfinite_steps",
-                     "train.profile_steps", "checkpoint.", "eval.", "orbit.", "compile.", "mesh.", "monitor.",
-                     "data.host_memory_gib", "render.eval_samples", "render.proposal_padding",
-                     "train.proposal_anneal_steps", "model.trunc_exp")
-
-
 def incompatible_fields(saved: dict, current: dict) -> list[str]:
-  """Dotted names of config fields that differ between a workdir's config and this run's, bar the allowed.
-  A field the saved config lacks counts as its schema default (with_defaults)."""
+  """Dotted names of config fields that differ between a workdir's config and this run's, bar those the schema
+  lets change on resuming (schema.RESUMABLE). A field the saved config lacks counts as its schema default
+  (with_defaults)."""
   a, b = schema.flatten(with_defaults(saved)), schema.flatten(current)
   differing = sorted(k for k in set(a) | set(b) if a.get(k, "<absent>") != b.get(k, "<absent>"))
-  return [k for k in differing if not any(k == p or (p.endswith(".") and k.startswith(p))
-                                          for p in RESUMABLE_CHANGES)]
+  return [k for k in differing if not schema.resumable(k)]
 
 
 # Fields added after workdirs were written whose default is not what those runs did: what a workdir's
@@ -106,7 +97,7 @@ def check_compatible(workdir: str, config_json: dict, has_checkpoint: bool) -> N
     shown = ", ".join(f"{k} ({was.get(k, '<absent>')!r} -> {now.get(k, '<absent>')!r})"
                       for k in differing[:6])
     more = f" and {len(differing) - 6} more" if len(differing) > 6 else ""
-    resumable = ", ".join(p + "*" if p.endswith(".") else p for p in RESUMABLE_CHANGES)
+    resumable = ", ".join(schema.resumable_names())
     raise UserError(f"workdir {workdir} holds checkpoints of a different config: {shown}{more}; use a new "
                     f"--workdir, or the settings of the workdir's config.json (only {resumable} may change on "
                     f"resuming).")
