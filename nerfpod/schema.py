@@ -218,9 +218,11 @@ FIELDS: dict[str, Field] = _declare({
     "model.regions": (1, integer(1, 4096, example=4),
         "fields, one per convex region of space, parameters sharded over the mesh's region axis (NeRF-XL, "
         "docs/scale.md#scenes-bigger-than-one-chip); a divisor of the device count; 1: one field everywhere"),
-    "model.region_cut": ("grid", choice("grid", "cameras"),
-        "how model.regions > 1 cuts space: 'grid' (cells of the ground plane over the hash grid's box) or "
-        "'cameras' (Voronoi cells of the k-means centres of the training cameras' ground positions)"),
+    "model.region_cut": ("grid", choice("grid", "cameras", "balanced"),
+        "how model.regions > 1 cuts space: 'grid' (cells of the ground plane over the hash grid's box), "
+        "'cameras' (Voronoi cells of the k-means centres of the training cameras' ground positions) or "
+        "'balanced' (NeRF-XL's recursive median: vertical planes where the samples along seeded training rays "
+        "split evenly, so each region holds about 1/K of them)"),
     "model.region_box": ("scene", choice("scene", "own"),
         "the box each region's fields span with model.regions > 1: 'scene' (the hash grid's whole box: a hash "
         "grid stores only what its region's points touch) or 'own' (the region's cell, mapped onto the field's "
@@ -375,9 +377,10 @@ FIELDS: dict[str, Field] = _declare({
     "compile.gradient_mean": ("auto", choice("auto", "ordered", "pmean"),
         "'ordered' (the same bits on any topology: log2(N) exchanges), 'pmean' (one all-reduce) or 'auto' "
         "(ordered on CPU, pmean on TPU/GPU; docs/scale.md)", RESUMABLE),
-    "compile.hashgrid_lookup": ("auto", choice("auto", "gather", "matmul"),
-        "hash-grid levels: 'gather', 'matmul' (dense levels, no gather or scatter) or 'auto' (matmul on TPU, "
-        "gather elsewhere; docs/pod-compile.md)", RESUMABLE),
+    "compile.hashgrid_lookup": ("auto", choice("auto", "gather", "matmul", "sparsecore"),
+        "hash-grid levels: 'gather', 'matmul' (dense levels, no gather or scatter), 'sparsecore' (matmul for "
+        "dense levels, Pallas gather and scatter-add kernels on the SparseCores for the rest: TPU v5p and v6e "
+        "only) or 'auto' (matmul on TPU, gather elsewhere; never sparsecore; docs/pod-compile.md)", RESUMABLE),
     "compile.matmul_max_rows": (30000, integer(0, example=30000),
         "'matmul' applies to dense levels of at most this many rows", RESUMABLE),
     "compile.hashgrid_layout": ("rows", choice("rows", "lane_dense"),
@@ -649,6 +652,26 @@ def device_rules(c: dict, device_count: int) -> list[str]:
   return []
 
 
+# TPU generations whose SparseCores compile.hashgrid_lookup=sparsecore runs on (nerf/sparsecore.py).
+SPARSECORE_GENERATIONS = ("v5p", "v6e")
+
+
+def backend_rules(c: dict, backend: str, tpu_generation: str | None = None, pod: str | None = None) -> list[str]:
+  """Mistakes that depend on what runs the program: the run's JAX backend ('cpu', 'gpu', 'tpu'), and for a
+  TPU the chip generation where it is known (`nerfpod aot`: `pod`, the pod's name, with its generation)."""
+  if c["compile.hashgrid_lookup"] != "sparsecore":
+    return []
+  fix = "use --config.compile.hashgrid_lookup=auto"
+  if backend != "tpu":
+    return [f"compile.hashgrid_lookup=sparsecore runs the hash grid's lookups on the SparseCores of TPU v5p and "
+            f"v6e, and this run's backend is {backend}; {fix}."]
+  if tpu_generation is not None and tpu_generation not in SPARSECORE_GENERATIONS:
+    where = f"{pod} ({tpu_generation})" if pod else tpu_generation
+    return [f"compile.hashgrid_lookup=sparsecore runs the hash grid's lookups on the SparseCores of TPU v5p and "
+            f"v6e, and {where} has none that Pallas reaches; {fix}, or compile for a v5p or v6e pod."]
+  return []
+
+
 def package_rules(c: dict) -> list[str]:
   """Optional packages the config asks for that this machine lacks (checked for a run, not for the tools that
   only read a workdir's config)."""
@@ -673,9 +696,12 @@ def flatten(tree, prefix: str = "") -> dict:
   return out
 
 
-def problems(config, device_count: int | None = None) -> list[str]:
+def problems(config, device_count: int | None = None, backend: str | None = None,
+             tpu_generation: str | None = None, pod: str | None = None) -> list[str]:
   """Every mistake in `config`, one sentence each; empty if it is valid. With `device_count` (a run on this
-  machine), also the batch's split over the devices and the optional packages the config asks for."""
+  machine), also the batch's split over the devices, the optional packages the config asks for and what the
+  run's `backend` (default: JAX's) cannot run; `nerfpod aot` names backend 'tpu' and the pod (`pod`, its
+  `tpu_generation`)."""
   flat = flatten(config)
   out = []
   for name in sorted(set(flat) - set(FIELDS)):
@@ -695,13 +721,19 @@ def problems(config, device_count: int | None = None) -> list[str]:
     return out
   out += _rules(flat)
   if not out and device_count is not None:
-    out += device_rules(flat, device_count) + package_rules(flat)
+    if backend is None:
+      import jax  # only for a run's check: the schema itself needs no JAX
+      backend = jax.default_backend()
+    out += device_rules(flat, device_count) + package_rules(flat) + backend_rules(flat, backend, tpu_generation,
+                                                                                 pod)
   return out
 
 
-def validate(config, device_count: int | None = None) -> None:
-  """Raises ConfigError with every mistake in `config` (device_count: also check the batch's split)."""
-  found = problems(config, device_count)
+def validate(config, device_count: int | None = None, backend: str | None = None,
+             tpu_generation: str | None = None, pod: str | None = None) -> None:
+  """Raises ConfigError with every mistake in `config` (device_count: also check the batch's split and what
+  the backend cannot run; the rest as for problems)."""
+  found = problems(config, device_count, backend, tpu_generation, pod)
   if found:
     raise ConfigError(found)
 

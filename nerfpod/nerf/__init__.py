@@ -5,6 +5,7 @@
     stepfun          step functions (edges, weights): resampling, outer bounds, the interlevel and distortion losses
     coord            NDC rays (forward-facing scenes), scene contraction (unbounded ones), ray-distance warps
     encodings        positional (Fourier) encoding, the multiresolution hash grid, spherical harmonics
+    sparsecore       the hash grid's gather and scatter-add as SparseCore kernels (Pallas; v5p and v6e)
     fields           radiance fields: flax modules from points (and directions) to colour and density
     compositing      volume rendering: alpha compositing of colours and densities along rays
     regions          space cut into convex regions: each ray's segment per region, partial sums composited
@@ -15,7 +16,8 @@
     paths            camera paths from a capture's own cameras (spiral, ellipse)
     keyframes        camera paths through keyframes a user placed
 
-No JAX device or backend, mesh, file or config reading here: plain arrays and flax modules in, arrays out. The
+No JAX device or backend, mesh, file or config reading here (but what Pallas itself asks of the chip a
+SparseCore kernel is traced for): plain arrays and flax modules in, arrays out. The
 model and its fields are handed the config's `model` section as a value; nerfpod.run.components.make_model reads
 the config and the backend and builds the model.
 """

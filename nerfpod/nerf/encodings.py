@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental.layout import Layout, with_layout_constraint
 
+from nerfpod.nerf import sparsecore
+
 
 def positional_encoding(x_Nx3, num_frequencies: int):
   """[x, sin(2^0 x), cos(2^0 x), ..., sin(2^(L-1) x), cos(2^(L-1) x)], the Tiny NeRF tutorial's layout.
@@ -80,6 +82,9 @@ def _grid_rows(c0, c1, c2, resolution: int, table_size: int):
 
 # compile.hashgrid_layout's values: how a hash grid's lookup lays out its arrays (HashGridEncoding.layout).
 LAYOUTS = ("rows", "lane_dense")
+# How a hash grid reads the levels it does not read by matmuls (HashGridEncoding.lookup): XLA's gather (and
+# scatter-add), or Pallas kernels on a TPU's SparseCores (nerf/sparsecore.py: v5p and v6e only).
+LOOKUPS = ("gather", "sparsecore")
 
 
 def _symmetric_uniform(scale):
@@ -103,6 +108,7 @@ class HashGridEncoding(nn.Module):
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
   materialize: bool = False  # the points, and each level's corner rows, kept in memory (materialized: CPUs)
   layout: str = "rows"  # compile.hashgrid_layout: 'rows' or 'lane_dense' (per-sample arrays sample-minor)
+  lookup: str = "gather"  # levels not read by matmuls: 'gather' (XLA) or 'sparsecore' (Pallas, TPU v5p/v6e)
 
   @nn.compact
   def __call__(self, x_Nx3, scales_N=None, opened_L=None):
@@ -117,6 +123,9 @@ class HashGridEncoding(nn.Module):
     (docs/pod-compile.md, "Lane-dense hash-grid lookups")."""
     if self.layout not in LAYOUTS:
       raise ValueError(f"unknown hash-grid layout {self.layout!r}; one of {', '.join(LAYOUTS)}")
+    if self.lookup not in LOOKUPS:
+      raise ValueError(f"unknown hash-grid lookup {self.lookup!r}; one of {', '.join(LOOKUPS)}")
+    sparsecore = self.lookup == "sparsecore"
     table_size = 2**self.log2_table_size
     if self.materialize:
       x_Nx3 = materialized(x_Nx3)
@@ -130,12 +139,13 @@ class HashGridEncoding(nn.Module):
       by_matmul = rows == (res + 1)**3 and rows <= self.matmul_max_rows
       if lane_dense:  # features (F, N)
         feats = (dense_level_matmul_lane_dense(table, x_3xN, res) if by_matmul else
-                 level_gather_lane_dense(table, x_3xN, res, self.materialize))
+                 level_gather_lane_dense(table, x_3xN, res, self.materialize, sparsecore))
         if scales_N is not None:
           feats = feats * level_weights(scales_N, res)[None, :]
       else:  # features (N, F)
-        feats = dense_level_matmul(table, x_Nx3, res) if by_matmul else level_gather(table, x_Nx3, res,
-                                                                                     self.materialize)
+        feats = (dense_level_matmul(table, x_Nx3, res) if by_matmul else
+                 level_gather_sparsecore(table, x_Nx3, res) if sparsecore else
+                 level_gather(table, x_Nx3, res, self.materialize))
         if scales_N is not None:
           feats = feats * level_weights(scales_N, res)[..., None]
       if opened_L is not None:
@@ -199,6 +209,17 @@ def level_gather(table_RxF, x_Nx3, resolution: int, materialize: bool = False):
     feats = table_RxF.at[materialized(rows)].get(mode="promise_in_bounds")
   else:
     feats = jnp.take(table_RxF, rows, axis=0)
+  return jnp.sum(weights[..., None] * feats, axis=-2)
+
+
+def level_gather_sparsecore(table_RxF, x_Nx3, resolution: int, reference: bool = False):
+  """level_gather with the 8 corners' rows gathered on a TPU's SparseCores (nerf/sparsecore.py:
+  sparsecore_take, a Pallas kernel whose gradient is a scatter-add kernel into a zero table); the rows and the
+  trilinear weighting are level_gather's, in plain JAX. `reference`: the kernels replaced by jnp.take and a
+  scatter-add (what a CPU can run; tests/test_sparsecore.py)."""
+  corners, weights = trilinear_corners_and_weights(x_Nx3, resolution)
+  rows = grid_indices(corners, resolution, len(table_RxF))
+  feats = sparsecore.sparsecore_take(table_RxF, rows, reference=reference)
   return jnp.sum(weights[..., None] * feats, axis=-2)
 
 
@@ -268,7 +289,8 @@ def features_major(x_RxF):
   return with_layout_constraint(x_RxF, Layout(major_to_minor=(1, 0)))
 
 
-def level_gather_lane_dense(table_RxF, x_3xN, resolution: int, materialize: bool = False):
+def level_gather_lane_dense(table_RxF, x_3xN, resolution: int, materialize: bool = False,
+                            sparsecore_lookup: bool = False):
   """level_gather in the lane-dense layout: a level's features (F, N) from its table (rows, F) and sample-minor
   points (3, N).
 
@@ -278,12 +300,16 @@ def level_gather_lane_dense(table_RxF, x_3xN, resolution: int, materialize: bool
   cotangents, pinned alike. Without the pin XLA re-orders the transposes into the gather's (8 N, F) form with F
   minor (2 values in each 128-lane tile row). Row numbers lie in the table by construction (corners clipped to
   the grid, hashes modulo its size), and the gather is told so (`promise_in_bounds`: no bounds mask).
-  `materialize` as level_gather's (the rows computed once into memory)."""
+  `materialize` as level_gather's (the rows computed once into memory). `sparsecore_lookup`: the 8 N rows
+  gathered on the SparseCores (sparsecore.sparsecore_take), as level_gather_sparsecore's."""
   corners, weights = trilinear_corners_and_weights_lane_dense(x_3xN, resolution)
   rows = _grid_rows(corners[0], corners[1], corners[2], resolution, table_RxF.shape[0])  # (8, N)
   if materialize:
     rows = materialized(rows, axis=0)
-  values = table_RxF.at[rows.reshape(-1)].get(mode="promise_in_bounds")      # (8 N, F)
+  if sparsecore_lookup:
+    values = sparsecore.sparsecore_take(table_RxF, rows.reshape(-1))                # (8 N, F)
+  else:
+    values = table_RxF.at[rows.reshape(-1)].get(mode="promise_in_bounds")      # (8 N, F)
   values = features_major(values).T.reshape(table_RxF.shape[1], *rows.shape)  # (F, 8, N)
   return jnp.sum(weights[None] * values, axis=1)
 

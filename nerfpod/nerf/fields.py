@@ -113,6 +113,7 @@ class HashGridField(nn.Module):
   matmul_max_rows: int = 0  # dense levels up to this many rows: matmul lookup (encodings.dense_level_matmul)
   materialize: bool = False  # the encoding's points and rows kept in memory (encodings.materialized: CPUs)
   layout: str = "rows"  # the lookup's layout (compile.hashgrid_layout: encodings.HashGridEncoding.layout)
+  lookup: str = "gather"  # the gathered levels' lookup (encodings.HashGridEncoding.lookup)
 
   @nn.compact
   def __call__(self, points_Nx3, viewdirs_Nx3=None, codes_NxA=None, scales_N=None, opened_L=None):
@@ -123,7 +124,7 @@ class HashGridField(nn.Module):
       unit_scales = jax.lax.stop_gradient(scales_N) / (2.0 * self.bound)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, self.matmul_max_rows, self.materialize, self.layout, name="grid")(
+        self.max_resolution, self.matmul_max_rows, self.materialize, self.layout, self.lookup, name="grid")(
             jnp.clip(unit, 0.0, 1.0), unit_scales, opened_L)
     dense = lambda features, name: nn.Dense(features, dtype=self.dtype, name=name)
     h = nn.relu(dense(self.hidden_width, "density_hidden")(features))
@@ -159,6 +160,7 @@ class ProposalField(nn.Module):
   matmul_max_rows: int = 0  # dense levels of at most this many rows are read by matmuls, not gathers
   materialize: bool = False  # as HashGridField's
   layout: str = "rows"  # as HashGridField's
+  lookup: str = "gather"  # as HashGridField's
 
   @nn.compact
   def __call__(self, points_Nx3):
@@ -166,7 +168,7 @@ class ProposalField(nn.Module):
     inside = jnp.all((unit >= 0.0) & (unit <= 1.0), axis=-1)
     features = encodings.HashGridEncoding(
         self.num_levels, self.features_per_level, self.log2_table_size, self.base_resolution,
-        self.max_resolution, self.matmul_max_rows, self.materialize, self.layout, name="grid")(
+        self.max_resolution, self.matmul_max_rows, self.materialize, self.layout, self.lookup, name="grid")(
             jnp.clip(unit, 0.0, 1.0))
     h = nn.relu(nn.Dense(self.hidden_width, dtype=self.dtype, name="hidden")(features))
     raw = nn.Dense(1, dtype=self.dtype, name="density")(h).astype(jnp.float32)[..., 0]
@@ -174,22 +176,24 @@ class ProposalField(nn.Module):
 
 
 def make_proposal_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0,
-                        materialize: bool = False, layout: str = "rows") -> ProposalField:
+                        materialize: bool = False, layout: str = "rows",
+                        lookup: str = "gather") -> ProposalField:
   """A proposal field sized by config.model.proposal, in the box of config.model.hashgrid.bound;
-  `matmul_max_rows`, `materialize` and `layout` as for make_field."""
+  `matmul_max_rows`, `materialize`, `layout` and `lookup` as for make_field."""
   return ProposalField(bound=model_config.hashgrid.bound,
                        features_per_level=model_config.hashgrid.features_per_level,
                        **dict(model_config.proposal), dtype=dtype, trunc_exp=bool(model_config.trunc_exp),
                        matmul_max_rows=matmul_max_rows,
-                       materialize=materialize, layout=layout, name=name)
+                       materialize=materialize, layout=layout, lookup=lookup, name=name)
 
 
 def make_field(model_config, dtype, name: str | None = None, matmul_max_rows: int = 0,
-               materialize: bool = False, layout: str = "rows") -> nn.Module:
+               materialize: bool = False, layout: str = "rows", lookup: str = "gather") -> nn.Module:
   """The field named by `model.field` ('mlp' or 'hashgrid'), sized by config.model.mlp or .hashgrid;
   `matmul_max_rows`: the hash grid's dense levels up to that many rows are looked up by matmuls;
   `materialize`: the hash grid's points and corner rows kept in memory (encodings.materialized);
-  `layout`: the hash grid lookup's layout, 'rows' or 'lane_dense' (encodings.HashGridEncoding.layout)."""
+  `layout`: the hash grid lookup's layout, 'rows' or 'lane_dense' (encodings.HashGridEncoding.layout);
+  `lookup`: its gathered levels' lookup, 'gather' or 'sparsecore' (encodings.HashGridEncoding.lookup)."""
   if model_config.field == "mlp":
     mlp = dict(model_config.mlp)
     return MLPField(**dict(mlp, skips=tuple(mlp["skips"])), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
@@ -197,5 +201,5 @@ def make_field(model_config, dtype, name: str | None = None, matmul_max_rows: in
   if model_config.field == "hashgrid":
     return HashGridField(**dict(model_config.hashgrid), use_viewdirs=model_config.use_viewdirs, dtype=dtype,
                          trunc_exp=bool(model_config.trunc_exp), matmul_max_rows=matmul_max_rows,
-                         materialize=materialize, layout=layout, name=name)
+                         materialize=materialize, layout=layout, lookup=lookup, name=name)
   raise ValueError(f"unknown model.field {model_config.field!r}")  # nerfpod.schema refuses it first

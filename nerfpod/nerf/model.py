@@ -84,6 +84,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
   grid_matmul_max_rows: int = 0  # hash grid: dense levels up to this many rows looked up by matmuls
   grid_materialize: bool = False  # hash grid: its points and corner rows kept in memory (CPUs)
   grid_layout: str = "rows"  # hash grid: its lookup's layout (compile.hashgrid_layout; the same parameters)
+  grid_lookup: str = "gather"  # hash grid: its gathered levels' lookup, 'gather' or 'sparsecore' (TPU v5p/v6e)
 
   def _render(self, field, origins, directions, viewdirs, t_RxS, background, codes, opened=None):
     points = self._points(origins, directions, t_RxS)
@@ -167,7 +168,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t = jnp.broadcast_to(t, origins_Rx3.shape[:-1] + (self.num_samples,))
     coarse_field = fields.make_field(self.model_config, self.dtype, name="coarse",
                                    matmul_max_rows=self.grid_matmul_max_rows,
-                                   materialize=self.grid_materialize, layout=self.grid_layout)
+                                   materialize=self.grid_materialize, layout=self.grid_layout, lookup=self.grid_lookup)
     coarse = self._render(coarse_field, origins_Rx3, directions_Rx3, viewdirs, t, background, codes, opened)
     if self.num_importance == 0:
       return [coarse]
@@ -183,7 +184,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     t_all = jnp.sort(jnp.concatenate([t, t_fine], axis=-1), axis=-1)
     fine_field = fields.make_field(self.model_config, self.dtype, name="fine",
                                    matmul_max_rows=self.grid_matmul_max_rows,
-                                   materialize=self.grid_materialize, layout=self.grid_layout)
+                                   materialize=self.grid_materialize, layout=self.grid_layout, lookup=self.grid_lookup)
     fine = self._render(fine_field, origins_Rx3, directions_Rx3, viewdirs, t_all, background, codes, opened)
     return [coarse, fine]
 
@@ -232,7 +233,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
         model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
         proposal_samples=tuple(self.proposal_samples), proposal_padding=self.proposal_padding,
         grid_matmul_max_rows=self.grid_matmul_max_rows, grid_materialize=self.grid_materialize,
-        grid_layout=self.grid_layout,
+        grid_layout=self.grid_layout, grid_lookup=self.grid_lookup,
         near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far, anneal)
 
@@ -272,7 +273,8 @@ renders every region and composites: one device holding the whole model. K = 1 i
       points = self._points(origins, directions, t_mids)
       field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                          matmul_max_rows=self.grid_matmul_max_rows,
-                                         materialize=self.grid_materialize, layout=self.grid_layout)
+                                         materialize=self.grid_materialize, layout=self.grid_layout,
+                                         lookup=self.grid_lookup)
       sigma = field(points.reshape(-1, 3)).reshape(t_mids.shape)
       weights = compositing.interval_weights(sigma, t_edges, directions)
       proposals.append({"s_edges": s_edges, "weights": weights, "saturated": saturated_share(sigma)})
@@ -284,7 +286,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse",
                               matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize=self.grid_materialize, layout=self.grid_layout)
+                              materialize=self.grid_materialize, layout=self.grid_layout, lookup=self.grid_lookup)
     rgb, sigma = field(points.reshape(-1, 3), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]),
                        **self._footprints(origins, directions, t_mids), **_opened(opened))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_mids.shape), t_mids, directions,
@@ -313,6 +315,7 @@ class RegionRenderer(nn.Module):
   grid_materialize: bool = False
   proposal_padding: float = 0.0
   grid_layout: str = "rows"
+  grid_lookup: str = "gather"
 
   @nn.compact
   def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
@@ -336,7 +339,8 @@ class RegionRenderer(nn.Module):
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
         field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
                                            matmul_max_rows=self.grid_matmul_max_rows,
-                                           materialize=self.grid_materialize, layout=self.grid_layout)
+                                           materialize=self.grid_materialize, layout=self.grid_layout,
+                                         lookup=self.grid_lookup)
         sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
@@ -352,7 +356,7 @@ class RegionRenderer(nn.Module):
     points = points_of(t_points)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
     field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize=self.grid_materialize, layout=self.grid_layout)
+                              materialize=self.grid_materialize, layout=self.grid_layout, lookup=self.grid_lookup)
     rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
                                 self.near_gradient_distance)

@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nerfpod.nerf import stepfun
+from nerfpod.nerf import cameras as nerf_cameras
+from nerfpod.nerf import sampling, stepfun
 
 # |n . d| below this: the ray runs parallel to the plane (it is then inside or outside along its whole length).
 _PARALLEL = 1e-12
@@ -124,6 +125,81 @@ def kmeans(points_Nx2, count: int, iterations: int = 50) -> np.ndarray:
       break
     centres = moved
   return centres.astype(np.float32)
+
+
+def balanced(points_Nx2, count: int) -> Partition:
+  """NeRF-XL's balanced cut (Li et al. 2024, section 4.3) of the ground plane into `count` regions, each holding
+  about 1 / count of the points (N, 2) (x, y: the samples along training rays): the cloud is split by a vertical
+  plane across its longer axis (its extent over the points; x on a tie), at the quantile that leaves
+  count // 2 regions' share on the lower side, and each side is cut alike with count // 2 and count - count // 2
+  regions, down to one. For a power of two every split is the median; for any other count the shares are
+  uneven per split (3 = 1 + 2: the cut at the first third) but even per region. A region holds the points
+  below each of its upper cuts (x < m, open) and at or beyond each of its lower ones (x >= m, closed), as the
+  grid's cells do, so every point lies in exactly one region; the regions are the leaves in depth-first order,
+  the lower side first. The cuts are computed on the points rounded to float32, at float32 values, so region_of
+  (which evaluates n . x with n a unit axis: exact) assigns each point the leaf this recursion put it in."""
+  p = np.asarray(points_Nx2, np.float32)
+  if p.ndim != 2 or p.shape[1] != 2:
+    raise ValueError(f"balanced: points must be (N, 2), got {p.shape}")
+  if count < 1 or len(p) < count:
+    raise ValueError(f"balanced: {count} regions need at least as many points, got {len(p)}")
+  planes = []
+
+  def split(points, k, path):
+    if k == 1:
+      planes.append(path)
+      return
+    if len(points) < 2:  # (a run of equal values took the whole side: nothing left to balance; any cut)
+      axis, cut = 0, points[0, 0] if len(points) else np.float32(0.0)
+    else:
+      axis = int(np.ptp(points[:, 1]) > np.ptp(points[:, 0]))
+      values = np.sort(points[:, axis])
+      index = min(max(int(round(len(values) * (k // 2) / k)), 1), len(values) - 1)
+      # midway between the last point of the lower side and the first of the upper (in float32); a run of
+      # equal values at the quantile stays on one side whole
+      cut = np.float32(0.5) * (values[index - 1] + values[index])
+      if not values[index - 1] < cut:
+        cut = values[index]
+    unit = tuple(float(v) for v in np.eye(3, dtype=np.float32)[axis])
+    lower = points[:, axis] < cut
+    split(points[lower], k // 2, path + [(unit, float(cut), False)])
+    split(points[~lower], k - k // 2, path + [(tuple(-v for v in unit), -float(cut), True)])
+
+  split(p, count, [])
+  return _pad(planes)
+
+
+def stratified_points(origins_Rx3, directions_Rx3, near_R, far_R, per_ray: int, rng: np.random.Generator):
+  """(R * per_ray, 3) float32: `per_ray` points along each ray, one drawn uniformly in each of per_ray equal
+  strata of its [near, far] (near/far (R,) or (R, 1))."""
+  near = np.reshape(np.asarray(near_R, np.float64), (-1, 1))
+  far = np.reshape(np.asarray(far_R, np.float64), (-1, 1))
+  s = (np.arange(per_ray) + rng.uniform(size=(len(near), per_ray))) / per_ray
+  t = near + s * (far - near)
+  points = np.asarray(origins_Rx3, np.float64)[:, None] + t[..., None] * np.asarray(directions_Rx3, np.float64)[:, None]
+  return points.reshape(-1, 3).astype(np.float32)
+
+
+def ray_samples(poses_Fx4x4, cams, near: float, far: float, bound: float | None, num_rays: int = 4096,
+                per_ray: int = 32, seed: int = 0, pixel_center: float = 0.5) -> np.ndarray:
+  """(at most num_rays * per_ray, 3) float32: the sample cloud the balanced cut splits: `num_rays` pixels drawn
+  from the training frames (poses (F, 4, 4), their Cameras) with a fixed seed, each ray's [near, far] clipped to
+  the hash grid's box [-bound, bound]^3 (where the model samples it; bound None: not clipped) and `per_ray`
+  stratified points along it (a ray that misses the box: none). A pure function of its arguments: every
+  process of a run, and a resumed run, draws the same cloud."""
+  rng = np.random.default_rng(seed)
+  frames = rng.integers(0, len(poses_Fx4x4), num_rays)
+  rows = np.floor(rng.uniform(size=num_rays) * cams.height[frames]).astype(np.int64)
+  cols = np.floor(rng.uniform(size=num_rays) * cams.width[frames]).astype(np.int64)
+  origins, directions = nerf_cameras.frame_rays(np.asarray(poses_Fx4x4)[frames], cams, frames, rows, cols,
+                                                pixel_center)
+  if bound is None:
+    lo, hi = np.full((num_rays, 1), near, np.float32), np.full((num_rays, 1), far, np.float32)
+  else:
+    lo, hi = (np.asarray(v) for v in sampling.clip_to_box(jnp.asarray(origins), jnp.asarray(directions), near, far,
+                                                           bound))
+  inside = (hi - lo)[:, 0] > 2e-3  # a ray that misses the box gets [near, near + 1e-3]: it samples nothing
+  return stratified_points(origins[inside], directions[inside], lo[inside], hi[inside], per_ray, rng)
 
 
 def _inside(value, offset, closed):

@@ -237,6 +237,18 @@ def _compile(program: str, compile_fn, pod: chips.Pod, num_devices: int, rays: i
   return _program_report(compiled, pod, num_devices, rays, time.perf_counter() - start, slices, mesh_axes)
 
 
+def _explained(error: CompileError, config, pod: chips.Pod, slices: int) -> CompileError:
+  """A refusal of compile.hashgrid_lookup=sparsecore's kernels (Mosaic's indexed DMA), with what it means and
+  what to use instead; any other refusal as it is."""
+  if config.compile.hashgrid_lookup != "sparsecore" or "enqueue_indirect_dma" not in error.reason:
+    return error
+  features = config.model.hashgrid.features_per_level
+  return CompileError(error.program, pod, f"{error.reason} (Mosaic's indexed DMA on the SparseCores refuses "
+                      f"the hash grid's rows of {features} values, so compile.hashgrid_lookup=sparsecore does not "
+                      f"compile for {pod.generation}; use --config.compile.hashgrid_lookup=auto: "
+                      f"docs/pod-compile.md, \"A SparseCore lookup\")", slices)
+
+
 def _merge_collectives(collectives: list) -> list:
   merged = {}
   for c in collectives:
@@ -309,7 +321,8 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
 
   check_slices(slices)
   num_chips = pod.num_chips * slices
-  schema.validate(config, num_chips)  # e.g. a batch that does not split over the pod's chips
+  # e.g. a batch that does not split over the pod's chips, or a SparseCore lookup for a pod without them
+  schema.validate(config, num_chips, backend="tpu", tpu_generation=pod.generation, pod=pod.name)
   devices = topology_devices(pod, slices)
   mesh = distributed.make_mesh(devices, num_slices=config.mesh.slices or None, regions=config.model.regions)
   program = components.build_program(config, mesh, backend="tpu")
@@ -334,6 +347,22 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   state_bytes = sum(int(np.prod(s.shape)) * s.dtype.itemsize for s in jax.tree.leaves(program.state_shapes.params))
   report["param_bytes"] = state_bytes
   key = jax.ShapeDtypeStruct((), jax.random.key(0).dtype, sharding=distributed.replicated(mesh))
+  try:
+    _compile_programs(report, config, program, pod, what, key, num_chips, hosts, slices, mesh)
+  except CompileError as e:
+    raise _explained(e, config, pod, slices) from None
+  return report
+
+
+def _compile_programs(report: dict, config, program, pod: chips.Pod, what, key, num_chips: int, hosts: list,
+                      slices: int, mesh) -> None:
+  """compile_pod's compiles of `what`, each program's report into `report`."""
+  import jax
+  import numpy as np
+  from nerfpod import distributed
+  from nerfpod.run import compilation, step
+  tc = config.train
+  state_bytes = report["param_bytes"]
   if "step" in what:
     # As a run on the pod fits them where train.microbatches=0: the fewest that fit its share of the HBM.
     budget = int(compilation.ACCELERATOR_MEMORY_SHARE * pod.chip.hbm_bytes)
@@ -366,7 +395,6 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
     orbit_rays = jax.ShapeDtypeStruct((chunk, 3), np.float32, sharding=distributed.batch_sharding(mesh))
     report["orbit"] = _compile("orbit", lambda: program.make_renderer().lower(params, orbit_rays, orbit_rays)
                                .compile(), pod, num_chips, chunk, slices)
-  return report
 
 
 def format_report(report: dict) -> str:

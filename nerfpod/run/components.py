@@ -179,14 +179,38 @@ def grid_matmul_max_rows(config, backend: str) -> int:
   return config.compile.matmul_max_rows if lookup == "matmul" else 0
 
 
-def region_partition(config, camera_positions_Nx3=None) -> nerf_regions.Partition:
+# The balanced cut's sample cloud: rays drawn from the training frames with this seed (fixed: every process, and
+# a resumed run, cuts the same planes), points stratified along each.
+BALANCE_RAYS, BALANCE_SAMPLES_PER_RAY, BALANCE_SEED = 4096, 32, 0
+
+
+def balance_samples(config, scene) -> np.ndarray:
+  """(N, 3) float32: the points model.region_cut='balanced' splits evenly: BALANCE_RAYS pixels of the
+  training frames (all of them, whatever data.shards holds: poses and cameras are every host's), drawn with
+  BALANCE_SEED, each ray's [near, far] (ray_bounds) clipped to the hash grid's box where the field is one,
+  BALANCE_SAMPLES_PER_RAY stratified points along it (nerf_regions.ray_samples)."""
+  split = scene.split("train")
+  near, far = ray_bounds(config, scene)
+  bound = config.model.hashgrid.bound if config.model.field == "hashgrid" else None
+  return nerf_regions.ray_samples(np.asarray(split.poses), split.cameras, near, far, bound, BALANCE_RAYS,
+                                  BALANCE_SAMPLES_PER_RAY, BALANCE_SEED, config.data.pixel_center)
+
+
+def region_partition(config, camera_positions_Nx3=None, samples_Nx3=None) -> nerf_regions.Partition:
   """The regions of `config.model.regions` cut as model.region_cut says: 'grid', cells of the ground plane
   over the hash grid's box [-bound, bound]^2 (model.hashgrid.bound); 'cameras', the Voronoi cells of the
   k-means centres of the training cameras' positions in the ground plane (`camera_positions_Nx3`; None, a
-  placeholder ring of cameras of the same cost: the pod compile tool's)."""
+  placeholder ring of cameras of the same cost: the pod compile tool's); 'balanced', NeRF-XL's recursive
+  median cut of the training rays' samples (`samples_Nx3`, balance_samples; None, the cut of a placeholder
+  cloud over the box, of the same cost)."""
   count = config.model.regions
   if config.model.region_cut == "grid":
     return nerf_regions.grid(count, config.model.hashgrid.bound)
+  if config.model.region_cut == "balanced":
+    if samples_Nx3 is None:
+      bound = config.model.hashgrid.bound
+      samples_Nx3 = np.random.default_rng(BALANCE_SEED).uniform(-bound, bound, (max(64, 16 * count), 3))
+    return nerf_regions.balanced(np.asarray(samples_Nx3)[:, :2], count)
   if camera_positions_Nx3 is None:
     angles = 2 * np.pi * np.arange(count) / count
     return nerf_regions.voronoi(np.stack([np.cos(angles), np.sin(angles)], -1))
@@ -201,13 +225,14 @@ def _as_tuples(part: nerf_regions.Partition) -> tuple:
 
 
 def make_model(config, ndc_camera=None, backend: str | None = None, num_frames: int = 0,
-               camera_positions=None, pixel_angle: float = 0.0) -> nerf_model.NeRF:
+               camera_positions=None, pixel_angle: float = 0.0, region_samples=None) -> nerf_model.NeRF:
   """The NeRF model that `config.model` and `config.render` describe, formulated for `backend` (default:
   JAX's; the pod compile tool asks for 'tpu' on a CPU). `ndc_camera` (fx, fy, width, height): the camera
   whose frustum is the NDC cube, needed with render.space='ndc' (the scene's training camera).
   `num_frames`: the training frames, each with its own appearance code (model.appearance_dim > 0) and pose
   correction (train.pose_refine); at least 1 where either is on. `camera_positions` (N, 3): the training
-  cameras' centres, where model.region_cut='cameras' cuts the regions around them. `pixel_angle`: a pixel's
+  cameras' centres, where model.region_cut='cameras' cuts the regions around them; `region_samples` (N, 3):
+  the training rays' samples that model.region_cut='balanced' splits evenly. `pixel_angle`: a pixel's
   width at distance 1 (radians: 1 / focal length in pixels), the footprints of model.hashgrid.scale_aware
   (needed there; unused elsewhere)."""
   if (config.model.appearance_dim or config.train.pose_refine) and num_frames < 1:
@@ -217,27 +242,37 @@ def make_model(config, ndc_camera=None, backend: str | None = None, num_frames: 
     raise ValueError("model.hashgrid.scale_aware needs the scene's pixel angle (pixel_angle)")
   dtype = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}[config.model.compute_dtype]
   backend = backend or jax.default_backend()
+  # compile.hashgrid_lookup=sparsecore: dense levels by matmuls (as 'auto' on a TPU), the others by Pallas
+  # kernels on the SparseCores (nerf/sparsecore.py), refused in one sentence on a backend without them.
+  sparsecore = config.compile.hashgrid_lookup == "sparsecore"
+  matmul_max_rows = config.compile.matmul_max_rows if sparsecore else grid_matmul_max_rows(config, backend)
+  if sparsecore:
+    from nerfpod import schema  # the refusal in the schema's words
+    refused = schema.backend_rules(schema.flatten(config), backend)
+    if refused:
+      raise schema.ConfigError(refused)
   render = config.render
   return nerf_model.NeRF(
       model_config=config.model, num_samples=render.num_samples, num_importance=render.num_importance,
       last_delta=render.last_delta, dtype=dtype, space=render.space, spacing=render.spacing,
       proposal_samples=tuple(render.proposal_samples), proposal_padding=float(render.proposal_padding),
       ndc_camera=None if ndc_camera is None else tuple(float(v) for v in ndc_camera),
-      grid_matmul_max_rows=grid_matmul_max_rows(config, backend),
+      grid_matmul_max_rows=matmul_max_rows,
       grid_materialize=backend == "cpu", grid_layout=str(config.compile.hashgrid_layout),
+      grid_lookup="sparsecore" if sparsecore else "gather",
       num_frames=int(num_frames),
       pose_refine=bool(config.train.pose_refine),
       near_gradient_distance=float(config.train.near_gradient_distance),
       pixel_angle=float(pixel_angle) if scale_aware else 0.0,
-      **_region_attributes(config, camera_positions))
+      **_region_attributes(config, camera_positions, region_samples))
 
 
-def _region_attributes(config, camera_positions) -> dict:
+def _region_attributes(config, camera_positions, region_samples=None) -> dict:
   """NeRF's region attributes: none where model.regions is 1 (the one-field model, as it always was)."""
   if config.model.regions == 1:
     return {}
   return {"regions": int(config.model.regions),
-          "region_planes": _as_tuples(region_partition(config, camera_positions))}
+          "region_planes": _as_tuples(region_partition(config, camera_positions, region_samples))}
 
 
 def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.Scene | None = None) -> Components:
@@ -252,15 +287,17 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     num_frames = len(scene.split("train"))
     cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # model.region_cut=cameras cuts around them
     pixel_angle = pixel_angle_of(scene)
+    samples = (balance_samples(config, scene)  # model.region_cut=balanced splits them evenly
+               if config.model.regions > 1 and config.model.region_cut == "balanced" else None)
   else:
-    cameras = None
+    cameras = samples = None
     num_frames = _PLACEHOLDER_FRAMES
     pixel_angle = _PLACEHOLDER_PIXEL_ANGLE
     ndc = _PLACEHOLDER_NDC_CAMERA if config.render.space == "ndc" else None
     near = config.render.near if config.render.near >= 0 else _PLACEHOLDER_BOUNDS[0]
     far = config.render.far if config.render.far >= 0 else max(_PLACEHOLDER_BOUNDS[1], near + 1.0)
     background, with_alpha = (1.0, 1.0, 1.0), scenes.HAS_ALPHA.get(config.data.kind, True)
-  model = make_model(config, ndc, backend, num_frames, cameras, pixel_angle)
+  model = make_model(config, ndc, backend, num_frames, cameras, pixel_angle, samples)
   optimizer = train_state.make_optimizer(config.train, clip=config.model.regions == 1,  # regions: the step's
                                          pose_preconditioners=pose_preconditioners(config, scene, num_frames))
   return Components(config, mesh, model, optimizer, float(near), float(far), background,
@@ -303,7 +340,7 @@ def check_regions_seen(comps: Components, per_side: int = 8) -> None:
     if len(cells[k]):
       low, high = cells[k].min(0), cells[k].max(0)
       where.append(f"region {k}: x {low[0]:.2f}..{high[0]:.2f}, y {low[1]:.2f}..{high[1]:.2f}")
-  other = "grid" if config.model.region_cut == "cameras" else "cameras"
+  other = "grid" if config.model.region_cut != "grid" else "cameras"
   raise UserError(f"model.regions={config.model.regions} ({config.model.region_cut} cut) makes "
                   f"{len(missing)} region(s) that no training camera sees ({'; '.join(where)}), whose fields could "
                   f"learn nothing; use fewer regions (--config.model.regions) or the other cut "

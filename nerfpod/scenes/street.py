@@ -2,7 +2,8 @@
 cameras along it, for fields bigger than one chip (model.regions, docs/scale.md#scenes-bigger-than-one-chip).
 
 The street runs along x over [-LENGTH / 2, LENGTH / 2] (14 units, about 120 spacings of its training
-cameras): a checkered road and pavements (z = 0), a row of buildings on each side (|y| from 2 to 3, 0.9 to 2.6
+cameras; `blocks` B > 1 makes it B times as long, 14 B units, laid out from the same seed, with B times the
+training cameras at the same spacing: a scene with something for K = 8 or 16 regions to hold): a checkered road and pavements (z = 0), a row of buildings on each side (|y| from 2 to 3, 0.9 to 2.6
 high, facades with windows), trees (a sphere on a trunk) and lamp posts between them. Every surface has
 detail at several scales (the road's checks of 0.25, the windows' 0.33 x 0.4, each building its own colour),
 so that a field sized for one CPU device is short of capacity over the whole street, and one per region of
@@ -16,12 +17,13 @@ views saw. Everything comes from fixed seeds: the same arguments always give the
 """
 import numpy as np
 
+from nerfpod.errors import UserError
 from nerfpod.nerf.cameras import look_at
 from nerfpod.scenes import procedural
 from nerfpod.scenes.base import Scene
 from nerfpod.scenes.procedural import _box, _cylinder, _sphere
 
-LENGTH = 14.0         # the street's length along x
+LENGTH = 14.0         # the street's length along x (one block; `blocks` B: B x LENGTH)
 HALF_WIDTH = 3.5      # the ground's half width along y
 FIELD_OF_VIEW = 1.0   # horizontal, radians (57 degrees: a phone's main camera)
 NEAR, FAR = 0.05, 16.0
@@ -46,10 +48,11 @@ def _facade(colour):
   return albedo
 
 
-def _objects():
-  """(intersect function, albedo: a colour, or a function of the hit points) of every solid of the street."""
+def _objects(length: float = LENGTH):
+  """(intersect function, albedo: a colour, or a function of the hit points) of every solid of a street of
+  `length` (the layout from the same seed: LENGTH gives the street as it always was)."""
   rng = np.random.default_rng(_LAYOUT_SEED)
-  half = LENGTH / 2
+  half = length / 2
   objects = [
       # the road (|y| < 1.2) and the pavements, one slab whose top is the ground
       (lambda o, d: _box(o, d, np.array([-half - 0.5, -HALF_WIDTH, -0.1]), np.array([half + 0.5, HALF_WIDTH, 0.0])),
@@ -83,16 +86,17 @@ def _objects():
   return objects
 
 
-def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
+def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False, length: float = LENGTH):
   """Exact colours of rays (..., 3): the nearest surface's shaded albedo, or the background (the sky); with
-  return_alpha also whether each ray hits a surface (1.0) or not (0.0)."""
-  return procedural.trace_solids(_objects(), origins, directions, background, return_alpha)
+  return_alpha also whether each ray hits a surface (1.0) or not (0.0). `length`: the street's."""
+  return procedural.trace_solids(_objects(length), origins, directions, background, return_alpha)
 
 
-def street_poses(n: int, seed: int) -> np.ndarray:
-  """n camera-to-world poses at eye height along the street, each looking at a facade or down the street."""
+def street_poses(n: int, seed: int, length: float = LENGTH) -> np.ndarray:
+  """n camera-to-world poses at eye height along the street (of `length`), each looking at a facade or down
+  the street."""
   rng = np.random.default_rng(seed)
-  half = LENGTH / 2
+  half = length / 2
   poses = []
   for _ in range(n):
     eye = np.array([rng.uniform(-half + 0.5, half - 0.5), rng.uniform(-1.0, 1.0), rng.uniform(0.8, 1.6)])
@@ -105,15 +109,32 @@ def street_poses(n: int, seed: int) -> np.ndarray:
   return np.stack(poses).astype(np.float32)
 
 
+def blocks_of(path: str) -> int:
+  """The street's blocks from data.path, which names no file for this built-in scene: '' (1, the street as
+  it always was) or 'blocks=B' (configs/street.py:blocks=B writes it)."""
+  if not path:
+    return 1
+  key, _, value = path.partition("=")
+  if key != "blocks" or not value.isdigit() or int(value) < 1:
+    raise UserError(f"data.kind=street takes data.path '' (one block) or 'blocks=B' (B >= 1), not {path!r}; "
+                    f"use --config=configs/street.py:blocks=B.")
+  return int(value)
+
+
 def load(path: str, data_config, shards=None) -> Scene:
-  """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file."""
-  return make(data_config.image_size, pixel_center=data_config.pixel_center)
+  """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file;
+  data.path '' or 'blocks=B' (blocks_of)."""
+  return make(data_config.image_size, pixel_center=data_config.pixel_center, blocks=blocks_of(path))
 
 
 def make(image_size: int = 64, num_train: int = 120, num_val: int = 8, num_test: int = 8,
-         pixel_center: float = 0.5) -> Scene:
-  """The street scene (module docstring)."""
-  splits = procedural.traced_splits(trace, street_poses, image_size, FIELD_OF_VIEW,
-                                    {"train": num_train, "val": num_val, "test": num_test}, pixel_center,
-                                    first_seed=100)
-  return Scene("street", splits, near=NEAR, far=FAR, background=(1.0, 1.0, 1.0), kind="street")
+         pixel_center: float = 0.5, blocks: int = 1) -> Scene:
+  """The street scene (module docstring); `blocks` B > 1: B times as long, with B times num_train (the same
+  spacing of training cameras) and the held-out counts as given."""
+  length = LENGTH * blocks
+  splits = procedural.traced_splits(
+      lambda o, d, **kw: trace(o, d, length=length, **kw), lambda n, seed: street_poses(n, seed, length),
+      image_size, FIELD_OF_VIEW, {"train": num_train * blocks, "val": num_val, "test": num_test}, pixel_center,
+      first_seed=100)
+  return Scene("street" if blocks == 1 else f"street_x{blocks}", splits, near=NEAR, far=FAR,
+               background=(1.0, 1.0, 1.0), kind="street")

@@ -1,9 +1,10 @@
 """The workdir's own files: config.json (the resolved config), scene.json, regions.json (a region model's
-regions), and the checks of a workdir.
+regions, written and read back), and the checks of a workdir.
 
     check_workdir      a --workdir that is a file, or cannot be written (training), in one sentence
     check_compatible   a workdir whose checkpoints came from a config of another shape or data is refused
     read_config        a run's config from its config.json, checked by the schema (the viewer, exports)
+    write_regions, read_regions   regions.json: a region model's planes (a resume compares its own with them)
     write_json         whole or not at all (PATH.tmp, then renamed); also eval/metrics.json
 
 Paths go through nerfpod.storage.path, so a workdir may be a gs:// bucket. The checkpoints themselves are
@@ -147,6 +148,22 @@ def write_regions(workdir: str, cut: str, region_planes) -> None:
               "regions": [{"planes": [{"normal": list(map(float, n)), "offset": float(b), "closed": bool(c)}
                                       for n, b, c in zip(ns, bs, cs)]}
                           for ns, bs, cs in zip(normals, offsets, closed)]})
+
+
+def read_regions(workdir: str) -> tuple[str, tuple] | None:
+  """(cut, (normals (K, P, 3), offsets (K, P), closed (K, P)) as nested tuples, region_planes' form) of
+  workdir/regions.json, or None where the workdir has none (a new run, a one-region model): what a resumed run
+  compares its cut with (model.region_cut=balanced cuts from seeded rays, so the two agree unless the code or
+  the scene changed)."""
+  path = storage.path(workdir) / "regions.json"
+  try:
+    tree = json.loads(path.read_text())
+  except FileNotFoundError:
+    return None
+  planes = [region["planes"] for region in tree["regions"]]
+  return tree["cut"], (tuple(tuple(tuple(float(v) for v in p["normal"]) for p in ps) for ps in planes),
+                       tuple(tuple(float(p["offset"]) for p in ps) for ps in planes),
+                       tuple(tuple(bool(p["closed"]) for p in ps) for ps in planes))
 
 
 def read_config(workdir: str) -> ml_collections.ConfigDict:
