@@ -387,3 +387,23 @@ if __name__ == "__main__":
   from nerfpod import main
   sys.argv[0] = "nerfpod.main"
   main.run()
+
+
+def in_process(run, program: str, capsys, monkeypatch, cwd):
+  """A function call(*args) that runs a command's entry point `run(argv)` in this process, as `program ARGS`
+  (sys.argv set: ml_collections reads --config's overrides off it), from `cwd`: its exit code, stdout and
+  stderr as a process's (subprocess.CompletedProcess). For claims about a command's parsing, help and
+  refusals, which end before any work (no process of its own needed)."""
+  monkeypatch.chdir(cwd)
+
+  def call(*args):
+    monkeypatch.setattr(sys, "argv", [program, *args])
+    capsys.readouterr()
+    try:
+      run(list(args))
+      code = 0
+    except SystemExit as e:
+      code = e.code if isinstance(e.code, int) else int(e.code is not None)
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess([program, *args], code, out, err)
+  return call

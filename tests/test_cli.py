@@ -22,22 +22,8 @@ def _nerfpod(*args, timeout=120):
 
 @pytest.fixture
 def nerfpod(capsys, monkeypatch):
-  """`nerfpod ARGS` in this process (nerfpod.cli.run, as the console script calls it): its exit code, stdout and
-  stderr as a process's (subprocess.CompletedProcess), for claims about a command's parsing, help and refusals,
-  which end before any work (no process of its own needed)."""
-  monkeypatch.chdir(REPO)
-
-  def call(*args):
-    monkeypatch.setattr(sys, "argv", ["nerfpod", *args])  # (ml_collections reads --config's overrides off it)
-    capsys.readouterr()
-    try:
-      cli.run(list(args))
-      code = 0
-    except SystemExit as e:
-      code = e.code if isinstance(e.code, int) else int(e.code is not None)
-    out, err = capsys.readouterr()
-    return subprocess.CompletedProcess(["nerfpod", *args], code, out, err)
-  return call
+  """`nerfpod ARGS` in this process (nerfpod.cli.run, as the console script calls it; procs.in_process)."""
+  return procs.in_process(cli.run, "nerfpod", capsys, monkeypatch, REPO)
 
 
 def test_help_lists_every_subcommand_with_one_line_each(nerfpod):

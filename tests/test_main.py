@@ -18,22 +18,11 @@ from procs import run_main
 
 @pytest.fixture
 def main_here(capsys, monkeypatch):
-  """`python -m nerfpod.main ARGS` in this process (nerfpod.main.run): its exit code, stdout and stderr as a
-  process's (subprocess.CompletedProcess), for refusals that come before any work."""
+  """`python -m nerfpod.main ARGS` in this process (nerfpod.main.run; procs.in_process), for refusals that come
+  before any work."""
   from nerfpod import main
-  monkeypatch.chdir(REPO)
-
-  def call(*args):
-    monkeypatch.setattr(sys, "argv", ["nerfpod.main", *args])  # (ml_collections reads the overrides off it)
-    capsys.readouterr()
-    try:
-      main.run(list(args))
-      code = 0
-    except SystemExit as e:
-      code = e.code if isinstance(e.code, int) else int(e.code is not None)
-    out, err = capsys.readouterr()
-    return subprocess.CompletedProcess(["nerfpod.main", *args], code, out, err)
-  return call
+  import procs
+  return procs.in_process(main.run, "nerfpod.main", capsys, monkeypatch, REPO)
 
 
 @pytest.fixture(scope="module")

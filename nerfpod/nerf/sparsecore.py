@@ -67,6 +67,19 @@ def _cost(count: int, features: int, itemsize: int) -> pl.CostEstimate:
   return pl.CostEstimate(flops=0, transcendentals=0, bytes_accessed=int(count * (4 + 2 * row_bytes)))
 
 
+def _plan(count: int):
+  """(mesh, chunk, steps, padded, chunk_start): the chip's vector subcores, each taking `steps` chunks of
+  `chunk` row numbers (_split), `padded` of them in all, and chunk_start(step), the first row number of a
+  subcore's step-th chunk (traced inside a kernel)."""
+  mesh = _mesh()
+  chunk, steps = _split(count, mesh.num_cores * mesh.num_subcores)
+
+  def chunk_start(step):
+    worker = jax.lax.axis_index("core") * mesh.num_subcores + jax.lax.axis_index("subcore")
+    return pl.multiple_of((worker * steps + step) * chunk, 8)
+  return mesh, chunk, steps, chunk * steps * mesh.num_cores * mesh.num_subcores, chunk_start
+
+
 def _interpret_params(interpret: bool):
   """pl.kernel's `interpret`: the TPU interpreter (Pallas's interpret mode for TPU kernels) or none."""
   return pltpu.InterpretParams() if interpret else False
@@ -74,11 +87,8 @@ def _interpret_params(interpret: bool):
 
 def _gather_kernel(table_RxF, rows_M, interpret: bool = False):
   """table_RxF[rows_M] (M, F) by indexed DMAs on the SparseCores (`interpret`: in Pallas's interpret mode)."""
-  mesh = _mesh()
-  workers = mesh.num_cores * mesh.num_subcores
   (count,), (_, features) = rows_M.shape, table_RxF.shape
-  chunk, steps = _split(count, workers)
-  padded = chunk * steps * workers
+  mesh, chunk, steps, padded, chunk_start = _plan(count)
   rows_M = jnp.pad(rows_M, (0, padded - count))  # row 0, gathered and dropped
 
   @functools.partial(
@@ -88,11 +98,9 @@ def _gather_kernel(table_RxF, rows_M, interpret: bool = False):
                      pltpu.SemaphoreType.DMA),
       cost_estimate=_cost(padded, features, table_RxF.dtype.itemsize), interpret=_interpret_params(interpret))
   def kernel(table_hbm, rows_hbm, out_hbm, rows_vmem, values_vmem, sem):
-    worker = jax.lax.axis_index("core") * mesh.num_subcores + jax.lax.axis_index("subcore")
-
     @pl.loop(0, steps)
     def _(step):
-      start = pl.multiple_of((worker * steps + step) * chunk, 8)
+      start = chunk_start(step)
       pltpu.sync_copy(rows_hbm.at[pl.ds(start, chunk)], rows_vmem)
       pltpu.async_copy(table_hbm.at[rows_vmem], values_vmem, sem).wait()
       pltpu.sync_copy(values_vmem, out_hbm.at[pl.ds(start, chunk)])
@@ -103,11 +111,8 @@ def _gather_kernel(table_RxF, rows_M, interpret: bool = False):
 def _scatter_add_kernel(values_MxF, rows_M, num_rows: int, interpret: bool = False):
   """A zero (num_rows, F) table with values_MxF added at rows_M (repeated rows summed), by indexed DMAs with
   add=True on the SparseCores."""
-  mesh = _mesh()
-  workers = mesh.num_cores * mesh.num_subcores
   count, features = values_MxF.shape
-  chunk, steps = _split(count, workers)
-  padded = chunk * steps * workers
+  mesh, chunk, steps, padded, chunk_start = _plan(count)
   rows_M = jnp.pad(rows_M, (0, padded - count))                # row 0 ...
   values_MxF = jnp.pad(values_MxF, ((0, padded - count), (0, 0)))  # ... gets zeros added
   zeros = jnp.zeros((num_rows, features), values_MxF.dtype)
@@ -119,11 +124,9 @@ def _scatter_add_kernel(values_MxF, rows_M, num_rows: int, interpret: bool = Fal
                      pltpu.SemaphoreType.DMA),
       cost_estimate=_cost(padded, features, values_MxF.dtype.itemsize), interpret=_interpret_params(interpret))
   def kernel(values_hbm, rows_hbm, grad_hbm, rows_vmem, values_vmem, sem):
-    worker = jax.lax.axis_index("core") * mesh.num_subcores + jax.lax.axis_index("subcore")
-
     @pl.loop(0, steps)
     def _(step):
-      start = pl.multiple_of((worker * steps + step) * chunk, 8)
+      start = chunk_start(step)
       pltpu.sync_copy(rows_hbm.at[pl.ds(start, chunk)], rows_vmem)
       pltpu.sync_copy(values_hbm.at[pl.ds(start, chunk)], values_vmem)
       pltpu.async_copy(values_vmem, grad_hbm.at[rows_vmem], sem, add=True).wait()
