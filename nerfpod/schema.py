@@ -175,7 +175,9 @@ FIELDS: dict[str, Field] = _declare({
     "data.kind": ("procedural", choice(*scenes.KINDS),
         "scene format: 'procedural' and 'street' (built in), 'tiny' (npz), 'blender' (folder), captures 'llff', 'colmap', "
         "'nerfstudio', or 'auto' (told by data.path's files)"),
-    "data.path": ("", text(), "the npz file or scene folder; unused by the built-in scenes"),
+    "data.path": ("", text(),
+        "the npz file or scene folder; the built-in scenes read none, but the street 'blocks=B' (a street B "
+        "times as long: configs/street.py:blocks=B)"),
     "data.downscale": (1, integer(1),
         "integer factor the images are shrunk by (captures: images_N/ where it exists)"),
     "data.image_size": (100, integer(2, example=100),
