@@ -654,7 +654,9 @@ def device_rules(c: dict, device_count: int) -> list[str]:
   return []
 
 
-# TPU generations whose SparseCores compile.hashgrid_lookup=sparsecore runs on (nerf/sparsecore.py).
+# TPU generations whose SparseCores compile.hashgrid_lookup=sparsecore runs on (nerf/sparsecore.py): those that
+# JAX's Pallas reaches (jax/_src/pallas/mosaic/tpu_info.py): v5p has 4 SparseCores of 16 vector subcores a chip,
+# v6e 2 of 16; v4's are not reachable from Pallas and v5e has none.
 SPARSECORE_GENERATIONS = ("v5p", "v6e")
 
 
@@ -663,14 +665,15 @@ def backend_rules(c: dict, backend: str, tpu_generation: str | None = None, pod:
   TPU the chip generation where it is known (`nerfpod aot`: `pod`, the pod's name, with its generation)."""
   if c["compile.hashgrid_lookup"] != "sparsecore":
     return []
+  what = ("compile.hashgrid_lookup=sparsecore runs the hash grid's lookups on the SparseCores of TPU "
+          f"{' and '.join(SPARSECORE_GENERATIONS)}")
   fix = "use --config.compile.hashgrid_lookup=auto"
   if backend != "tpu":
-    return [f"compile.hashgrid_lookup=sparsecore runs the hash grid's lookups on the SparseCores of TPU v5p and "
-            f"v6e, and this run's backend is {backend}; {fix}."]
+    return [f"{what}, and this run's backend is {backend}; {fix}."]
   if tpu_generation is not None and tpu_generation not in SPARSECORE_GENERATIONS:
     where = f"{pod} ({tpu_generation})" if pod else tpu_generation
-    return [f"compile.hashgrid_lookup=sparsecore runs the hash grid's lookups on the SparseCores of TPU v5p and "
-            f"v6e, and {where} has none that Pallas reaches; {fix}, or compile for a v5p or v6e pod."]
+    return [f"{what}, and {where} has none that Pallas reaches; {fix}, or compile for a "
+            f"{' or '.join(SPARSECORE_GENERATIONS)} pod."]
   return []
 
 

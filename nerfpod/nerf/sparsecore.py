@@ -23,10 +23,6 @@ from jax.experimental import pallas as pl
 from jax.experimental.pallas import tpu as pltpu
 from jax.experimental.pallas import tpu_sc as plsc
 
-# TPU generations with SparseCores that JAX's Pallas reaches (jax/_src/pallas/mosaic/tpu_info.py): v5p has 4
-# SparseCores of 16 vector subcores a chip, v6e 2 of 16. v4's are not reachable from Pallas and v5e has none.
-SPARSECORE_CHIPS = ("v5p", "v6e")
-
 # Row numbers a subcore gathers with one indexed DMA: its row numbers (4 bytes each) and the rows (F values of
 # 4 bytes) sit in the subcore's own memory (256 KiB on v6e, 512 KiB on v5p), 12 KiB at F = 2.
 MAX_CHUNK = 1024
