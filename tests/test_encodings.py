@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import procs
 from nerfpod.nerf import encodings
 
 
@@ -213,7 +214,7 @@ def test_materialized_points_are_the_points_bit_for_bit_and_so_are_the_fields_va
     def f(p):
       rgb, sigma = field_of(materialize).apply(p, points(), viewdirs)
       return jnp.sum(rgb * rgb) + jnp.sum(jnp.log1p(sigma)), (rgb, sigma)
-    return jax.jit(jax.value_and_grad(f, has_aux=True))(params)
+    return jax.jit(jax.value_and_grad(f, has_aux=True), compiler_options=procs.OPTIMIZED_KERNELS)(params)
   (plain, (rgb, sigma)), grads = loss(False)
   (kept, (rgb_kept, sigma_kept)), grads_kept = loss(True)
   assert float(jnp.abs(sigma).max()) > 0 and float(jnp.abs(grads["params"]["grid"]["level_5"]).max()) > 0

@@ -9,6 +9,7 @@ import pytest
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+import procs
 from conftest import smoke_config
 from nerfpod import data, distributed, scenes
 from nerfpod.run import compilation, components, step, train_state
@@ -220,11 +221,12 @@ def smoke_step():
   """The smoke model's plain step (step.Options()) on its first batch of 64 rays, one compiled program that
   the options' tests below compare theirs with (each test builds its own option's step): a namespace of
   config, scene, model, optimizer, mesh, batch, plain (the jitted step), make(**options) (another step of the
-  same model) and fresh(step) (a new initial state whose step counter is `step`; the step donates its state)."""
+  same model) and fresh(step) (a new initial state whose step counter is `step`; the step donates its state).
+  The tests claim the same bits as the plain step's: every step here is compiled with procs.OPTIMIZED_KERNELS."""
   config = smoke_config(**{"train.batch_size": 64})
   scene, model, optimizer, mesh, batch = _one_batch(config)
   make = lambda **options: step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,  # noqa: E731
-                                                 step.Options(**options))
+                                                 step.Options(compiler_options=procs.OPTIMIZED_KERNELS, **options))
   initial = jax.device_get(train_state.initial_state(model, optimizer, 0, mesh))  # (initialised once)
   fresh = lambda s: jax.device_put(initial.replace(step=np.int32(s)), distributed.replicated(mesh))  # noqa: E731
   return types.SimpleNamespace(config=config, scene=scene, model=model, optimizer=optimizer, mesh=mesh,
