@@ -154,7 +154,9 @@ def pose_noise() -> Field:
 # count, the cadence of logs and checkpoints, evaluation, the orbit, compilation, the mesh, monitoring, the
 # host's image budget, the samples of renderings that train nothing); or it is one of the proposal sampler's
 # guards, which change no state, only where samples go from the resume on: a run whose sampling collapsed is
-# resumed with them (docs/training.md). docs/scale.md lists them (tests/test_schema.py holds it to this).
+# resumed with them (docs/training.md); or the regions' capacity, which changes no state either, only which rays
+# a step may drop: a run stopped for dropping rays is resumed with a larger one. docs/scale.md lists them
+# (tests/test_schema.py holds it to this).
 RESUMABLE = "resumable"
 
 
@@ -229,6 +231,11 @@ FIELDS: dict[str, Field] = _declare({
         "the box each region's fields span with model.regions > 1: 'scene' (the hash grid's whole box: a hash "
         "grid stores only what its region's points touch) or 'own' (the region's cell, mapped onto the field's "
         "box axis by axis: finer along the cell's short sides; 1.2 dB lower on the street, docs/results.md)"),
+    "model.region_capacity": (0.0, number(0.0, 1.0, example=0.5),
+        "model.regions > 1, training: each chip renders, per region, only the rays whose segment meets it, up to "
+        "this fraction of its rays (rows C, rounded up to a multiple of 8); a ray over capacity is dropped whole, "
+        "counted, and a run dropping over 0.1% of its rays stops (docs/scale.md#dispatch-and-capacity); 0: every "
+        "ray through every region (dense). Evaluation and renders are always dense", RESUMABLE),
     # model.mlp: NeRF's MLP: the Tiny NeRF tutorial's by default
     "model.mlp.num_frequencies": (6, integer(0, 30, example=10),
         "positional-encoding frequencies L of points; 0 switches it off"),
@@ -578,6 +585,10 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.regions={c['model.regions']} cuts the world into regions, but render.space="
                f"{c['render.space']} maps the rays out of it; use --config.render.space=euclidean "
                f"(or --config.model.regions=1).")
+  if c["model.region_capacity"] and c["model.regions"] == 1:
+    out.append(f"model.region_capacity={c['model.region_capacity']:g} shares each region's rows out among the "
+               f"rays that meet it, and model.regions=1 has one region that every ray meets; leave it at 0 "
+               f"(--config.model.region_capacity=0) or give more regions.")
   if c["model.regions"] > 1 and c["render.num_importance"]:
     out.append(f"model.regions={c['model.regions']} renders each region's segment with proposal or stratified "
                f"samples, not hierarchical ones; use --config.render.num_importance=0 (or "

@@ -95,6 +95,10 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "model.regions=4 cuts the world into regions, but render.space=contract"),
     ({"model.regions": 4, "render.num_importance": 8, "render.proposal_samples": ()},
      "model.regions=4 renders each region's segment with proposal or stratified samples"),
+    ({"model.region_capacity": 0.5},
+     "model.region_capacity=0.5 shares each region's rows out among the rays that meet it, and model.regions=1 "
+     "has one region that every ray meets; leave it at 0 (--config.model.region_capacity=0) or give more "
+     "regions."),
     ({"train.coarse_to_fine": (0.1, 0.5), "model.field": "mlp"},
      "train.coarse_to_fine='(0.1,0.5)' opens the hash grid's levels one by one, and this run has model.field=mlp"),
     ({"train.pose_refine": True, "train.pose_b1": 0.9},
@@ -130,6 +134,14 @@ def test_the_batch_must_split_over_the_devices_and_micro_batches():
   found = schema.problems(smoke_config(**{"train.batch_size": 64, "train.microbatches": 3}), device_count=8)
   assert len(found) == 1 and "does not split into train.microbatches=3 equal slices" in found[0]
   assert schema.problems(smoke_config(**{"train.batch_size": 100})) == []  # devices not known yet
+
+
+def test_the_region_capacity_is_a_fraction_of_the_rays_or_0():
+  for capacity in (0.0, 0.01, 0.5, 1.0):
+    assert schema.problems(smoke_config(**{"model.regions": 4, "model.region_capacity": capacity})) == []
+  assert schema.problems(smoke_config(**{"model.regions": 4, "model.region_capacity": 1.5})) == [
+      "model.region_capacity=1.5 is not valid: it must be a finite number >= 0 and <= 1 "
+      "(e.g. --config.model.region_capacity=0.5)."]
 
 
 def test_the_regions_must_split_over_the_devices_of_a_slice():

@@ -53,8 +53,10 @@ a nerf_regions.Partition as nested tuples), each with its own NeRF field and pro
 stacked on a leading axis of K under 'regions' (`RegionRenderer`, vmapped). Each region renders its own
 segment of each ray with the configured samples (proposal rounds, or stratified samples over even
 intervals), from transmittance 1, into per-ray partial sums (`render_partials`, for any subset of the
-regions: a device's own); nerf_regions.composite_regions composites them in ray order. Called directly, the model
-renders every region and composites: one device holding the whole model. K = 1 is the model above, unchanged.
+regions: a device's own); nerf_regions.composite_regions composites them in ray order. With a capacity (the training
+step's, model.region_capacity) each region renders only the rays whose segment meets it, within a static number of
+rows. Called directly, the model renders every region and composites: one device holding the whole model. K = 1
+is the model above, unchanged.
   Randomness comes in as arrays of uniform numbers, one (R, n) array per round of `sample_counts()` (none:
   deterministic evaluation), so the module is a pure function of its inputs. Every attribute comes from
   the config (nerfpod.run.components.make_model).
@@ -132,7 +134,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
 
   @nn.compact
   def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None,
-               region_ids=None, opened=None, anneal=None):
+               region_ids=None, opened=None, anneal=None, capacity=0):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
     near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
@@ -146,7 +148,7 @@ renders every region and composites: one device holding the whole model. K = 1 i
       # render_partials' (with `region_ids`), or every region here, composited: uniforms (K, R, n) per round.
       partials, local = self._region_partials(origins_Rx3, directions_Rx3, near, far,
                                               jnp.arange(self.regions) if region_ids is None else region_ids,
-                                              uniforms or None, frames, anneal)
+                                              uniforms or None, frames, anneal, capacity)
       if region_ids is not None:
         return partials, local
       out = nerf_regions.composite_regions(partials, background)
@@ -205,18 +207,26 @@ renders every region and composites: one device holding the whole model. K = 1 i
     return np.zeros((count, 3), np.float32), np.full((count, 3), bound, np.float32)
 
   def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None,
-                      anneal=None):
+                      anneal=None, capacity=0):
     """(partials, local) of the L regions `region_ids_L` (L,) int32 (with parameters for those L only, the
     first axis of params['regions'], e.g. one device's share): `partials`, what crosses devices, a dict of
     (L, R, ...) arrays (nerf_regions.GATHERED: each ray's segment start and partial sums); `local`, what stays
     (the losses' per-sample histograms): s_edges (L, R, S+1) and weights (L, R, S) of the NeRF field, and
-    `proposals`, per round its (s_edges, weights). `uniforms`: per entry of sample_counts() an (L, R, n)
-    array (each region its own numbers), or () (evaluation). Needs `regions` > 1. (Through __call__, flax's one
-    compact method.)"""
-    return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L,
-                anneal=anneal)
+    `proposals`, per round its (s_edges, weights); and `present` (L, R), whether each ray's segment in each
+    region is not empty. `uniforms`: per entry of sample_counts() an (L, R, n) array (each region its own
+    numbers), or () (evaluation). Needs `regions` > 1. (Through __call__, flax's one compact method.)
 
-  def _region_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms, frames, anneal):
+    `capacity` C > 0 (model.region_capacity, training): each region renders only C rows, the rays whose
+    segment in it is not empty, the first C in ray order (nerf_regions.dispatch), with their rows of the
+    same `uniforms`; `partials` are put back into their rays (L, R, ...), a ray without a row taking what an
+    empty segment gives (nerf_regions.empty_sums), and `local`'s histograms stay per row (L, C, ...), with
+    `dispatch` (nerf_regions.Dispatch) saying which ray each row is and which segments found no row
+    (dropped). 0: every ray in every region (dense)."""
+    return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L,
+                anneal=anneal, capacity=capacity)
+
+  def _region_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms, frames, anneal,
+                       capacity=0):
     origins_Rx3, directions_Rx3, codes = self._per_frame(origins_Rx3, directions_Rx3, frames)
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
     if self.model_config.field == "hashgrid":  # bounded (space is euclidean with regions: schema rule)
@@ -228,14 +238,39 @@ renders every region and composites: one device holding the whole model. K = 1 i
     boxes = tuple(jnp.asarray(a)[region_ids_L] for a in self.region_boxes)
     if uniforms is None:
       uniforms = (None,) * len(self.sample_counts())
+    # Each region's segment of each ray (L, R), as RegionRenderer cuts it (the same vmapped function).
+    t_in, t_out = jax.vmap(lambda n, o, c: tuple(t[0] for t in nerf_regions.segments(
+        origins_Rx3, directions_Rx3, near, far, nerf_regions.Partition(n[None], o[None], c[None]))))(*planes)
+    settings = dict(model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype,
+                    spacing=self.spacing, proposal_samples=tuple(self.proposal_samples),
+                    proposal_padding=self.proposal_padding, grid_matmul_max_rows=self.grid_matmul_max_rows,
+                    grid_materialize=self.grid_materialize, grid_layout=self.grid_layout,
+                    grid_lookup=self.grid_lookup, near_gradient_distance=self.near_gradient_distance, name=REGIONS)
+    if not capacity:  # dense: every ray through every region (the segments cut again inside, as always)
+      renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
+                         in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None, None), out_axes=0)(**settings)
+      partials, local = renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes,
+                                 near, far, anneal)
+      local["present"] = t_out > t_in
+      return partials, local
+    # Compacted: each region's C rows (its rays with a segment there, in ray order), the rays' inputs and
+    # numbers gathered by row; a row left over renders an empty segment ([far, far]: weights 0).
+    d = nerf_regions.dispatch(t_in, t_out, capacity)
+    rows = lambda x: None if x is None else nerf_regions.gather_rows(x, d)  # noqa: E731
+    far_rows = rows(far)  # (L, C, 1)
+    used = d.rows_LxC < t_in.shape[1]
+    own_rows = lambda x: None if x is None else nerf_regions.gather_rows(x, d, per_region=True)  # noqa: E731
+    segment = (jnp.where(used, own_rows(t_in), far_rows[..., 0]),
+               jnp.where(used, own_rows(t_out), far_rows[..., 0]))
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                       in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None, None), out_axes=0)(
-        model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype, spacing=self.spacing,
-        proposal_samples=tuple(self.proposal_samples), proposal_padding=self.proposal_padding,
-        grid_matmul_max_rows=self.grid_matmul_max_rows, grid_materialize=self.grid_materialize,
-        grid_layout=self.grid_layout, grid_lookup=self.grid_lookup,
-        near_gradient_distance=self.near_gradient_distance, name=REGIONS)
-    return renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far, anneal)
+                       in_axes=(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, 0), out_axes=0)(**settings)
+    partials, local = renderer(*planes, boxes, tuple(own_rows(u) for u in uniforms), rows(origins_Rx3),
+                               rows(directions_Rx3), rows(viewdirs), rows(codes), rows(near), far_rows, anneal,
+                               segment)
+    far_R = far[..., 0]
+    partials = {k: nerf_regions.scatter_rows(v, d, nerf_regions.empty_sums(far_R, k)) for k, v in partials.items()}
+    local.update(present=d.present_LxR, dispatch=d)
+    return partials, local
 
   def _footprints(self, origins, directions, t_RxS) -> dict:
     """{} without `pixel_angle`, else {"scales_N": ...}: each sample's pixel footprint (R * S,) in the field's
@@ -319,11 +354,15 @@ class RegionRenderer(nn.Module):
 
   @nn.compact
   def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
-               far, anneal=None):
-    partition = nerf_regions.Partition(normals_Px3[None], offsets_P[None], closed_P[None])
+               far, anneal=None, segment=None):
+    """`segment`: each ray's (t_in, t_out) (R,) in the region, where already cut (a compacted region's rows);
+    None: cut here."""
     bound = self.model_config.hashgrid.bound
     local = lambda points: nerf_regions.to_box(points, *box, bound)  # noqa: E731  (the region's own box)
-    t_in, t_out = (t[0][:, None] for t in nerf_regions.segments(origins, directions, near, far, partition))
+    if segment is None:
+      partition = nerf_regions.Partition(normals_Px3[None], offsets_P[None], closed_P[None])
+      segment = tuple(t[0] for t in nerf_regions.segments(origins, directions, near, far, partition))
+    t_in, t_out = (t[:, None] for t in segment)
     to_s = lambda t: jnp.clip(coord.t_to_s(t, near, far, self.spacing), 0.0, 1.0)  # noqa: E731
     warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731
     s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))

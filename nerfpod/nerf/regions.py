@@ -23,6 +23,8 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     boxes, to_box     each region's own box (its cell's bounds, the whole height) and the map of it onto a field's
     segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised)
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
+    capacity_rows, dispatch, gather_rows, scatter_rows   a chip's rows per region within a static capacity C:
+                      the rays whose segment is not empty, up to C in ray order, and their sums put back
     composite_regions the regions' partial sums of a ray composited in the ray's order
     interlevel_loss   mip-NeRF 360's interlevel loss of one segment, weighed by what reaches it
 
@@ -321,6 +323,72 @@ def partial_sums(rgb_RxSx3, sigma_RxS, t_RxS, deltas_RxS, directions_Rx3, s_edge
 
 # The partial sums that cross devices: per region and ray, a few numbers each (the weights stay local).
 GATHERED = ("t_in", "rgb", "optical_depth", "depth", "acc", "distortion", "moment")
+
+
+def capacity_rows(fraction: float, rays: int) -> int:
+  """C, the static rows each region renders of `rays` rays (model.region_capacity = `fraction` in (0, 1]):
+  ceil(fraction x rays) rounded up to a multiple of 8, and never more than `rays`."""
+  if not 0.0 < fraction <= 1.0 or rays < 1:
+    raise ValueError(f"capacity_rows: the fraction must be in (0, 1] and the rays >= 1, got {fraction}, {rays}")
+  return min(rays, -(-int(np.ceil(fraction * rays)) // 8) * 8)
+
+
+class Dispatch(NamedTuple):
+  """Which rays each of L regions renders within a capacity of C rows (`dispatch`): the rays whose segment in
+  the region is not empty, the first C of them in ray order.
+  rows_LxC     the ray each row renders; R (no ray) in the rows left over
+  slots_LxR    the row of each ray's segment; C where it has none (an empty segment, or one over capacity)
+  present_LxR  the ray's segment in the region is not empty
+  dropped_LxR  ... and found no row: over capacity"""
+  rows_LxC: jax.Array
+  slots_LxR: jax.Array
+  present_LxR: jax.Array
+  dropped_LxR: jax.Array
+
+  @property
+  def capacity(self) -> int:
+    return self.rows_LxC.shape[1]
+
+
+def dispatch(t_in_LxR, t_out_LxR, capacity: int) -> Dispatch:
+  """The rows of L regions' segments (t_in, t_out), each (L, R) as `segments` gives them, within `capacity`
+  rows per region: a static-shape compaction (each present segment's row is the count of present segments
+  before it in ray order, from a cumulative sum; the rows are scattered from it)."""
+  present = t_out_LxR > t_in_LxR
+  count, rays = present.shape
+  slots = jnp.cumsum(present, axis=1, dtype=jnp.int32) - 1
+  fits = present & (slots < capacity)
+  slots = jnp.where(fits, slots, capacity)
+  rows = jnp.full((count, capacity), rays, jnp.int32).at[jnp.arange(count)[:, None], slots].set(
+      jnp.broadcast_to(jnp.arange(rays, dtype=jnp.int32), slots.shape), mode="drop")  # (row C: none, dropped)
+  return Dispatch(rows, slots, present, present & ~fits)
+
+
+def gather_rows(x, d: Dispatch, per_region: bool = False):
+  """Each region's rows of `x` (L, C, ...): x (R, ...), the same for every region, or with `per_region`
+  (L, R, ...), each region's own. A row left over takes the last ray's values (its rendering is never put
+  back)."""
+  rows = jnp.minimum(d.rows_LxC, d.slots_LxR.shape[1] - 1)
+  if per_region:
+    return jnp.take_along_axis(x, rows.reshape(rows.shape + (1,) * (x.ndim - 2)), axis=1)
+  return x[rows]
+
+
+def scatter_rows(x_LxC, d: Dispatch, absent):
+  """The rows' values (L, C, ...) put back into their rays (L, R, ...); a ray with no row in a region takes
+  `absent` there (broadcast against (L, R, ...)): what an empty segment gives, so the rays' sums are the
+  dense rendering's. (A gather of each ray's row: its transpose adds each ray's cotangent into its row.)"""
+  slots = jnp.minimum(d.slots_LxR, d.capacity - 1)
+  picked = jnp.take_along_axis(x_LxC, slots.reshape(slots.shape + (1,) * (x_LxC.ndim - 2)), axis=1)
+  has_row = (d.slots_LxR < d.capacity).reshape(slots.shape + (1,) * (x_LxC.ndim - 2))
+  return jnp.where(has_row, picked, jnp.asarray(absent, x_LxC.dtype))
+
+
+def empty_sums(far_R, key: str):
+  """What `partial_sums` (and the segment's start) give a ray's empty segment [far, far], per key of
+  GATHERED: its start t_in = far (the ray's far bound, (R,)); every sum 0 (its samples' weights are 0: each
+  interval has length 0). The interlevel loss of an empty segment is 0 too (no NeRF weight to bound)."""
+  return far_R if key == "t_in" else 0.0
 
 
 def composite_regions(partials, background=None):

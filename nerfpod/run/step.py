@@ -66,6 +66,9 @@ class Options:
   proposal_anneal_steps: int = 0
   # train.single_jitter: one random offset per ray and round, shared by its strata (step.round_uniforms)
   single_jitter: bool = False
+  # model.region_capacity (model.regions > 1): each region renders C = regions.capacity_rows(this, the device's
+  # rays) rows, the rays whose segment meets it (a ray over capacity dropped whole); 0: every ray (dense)
+  region_capacity: float = 0.0
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -78,7 +81,8 @@ class Options:
                comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
                coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine),
                interlevel_blur=tuple(float(r) for r in tc.interlevel_blur),
-               proposal_anneal_steps=int(tc.proposal_anneal_steps), single_jitter=bool(tc.single_jitter))
+               proposal_anneal_steps=int(tc.proposal_anneal_steps), single_jitter=bool(tc.single_jitter),
+               region_capacity=float(config.model.region_capacity) if config.model.regions > 1 else 0.0)
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -306,13 +310,25 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   (psum_scatter) would sum the K identical cotangents of the K devices' identical losses, and every gradient
   would come out K times too large. The interlevel loss is per segment (regions.interlevel_loss, each
   region's own histograms scaled by the NeRF's transmittance before its segment), its per-ray terms gathered
-  the same way; the distortion loss is the whole ray's, from the gathered sums."""
+  the same way; the distortion loss is the whole ray's, from the gathered sums.
+
+  With options.region_capacity (docs/scale.md, "Dispatch and capacity"), each region renders only its C rows
+  (NeRF.render_partials' capacity: the rays whose segment meets it, in ray order, with the dense path's
+  random numbers), put back into their rays as empty segments elsewhere, so the composite and the losses are
+  the dense ones. A ray with a segment over capacity in any region is dropped whole: its flag rides the same
+  gather, and it adds nothing to the mean squared error, interlevel and distortion losses (still the means over
+  the whole batch, so that the loss does not depend on how the batch is split over devices).
+  The metrics gain region_metrics' (for the dense path too)."""
   count = model.regions
   axis_size = distributed.num_regions(mesh)
   if count % axis_size:
     raise ValueError(f"model.regions={count} does not split over the mesh's region axis of {axis_size}")
   local = count // axis_size
   background = jnp.asarray(background, jnp.float32)
+  # The losses' and metrics' means are taken over the micro-batches and the batch's devices: a count of the
+  # whole step is reported as (count of these rays) x (how many such shares make the step).
+  shares = options.microbatches * distributed.batch_devices(mesh)
+  field_samples = sum(model.sample_counts())  # a ray's field evaluations in one region: proposals' and NeRF's
 
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
     return x if axis_size == 1 else distributed.gather_regions(x)
@@ -327,24 +343,69 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
                                                options.single_jitter))(ids)
     uniforms = [region_uniforms(i if i < 2 else i + 1, n) for i, n in enumerate(model.sample_counts())]
     target, ray_background = _targets(batch, key, background, options)
+    rays = batch["origins"].shape[0]
+    capacity = regions.capacity_rows(options.region_capacity, rays) if options.region_capacity else 0
     partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
-                                frames=batch.get("frame"), anneal=_anneal(options, step), method="render_partials")
-    out = regions.composite_regions(gather(partials), ray_background)
-    mse = jnp.mean((out["rgb"] - target)**2)
-    mses, loss, extra = mse[None], mse, {}
+                                frames=batch.get("frame"), anneal=_anneal(options, step), capacity=capacity,
+                                method="render_partials")
+    # (Compacted) whether each ray's segment in each region found no row: riding the partial sums' gather, so
+    # every device of the region axis knows every region's, and drops the ray whole.
+    flags = {"dropped": jax.lax.stop_gradient(own["dispatch"].dropped_LxR.astype(jnp.float32))} if capacity else {}
+    gathered = gather(partials | flags)
+    out = regions.composite_regions(gathered, ray_background)
+    # Each region's rays with a segment in it (K,): the devices' own, summed over the region axis (K numbers,
+    # apart from the gather, whose traffic stays the dense step's).
+    counts = jax.lax.stop_gradient(jnp.sum(own["present"], axis=1, dtype=jnp.float32))
+    if axis_size > 1:
+      counts = jax.lax.psum(jax.lax.dynamic_update_slice_in_dim(jnp.zeros(count), counts, first, axis=0),
+                            distributed.REGION_AXIS)
+    mean = jnp.mean
+    if capacity:  # a dropped ray adds 0 to the means over the batch (where none is dropped: the dense means' bits)
+      kept = jnp.max(gathered["dropped"], axis=0) == 0.0
+      mean = lambda x: jnp.mean(jnp.where(kept.reshape(kept.shape + (1,) * (x.ndim - 1)), x, 0.0))  # noqa: E731
+    mse = mean((out["rgb"] - target)**2)
+    mses, loss = mse[None], mse
+    extra = region_metrics(counts, rays, gathered.get("dropped"), capacity, local, field_samples,
+                           options.microbatches, shares)
     if own["proposals"]:
       prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
+      if capacity:  # each row's own ray's
+        prefix = regions.gather_rows(prefix, own["dispatch"], per_region=True)
       weights = jax.lax.stop_gradient(own["weights"])
       radii = options.interlevel_blur or (None,) * len(own["proposals"])  # None: mip-NeRF 360's loss
       per_ray = sum(jax.vmap(functools.partial(regions.interlevel_loss, radius=radius))(
                         own["s_edges"], weights, p["s_edges"], p["weights"], prefix)
-                    for radius, p in zip(radii, own["proposals"]))  # (L, R)
-      extra["interlevel"] = jnp.mean(jnp.sum(gather(per_ray), axis=0))
-      extra["distortion"] = jnp.mean(out["distortion"])
+                    for radius, p in zip(radii, own["proposals"]))  # (L, R), or (L, C) rows
+      if capacity:  # back into the rays: an empty segment's term is 0
+        per_ray = regions.scatter_rows(per_ray, own["dispatch"], 0.0)
+      extra["interlevel"] = mean(jnp.sum(gather(per_ray), axis=0))
+      extra["distortion"] = mean(out["distortion"])
       loss = loss + options.interlevel_weight * extra["interlevel"] + options.distortion_weight * extra["distortion"]
     return loss, (mses, extra)
 
   return loss_fn
+
+
+def region_metrics(counts_K, rays: int, dropped_KxR, capacity: int, local: int, field_samples: int,
+                   microbatches: int, shares: int) -> dict:
+  """A region step's visibility (docs/scale.md, "Dispatch and capacity") of these `rays` rays (one device's,
+  one micro-batch's): `counts` (K,), how many of them have a segment in each region; `dropped` (K, R) or None
+  (dense), whether each ray's segment in each region found no row within `capacity` C (0: dense). The step's
+  mean over its `shares` (micro-batches x the batch's devices) gives:
+  regions/segments_per_ray      the mean count of non-empty segments per ray
+  regions/fill                  the fullest region's rays with a segment in it / C (/ R when dense); over 1: overflow
+  regions/dropped               the rays dropped in the step (each reported x shares, so the mean is the sum)
+  regions/field_evals_per_chip  the rows a chip renders in the step x field samples per ray (`field_samples`)
+  regions/capacity              C, rows per region (compacted only)"""
+  rows = capacity or rays
+  out = {"regions/segments_per_ray": jnp.sum(counts_K) / rays,
+         "regions/fill": jnp.max(counts_K) / rows,
+         "regions/dropped": (jnp.zeros(()) if dropped_KxR is None else
+                             jnp.sum(jnp.max(dropped_KxR, axis=0)) * float(shares)),
+         "regions/field_evals_per_chip": jnp.float32(local * rows * field_samples * microbatches)}
+  if capacity:
+    out["regions/capacity"] = jnp.float32(capacity)
+  return out
 
 
 def _region_reductions(mesh, ordered_mean: bool) -> Reductions:

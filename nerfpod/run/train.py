@@ -133,13 +133,51 @@ class CollapseWatch:
             f"--config.render.proposal_padding=0.01 (docs/training.md, proposal sampling's diagnostics).")
 
 
+class DropWatch:
+  """model.region_capacity > 0: the rays the step dropped (a ray whose segment in some region found no row
+  within the capacity C is dropped whole: the step's metric regions/dropped), summed over each log window (the
+  steps since the previous log line). A window that dropped more than LIMIT of its rays stops training with one
+  sentence. The window's counts stay on the device until its log step (no wait per step)."""
+  LIMIT = 1e-3
+
+  def __init__(self, fraction: float, batch_size: int):
+    self.fraction, self.batch_size = fraction, batch_size
+    self.window = []  # (step, dropped, fill, capacity) of each step of the window, on the device
+
+  def dispatched(self, step: int, metrics) -> None:
+    self.window.append((step, metrics["regions/dropped"], metrics["regions/fill"], metrics["regions/capacity"]))
+
+  def check(self) -> None:
+    """At a log step: refuses a window (its steps so far) that dropped over LIMIT of its rays."""
+    window, self.window = jax.device_get(self.window), []
+    if not window:
+      return
+    dropped = sum(float(d) for _, d, _, _ in window)
+    rays = len(window) * self.batch_size
+    if dropped <= self.LIMIT * rays:
+      return
+    fill = max(float(f) for _, _, f, _ in window)
+    capacity = int(window[-1][3])
+    raise UserError(f"training dropped {dropped:,.0f} of the {rays:,} rays of steps {window[0][0]} to "
+                    f"{window[-1][0]} ({dropped / rays:.2%}, over the {self.LIMIT:.1%} a run may drop): "
+                    f"model.region_capacity={self.fraction:g} gives each region C = {capacity} rows of each "
+                    f"device's rays and the fullest region's rays with a segment in it filled {fill:.2f} x C, so "
+                    f"rays over capacity were dropped whole; resume with --config.model.region_capacity="
+                    f"{min(1.0, _round_up(self.fraction * fill * 1.1, 0.05)):g} (or 0: every ray through every "
+                    f"region).")
+
+
+def _round_up(value: float, step: float) -> float:
+  return round(-(-value // step) * step, 6)
+
+
 class StepLog:
   """The log line and scalars of the first step, every train.log_every-th and the last: one call site,
   monitor.scalars. A step's metrics are fetched one step late, once the next step is dispatched, so that
   logging never waits for the device; `flush` logs what is still pending (the end of a run, a preemption)."""
 
-  def __init__(self, monitor, train_config, start_step: int, skips: SkipCount):
-    self.monitor, self.skips = monitor, skips
+  def __init__(self, monitor, train_config, start_step: int, skips: SkipCount, drops: DropWatch | None = None):
+    self.monitor, self.skips, self.drops = monitor, skips, drops
     self.learning_rate = jax.jit(train_state.learning_rate_schedule(train_config))  # of a step on the device
     self.every, self.last, self.first = train_config.log_every, train_config.num_steps, start_step + 1
     self.pending = None  # (step, metrics on the device)
@@ -147,6 +185,8 @@ class StepLog:
 
   def dispatched(self, step: int, metrics) -> None:
     self.flush()
+    if self.drops is not None:
+      self.drops.dispatched(step, metrics)
     if step % self.every == 0 or step in (self.first, self.last):
       self.pending = (step, metrics)
 
@@ -160,6 +200,8 @@ class StepLog:
       warning = self.collapse.check(step, metrics)
       if warning and jax.process_index() == 0:
         print(f"nerfpod: warning: {warning}", file=sys.stderr, flush=True)
+      if self.drops is not None:  # the window ends here (logged): refused where it dropped too many rays
+        self.drops.check()
 
 
 def _restore_or_init(comps: components.Components, ckpt) -> tuple[TrainState, int, dict | None]:
@@ -225,7 +267,9 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
         distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
     _announce(comps, workdir, start_step)
     skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
-    log = StepLog(monitor, tc, start_step, skips)
+    drops = (DropWatch(config.model.region_capacity, tc.batch_size)
+             if config.model.regions > 1 and config.model.region_capacity else None)
+    log = StepLog(monitor, tc, start_step, skips, drops)
     key = train_state.rays_key(tc.seed, comps.mesh)
     batches = comps.batches(start_step)
 

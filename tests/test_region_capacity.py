@@ -1,0 +1,319 @@
+"""model.region_capacity: each chip renders, per region, only the rays whose segment meets it, up to C rows
+(nerf/regions.py's dispatch, NeRF.render_partials' capacity, run/step.py's _region_loss_fn): the same step as the
+dense one where nothing is dropped, whole rays dropped where a region overflows, counted, and the training loop's
+refusal; the step's regions/* scalars."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import Mesh
+
+from conftest import smoke_config
+from nerfpod import data, distributed, scenes
+from nerfpod.errors import UserError
+from nerfpod.nerf import regions, sampling
+from nerfpod.run import components, step, train, train_state
+
+BATCH = 128
+# Of the first two batches' rays, at most 73 of 128 meet the fullest region (fill 0.57): 0.75 (C = 96) holds them
+# all, and of 64 and 32 rays a device (2 x 4, 4 x 2) at most 42 and 22 do (C = 48, 24).
+ROOMY = 0.75
+TINY = 0.125  # C = 16 of 128: most rays overflow
+
+
+def _config(**overrides):
+  tiny = {"model.regions": 4, "model.hashgrid.num_levels": 2, "model.hashgrid.log2_table_size": 6,
+          "model.hashgrid.max_resolution": 32, "model.hashgrid.hidden_width": 8,
+          "model.proposal.num_levels": 2, "model.proposal.log2_table_size": 6, "model.proposal.max_resolution": 32,
+          "model.proposal.hidden_width": 8, "render.proposal_samples": (8,), "render.num_samples": 6,
+          "train.batch_size": BATCH, "train.distortion_weight": 0.01, "model.hashgrid.bound": 1.5}
+  return smoke_config(**(tiny | overrides))
+
+
+def _batches(config, steps, with_frames=False):
+  scene = scenes.load(config.data)
+  dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size, slice(0, config.train.batch_size),
+                             0.5, steps, with_frames=with_frames)
+  out = []
+  for i in range(steps):
+    batch = dict(dataset[i])
+    batch.pop("step")
+    out.append(batch)
+  return scene, out
+
+
+def _one():
+  return Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+
+
+def _region_mesh(shape):
+  return Mesh(np.array(jax.devices()).reshape(shape), (distributed.DATA_AXIS, distributed.REGION_AXIS))
+
+
+def _run(mesh, capacity, steps=2, batches=None, optimizer=None, microbatches=1, compiler_options=None, **overrides):
+  """(state, metrics of each step) of `steps` steps (plain SGD: the parameters move exactly as the gradients)."""
+  config = _config(**overrides)
+  per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
+  model = components.make_model(config, num_frames=100 if per_frame else 0)
+  scene, own = _batches(config, steps, per_frame)
+  optimizer = optimizer or optax.sgd(1.0)
+  state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
+                                 step.Options(random_background=True, distortion_weight=0.01,
+                                              region_capacity=capacity, microbatches=microbatches,
+                                              compiler_options=compiler_options))
+  metrics = []
+  for batch in batches or own:
+    state, m = step_fn(state, jax.device_put(batch, distributed.batch_sharding(mesh)), jax.random.key(7))
+    metrics.append(jax.device_get(m))
+  return jax.device_get(state), metrics
+
+
+# LLVM's optimisation level 1 for the CPU kernels of the step whose values are pinned below, whatever the test
+# session's XLA_FLAGS (tests/procs.py): the level the values were recorded at, which computes the bits of XLA's
+# default level 2 (a program's bits at level 0 depend on its structure, not only on its arithmetic).
+OPTIMIZED = {"xla_backend_optimization_level": "1"}
+
+
+@pytest.fixture(scope="module")
+def dense():
+  """The dense step (capacity 0) on one device, two steps: the reference."""
+  return _run(_one(), 0.0, compiler_options=OPTIMIZED)
+
+
+@pytest.fixture(scope="module")
+def segments():
+  """Each region's segment (K, R) of the first two batches' rays, as the model cuts them (box, then planes)."""
+  config = _config()
+  model = components.make_model(config)
+  _, batches = _batches(config, 2)
+  out = []
+  for batch in batches:
+    o, d = jnp.asarray(batch["origins"]), jnp.asarray(batch["directions"])
+    near, far = sampling.clip_to_box(o, d, 2.0, 6.0, config.model.hashgrid.bound)
+    out.append(jax.jit(lambda o, d, near, far: regions.segments(o, d, near, far, model.partition))(o, d, near, far))
+  return out
+
+
+def _present(t_in, t_out):
+  return np.asarray(t_out > t_in)
+
+
+def _dropped(present_KxR, capacity):
+  """Rays with a segment beyond the first `capacity` of its region's, in ray order (a brute-force count)."""
+  rank = np.cumsum(present_KxR, axis=1) - 1
+  return np.any(present_KxR & (rank >= capacity), axis=0)
+
+
+def _same_step(got, want, rtol_params=1e-4):
+  (state_got, metrics_got), (state_want, metrics_want) = got, want
+  for m_got, m_want in zip(metrics_got, metrics_want):
+    for key in ("loss", "mse", "interlevel", "distortion", "grad_norm", "regions/segments_per_ray"):
+      np.testing.assert_allclose(m_got[key], m_want[key], rtol=2e-5, err_msg=key)
+    assert m_got["regions/dropped"] == 0
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=rtol_params, atol=1e-6),
+               state_got.params, state_want.params)
+
+
+# Capacity 0 is the region step of commit 4d8cad3 (before model.region_capacity), which gave these values on
+# this one-device configuration: the loss of steps 1 and 2 and the sum of the parameters after them (every
+# parameter was checked bit for bit against that commit's code, on 2 x 4 devices with Adam too and on the smoke
+# config's fields, at LLVM levels 1 and 2, on the 2-core machine of 2026-12-06; another CPU may round otherwise,
+# hence rtol 1e-6, as tests/test_golden.py's 1e-5).
+BEFORE_CAPACITY = {"losses": (0.07140574604272842, 0.068402960896492), "param_sum": -15.518214437191176}
+
+
+def test_capacity_zero_is_the_dense_region_step_of_before(dense):
+  state, metrics = dense
+  losses = tuple(float(m["loss"]) for m in metrics)
+  param_sum = float(sum(np.sum(np.asarray(p, np.float64)) for p in jax.tree.leaves(state.params)))
+  got = {"losses": losses, "param_sum": param_sum}
+  assert got["losses"] == pytest.approx(BEFORE_CAPACITY["losses"], rel=1e-6), got
+  assert got["param_sum"] == pytest.approx(BEFORE_CAPACITY["param_sum"], rel=1e-6), got
+  assert "regions/capacity" not in metrics[0]  # dense: no C
+
+
+def test_roomy_capacity_steps_as_the_dense_one_on_one_device(dense, segments):
+  """C = 96 of 128 rays (fewer rows than rays: a real compaction), nothing dropped: the loss, metrics and the
+  parameters after two SGD steps are the dense step's, to float tolerance (not bit for bit: XLA rounds the
+  same per-ray arithmetic differently on gathered rows, ~1e-7 relative in a segment's sums)."""
+  compact = _run(_one(), ROOMY)
+  assert regions.capacity_rows(ROOMY, BATCH) == 96
+  assert max(int(_present(*s).sum(axis=1).max()) for s in segments) <= 96
+  _same_step(compact, dense)
+  assert compact[1][0]["regions/field_evals_per_chip"] == 4 * 96 * (8 + 6)
+  assert dense[1][0]["regions/field_evals_per_chip"] == 4 * BATCH * (8 + 6)
+
+
+@pytest.mark.parametrize("shape", [(2, 4), pytest.param((4, 2), marks=pytest.mark.slow)])
+def test_roomy_capacity_steps_as_the_dense_one_on_a_region_mesh(dense, segments, shape):
+  """(data, region) = `shape` on 8 devices, each with its L = 4 / regions share: the same against the dense
+  step on one device (which tests/test_region_step.py holds equal to the dense step on these meshes). (4, 2):
+  another compile of the 8-device step, the slow set; (2, 4) covers the same claim."""
+  compact = _run(_region_mesh(shape), ROOMY)
+  rays = BATCH // shape[0]
+  capacity = regions.capacity_rows(ROOMY, rays)
+  _same_step(compact, dense)
+  for (t_in, t_out), metrics in zip(segments, compact[1]):
+    assert metrics["regions/capacity"] == capacity
+    present = _present(t_in, t_out)  # the fill: the mean over the data axis of each device's fullest region
+    fills = [present[:, i:i + rays].sum(axis=1).max() / capacity for i in range(0, BATCH, rays)]
+    assert metrics["regions/fill"] == pytest.approx(np.mean(fills), rel=1e-6)
+
+
+PER_FRAME = {"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16, "model.mlp.skips": (),
+             "model.use_viewdirs": True, "model.appearance_dim": 4, "train.pose_refine": True,
+             "render.proposal_samples": (), "render.num_samples": 8}
+
+
+def test_roomy_capacity_with_per_frame_tables_and_stratified_samples_steps_as_the_dense_one():
+  """The MLP field with stratified samples per segment (no proposals), per-frame appearance codes and pose
+  corrections (each row takes its ray's code and moved ray) on 2 x 4: the dense step's loss and parameters."""
+  compact = _run(_region_mesh((2, 4)), ROOMY, **PER_FRAME)
+  want = _run(_one(), 0.0, **PER_FRAME)
+  for m_got, m_want in zip(compact[1], want[1]):
+    for key in ("loss", "grad_norm", "regions/segments_per_ray"):
+      np.testing.assert_allclose(m_got[key], m_want[key], rtol=2e-5, err_msg=key)
+    assert m_got["regions/dropped"] == 0
+  assert np.abs(want[0].params["params"]["pose_correction"]).max() > 0
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), compact[0].params,
+               want[0].params)
+
+
+def test_dispatch_compacts_the_present_segments_in_ray_order():
+  t_in = jnp.array([[0.0, 5.0, 1.0, 0.5, 2.0], [5.0, 5.0, 5.0, 1.0, 5.0]])
+  t_out = jnp.array([[1.0, 5.0, 2.0, 0.7, 3.0], [5.0, 5.0, 5.0, 2.0, 5.0]])  # (L 2, R 5); 5.0: empty [far, far]
+  d = regions.dispatch(t_in, t_out, 3)
+  np.testing.assert_array_equal(d.present_LxR, [[1, 0, 1, 1, 1], [0, 0, 0, 1, 0]])
+  np.testing.assert_array_equal(d.rows_LxC, [[0, 2, 3], [3, 5, 5]])  # 5 = R: a row left over
+  np.testing.assert_array_equal(d.slots_LxR, [[0, 3, 1, 2, 3], [3, 3, 3, 0, 3]])  # 3 = C: no row
+  np.testing.assert_array_equal(d.dropped_LxR, [[0, 0, 0, 0, 1], [0, 0, 0, 0, 0]])  # ray 4 over capacity
+  x = jnp.arange(5.0) * 10
+  rows = regions.gather_rows(x, d)
+  np.testing.assert_array_equal(rows, [[0, 20, 30], [30, 40, 40]])
+  back = regions.scatter_rows(rows + 1, d, -1.0)
+  np.testing.assert_array_equal(back, [[1, -1, 21, 31, -1], [-1, -1, -1, 31, -1]])
+  assert [regions.capacity_rows(f, 128) for f in (0.01, 0.5, 0.51, 1.0)] == [8, 64, 72, 128]
+  assert regions.capacity_rows(1.0, 20) == 20  # never more rows than rays
+
+
+def test_an_absent_segment_takes_what_the_dense_path_gives_an_empty_one():
+  """Rays that miss a region: the dense renderer's sums there are nerf_regions.empty_sums' (t_in the ray's far
+  bound exactly, every sum 0), which the compacted path puts in the rays it does not render. The dense sums are
+  0 up to round-off only: the empty segment's sample edges, all at `far`, may land an ulp apart after the map
+  from s to t, and a tiny (even negative) interval length gives a weight of about 5e-7."""
+  config = _config()
+  model = components.make_model(config)
+  _, (batch,) = _batches(config, 1)
+  o, d = jnp.asarray(batch["origins"]), jnp.asarray(batch["directions"])
+  params = jax.jit(model.init)(jax.random.key(0), o[:2], d[:2], 2.0, 6.0, jnp.zeros(3))
+  uniforms = tuple(jax.random.uniform(jax.random.key(i), (4, BATCH, n)) for i, n in enumerate(model.sample_counts()))
+  partials, own = jax.jit(lambda: model.apply(params, o, d, 2.0, 6.0, jnp.arange(4), uniforms,
+                                              method="render_partials"))()
+  absent = ~np.asarray(own["present"])
+  assert absent.sum() > 50 and (~absent).sum() > 50
+  far = np.asarray(sampling.clip_to_box(o, d, 2.0, 6.0, config.model.hashgrid.bound)[1])[:, 0]
+  for key, value in partials.items():
+    want = np.broadcast_to(np.asarray(regions.empty_sums(far, key), np.float32), absent.shape)
+    got = np.asarray(value)[absent]
+    if key == "t_in":
+      np.testing.assert_array_equal(got, want[absent], err_msg=key)
+    else:
+      np.testing.assert_allclose(got, 0.0, atol=2e-5, err_msg=key)
+  prefix = jnp.ones(absent.shape)
+  interlevel = jax.vmap(regions.interlevel_loss)(own["s_edges"], own["weights"], own["proposals"][0]["s_edges"],
+                                                 own["proposals"][0]["weights"], prefix)
+  np.testing.assert_allclose(np.asarray(interlevel)[absent], 0.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("shape,microbatches", [(None, 1), ((2, 4), 2)])
+def test_an_overflow_drops_whole_rays_counts_them_and_trains_on_the_rest(segments, shape, microbatches):
+  """At capacity TINY (C = 16 of 128 rays on one device; on 2 x 4 in 2 micro-batches, 8 of each 32) the rays
+  with a segment over capacity in any region (counted by brute force, per device's and micro-batch's share of
+  the batch) are dropped whole, on every device of the region axis: regions/dropped counts them, and the step is
+  the dense step on the batch of the rays kept (each ray's random numbers are its own, whatever batch holds
+  it), its loss and gradients scaled by the share kept (a dropped ray adds 0 to the batch's means)."""
+  mesh = _one() if shape is None else _region_mesh(shape)
+  rays = BATCH // (shape or (1,))[0] // microbatches
+  capacity = regions.capacity_rows(TINY, rays)
+  state, (metrics,) = _run(mesh, TINY, steps=1, microbatches=microbatches)
+  local = 4 // (shape or (1, 1))[1]
+  assert metrics["regions/field_evals_per_chip"] == local * capacity * (8 + 6) * microbatches
+  present = _present(*segments[0])
+  dropped = np.concatenate([_dropped(present[:, i:i + rays], capacity) for i in range(0, BATCH, rays)])
+  assert 0 < dropped.sum() < BATCH - 8
+  assert metrics["regions/dropped"] == dropped.sum()
+  assert metrics["regions/capacity"] == capacity
+  if shape is None:  # (on a mesh, the mean of each device's fullest)
+    np.testing.assert_allclose(metrics["regions/fill"], present.sum(axis=1).max() / capacity)
+  _, (batch,) = _batches(_config(), 1)
+  kept_state, (kept_metrics,) = _run(_one(), 0.0, steps=1, batches=[{k: v[~dropped] for k, v in batch.items()}])
+  share = (~dropped).sum() / BATCH
+  for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
+    np.testing.assert_allclose(metrics[key], share * kept_metrics[key], rtol=2e-5, err_msg=key)
+  initial = jax.device_get(train_state.initial_state(components.make_model(_config()), optax.sgd(1.0), 0,
+                                                     _one()).params)
+  jax.tree.map(lambda got, kept, start: np.testing.assert_allclose(got - start, share * (kept - start), rtol=1e-4,
+                                                                   atol=1e-6),
+               state.params, kept_state.params, initial)
+
+
+def test_the_scalars_on_a_hand_checked_case():
+  # 3 regions x 4 rays: ray 0 crosses regions 0 and 1, ray 1 region 1, ray 2 all three, ray 3 region 1.
+  counts = jnp.array([2, 4, 1], jnp.float32)  # rays with a segment in each region
+  dense = step.region_metrics(counts, 4, None, 0, local=3, field_samples=14, microbatches=1, shares=1)
+  assert {k: float(v) for k, v in dense.items()} == {
+      "regions/segments_per_ray": 7 / 4, "regions/fill": 4 / 4, "regions/dropped": 0.0,
+      "regions/field_evals_per_chip": 3 * 4 * 14}
+  dropped = jnp.array([[0, 0, 0, 0], [0, 0, 1, 1], [0, 0, 0, 0]], jnp.float32)  # C = 2: region 1's rays 2, 3
+  compact = step.region_metrics(counts, 4, dropped, 2, local=1, field_samples=14, microbatches=2, shares=4)
+  assert {k: float(v) for k, v in compact.items()} == {
+      "regions/segments_per_ray": 7 / 4, "regions/fill": 4 / 2, "regions/dropped": 2 * 4,
+      "regions/field_evals_per_chip": 1 * 2 * 14 * 2, "regions/capacity": 2}
+
+
+def test_the_step_scalars_are_the_rays_segments(dense, segments):
+  """One device holding the 4 regions: the dense step's scalars against a count of the segments."""
+  for (t_in, t_out), metrics in zip(segments, dense[1]):
+    present = _present(t_in, t_out)
+    assert metrics["regions/segments_per_ray"] == pytest.approx(present.sum(axis=0).mean(), rel=1e-7)
+    assert metrics["regions/fill"] == pytest.approx(present.sum(axis=1).max() / BATCH, rel=1e-7)
+    assert metrics["regions/dropped"] == 0
+
+
+def test_the_loop_refuses_a_window_that_drops_over_a_thousandth_of_its_rays():
+  watch = train.DropWatch(0.25, 1024)
+  for s, dropped in ((1, 1.0), (2, 0.0)):  # 1 of 2,048: under 0.1%
+    watch.dispatched(s, {"regions/dropped": np.float32(dropped), "regions/fill": np.float32(0.9),
+                         "regions/capacity": np.float32(64)})
+  watch.check()
+  for s in (3, 4):
+    watch.dispatched(s, {"regions/dropped": np.float32(2.0), "regions/fill": np.float32(1.31 if s == 3 else 1.2),
+                         "regions/capacity": np.float32(64)})
+  with pytest.raises(UserError) as refused:
+    watch.check()
+  assert str(refused.value) == (
+      "training dropped 4 of the 2,048 rays of steps 3 to 4 (0.20%, over the 0.1% a run may drop): "
+      "model.region_capacity=0.25 gives each region C = 64 rows of each device's rays and the fullest region's "
+      "rays with a segment in it filled 1.31 x C, so rays over capacity were dropped whole; resume with "
+      "--config.model.region_capacity=0.4 (or 0: every ray through every region).")
+
+
+def test_a_run_that_overflows_stops_with_the_sentence(tmp_path):
+  from nerfpod.run import modes
+  config = _config(**{"model.region_capacity": TINY, "train.num_steps": 3, "train.log_every": 1,
+                      "train.image_every": 0, "orbit.render_after_training": False})
+  with pytest.raises(UserError, match=r"^training dropped (\d+) of the 128 rays of steps 1 to 1 .*"
+                                      r"model.region_capacity=0.125 gives each region C = 8 rows") as refused:
+    modes.train_and_evaluate(config, str(tmp_path))
+  # Step 1's scalars reached TensorBoard before the refusal, the regions' with the others.
+  from tensorboard.backend.event_processing import event_accumulator
+  events = event_accumulator.EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})
+  events.Reload()
+  scalars = {tag: events.Scalars(tag)[-1] for tag in events.Tags()["scalars"] if tag.startswith("train/regions/")}
+  assert sorted(scalars) == ["train/regions/capacity", "train/regions/dropped", "train/regions/field_evals_per_chip",
+                             "train/regions/fill", "train/regions/segments_per_ray"]
+  assert scalars["train/regions/dropped"].step == 1
+  assert scalars["train/regions/dropped"].value == int(str(refused.value).split()[2])
+  assert scalars["train/regions/capacity"].value == 8 and scalars["train/regions/fill"].value > 1
