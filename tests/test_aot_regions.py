@@ -61,6 +61,53 @@ def test_region_traffic_sums_the_gathers_over_the_region_axis_and_the_reductions
   assert aot.check_collectives(stray, state_bytes=200000, regions=True) == ["all-gather of 512 bytes"]
 
 
+@pytest.mark.parametrize("capacity,microbatches,rows,evals", [
+    (0.0, 1, None, 1 * 512 * 48),         # dense: every region of the chip renders its group's R rays
+    (0.75, 1, 384, 1 * 384 * 48),         # C = ceil(0.75 x 512) = 384
+    (0.3, 1, 160, 1 * 160 * 48),          # ceil(153.6) = 154, up to a multiple of 8: 160
+    (0.5, 2, 128, 1 * 128 * 48 * 2),      # two micro-batches of R = 256: C of each
+    (1.0, 1, 512, 1 * 512 * 48),          # the whole of R: as many evaluations as dense
+])
+def test_region_figures_per_chip(capacity, microbatches, rows, evals):
+  """The street at K = 4 on 8 chips, 2 data x 4 regions, 1,024 rays: a chip holds its region group's 512 rays
+  (not 1,024 / 8) and renders its one region; 48 field samples per ray (32 proposal + 16)."""
+  figures = aot.region_figures(1024, 2, 4, 4, 48, microbatches, capacity)
+  assert figures["rays_per_chip"] == 512 and figures["regions_per_chip"] == 1
+  assert figures["rows_per_region"] == 512 // microbatches
+  assert figures["capacity_rows"] == rows
+  assert figures["field_evals_per_chip_dense"] == 512 * 48
+  assert figures["field_evals_per_chip"] == evals
+
+
+def test_region_figures_are_the_steps_metric():
+  """The figures are those the step logs as regions/field_evals_per_chip (step.region_metrics, dense and
+  compacted), for 2 regions per chip (K = 8 over a region axis of 4) and 2 micro-batches."""
+  import jax.numpy as jnp
+  from nerfpod.nerf import regions
+  from nerfpod.run import step
+  for capacity in (0.0, 0.6):
+    figures = aot.region_figures(2048, 4, 8, 4, 40, 2, capacity)
+    rays = 2048 // 4 // 2
+    rows = regions.capacity_rows(capacity, rays) if capacity else 0
+    dropped = jnp.zeros((8, rays)) if capacity else None
+    metric = step.region_metrics(jnp.ones((8,)), rays, dropped, rows, 2, 40, 2, 2 * 4)
+    assert figures["field_evals_per_chip"] == int(metric["regions/field_evals_per_chip"])
+    assert figures["capacity_rows"] == (rows or None)
+
+
+def test_the_report_prints_the_region_figures():
+  report = {"pod": "v5e-8", "topology": "2x4", "chips": 8, "hosts": 1, "chip": {"kind": "TPU v5e",
+            "hbm_bytes": 16 * 2**30, "source": "test"}, "batch": 1024, "rays_per_chip": 512, "microbatches": 1,
+            "compute_dtype": "float32", "hashgrid_matmul_max_rows": 0, "host_rows_contiguous": True,
+            "regions": aot.region_figures(1024, 2, 4, 4, 48, 1, 0.75)}
+  text = aot.format_report(report)
+  assert "batch 1024 rays, 512 per chip" in text
+  assert "regions: 4 over a region axis of 4, 1 per chip; each chip holds its region group's 512 rays" in text
+  assert ("field evaluations per chip and step: 1 region(s) x 384 rows x 48 samples x 1 micro-batch(es) = 18,432 "
+          "at model.region_capacity=0.75 (0.75 of dense: 1 region(s) x 512 rows x 48 samples x 1 micro-batch(es) "
+          "= 24,576 dense)") in text
+
+
 @pytest.mark.slow  # a whole TPU compile of the region step in a process of its own (~20 s)
 @needs_libtpu
 def test_a_region_models_step_reports_its_partial_sums_gathered_over_the_region_axis():
@@ -73,6 +120,14 @@ def test_a_region_models_step_reports_its_partial_sums_gathered_over_the_region_
   assert out.returncode == 0, out.stderr
   report = json.loads(out.stdout)
   assert report["mesh"] == {"data": 2, "region": 4}
+  # A chip holds its region group's rays (256 / 2 data chips, not / 8) and renders its one region with the
+  # smoke model's 16 + 16 samples per ray (region_figures' arithmetic: the quick tests above).
+  assert report["rays_per_chip"] == 128
+  assert report["regions"]["regions_per_chip"] == 1
+  assert report["regions"]["field_evals_per_chip"] == report["regions"]["field_evals_per_chip_dense"] == 128 * 32
+  assert "256 rays, 128 per chip" in out.stderr
+  assert "field evaluations per chip and step: 1 region(s) x 128 rows x 32 samples x 1 micro-batch(es) = 4,096 dense" \
+      in out.stderr
   step = report["step"]
   assert step["unexpected_collectives"] == []
   traffic = step["region_traffic"]

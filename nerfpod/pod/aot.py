@@ -15,10 +15,11 @@ host: every host feeds its own frame's rays, nerfpod.run.orbit). Every program s
 every program of a run does (TPU v5e refuses a program on some of a slice's chips). It reports
 per-chip memory against the chip's HBM, FLOPs and bytes per step, the estimated step time (hlo_cost's
 roofline; XLA's own figures beside it where they are sane), the step's lookups (slices gathered and
-scattered per chip, at the chip's per-index time, and their bytes), rays/s per chip and for the pod, every
-collective in the step with its size and the mesh axes it runs over, a region model's traffic between its
-regions per step (model.regions > 1: region_traffic), and the estimated time of the config's
-train.num_steps. Estimates
+scattered per chip, at the chip's per-index time, and their bytes), rays/s for the pod and per chip (the
+pod's over its chips), every collective in the step with its size and the mesh axes it runs over, a region
+model's traffic between its regions per step (model.regions > 1: region_traffic) and its rays and field
+evaluations per chip (a chip holds its region group's rays and renders its own regions, dense and with
+model.region_capacity: region_figures), and the estimated time of the config's train.num_steps. Estimates
 from XLA's program and the chips' published peaks, not measurements. A program too large for a chip is a
 report too (fits_hbm false, with XLA's figures), not a crash.
 
@@ -283,6 +284,31 @@ def region_traffic(step: dict) -> dict:
           "other_region_bytes": total([c for c in over_region if c not in gathers and c not in reduces])}
 
 
+def region_figures(batch: int, batch_devices: int, regions: int, region_axis: int, field_samples: int,
+                   microbatches: int, capacity: float = 0.0) -> dict:
+  """A region model's rays and field evaluations per chip and step (docs/scale.md, "Dispatch and capacity"),
+  from its shapes: a chip holds its region group's rays, `batch` / `batch_devices` (the chips of the batch's
+  axes: data, and slice), and renders L = `regions` / `region_axis` regions; each micro-batch (of
+  `microbatches`) gives each region R rows, or C = regions.capacity_rows(`capacity`, R) with
+  model.region_capacity; a row costs `field_samples` field evaluations (sum of NeRF.sample_counts(): the
+  proposal rounds' and the NeRF's). The same figures as the step's regions/field_evals_per_chip (dense:
+  L x R x field_samples x microbatches). `field_evals_per_chip` is the step's as configured (compacted where
+  a capacity is set, dense otherwise); `field_evals_per_chip_dense` the dense step's beside it."""
+  from nerfpod.nerf import regions as regions_lib
+  microbatches = max(1, microbatches)
+  rays_per_chip = batch // batch_devices
+  rows = rays_per_chip // microbatches  # R: one micro-batch's rays on one chip
+  local = regions // region_axis
+  dense = local * rows * field_samples * microbatches
+  capacity_rows = regions_lib.capacity_rows(capacity, rows) if capacity else None
+  return {"regions": regions, "region_axis": region_axis, "regions_per_chip": local,
+          "batch_devices": batch_devices, "rays_per_chip": rays_per_chip, "microbatches": microbatches,
+          "rows_per_region": rows, "field_samples_per_ray": field_samples, "capacity": capacity or 0.0,
+          "capacity_rows": capacity_rows, "field_evals_per_chip_dense": dense,
+          "field_evals_per_chip": (local * capacity_rows * field_samples * microbatches if capacity_rows
+                                   else dense)}
+
+
 def check_collectives(step: dict, state_bytes: int, slices: int = 1, regions: bool = False) -> list[str]:
   """What in the step's collectives is not a data-parallel step's: on one slice, anything but all-reduces,
   or all-reduces beyond the gradients plus a few scalars. Across slices the TPU compiler splits the
@@ -337,7 +363,10 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
                "allreduce_bytes_per_s": pod.chip.allreduce_bytes_per_s, "source": pod.chip.source,
                "dcn_bytes_per_s": pod.chip.dcn_bytes_per_s, "gather_indices_per_s": pod.chip.gather_indices_per_s,
                "vmem_gather_speedup": pod.chip.vmem_gather_speedup, "vmem_bytes_per_s": pod.chip.vmem_bytes_per_s},
-      "batch": tc.batch_size, "rays_per_chip": tc.batch_size // num_chips, "microbatches": tc.microbatches,
+      # A chip's rays: the batch over the chips of the batch's axes (every chip, or with regions the data and
+      # slice axes: each chip of a region group renders the group's rays, through its own regions).
+      "batch": tc.batch_size, "rays_per_chip": tc.batch_size // distributed.batch_devices(mesh),
+      "microbatches": tc.microbatches,
       "compute_dtype": config.model.compute_dtype,
       "hashgrid_matmul_max_rows": program.model.grid_matmul_max_rows,
       # Each host's chips hold one contiguous block of the batch: the rows distributed.local_slice loads.
@@ -351,6 +380,10 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
     _compile_programs(report, config, program, pod, what, key, num_chips, hosts, slices, mesh)
   except CompileError as e:
     raise _explained(e, config, pod, slices) from None
+  if config.model.regions > 1:  # with the step's micro-batches where it was compiled (fitted)
+    report["regions"] = region_figures(tc.batch_size, distributed.batch_devices(mesh), config.model.regions,
+                                       distributed.num_regions(mesh), sum(program.model.sample_counts()),
+                                       report["microbatches"], float(config.model.region_capacity))
   return report
 
 
@@ -424,6 +457,20 @@ def format_report(report: dict) -> str:
         f"{r['bytes_per_chip'] / 1e9:>8.3f} {duration(r['seconds']):>10} "
         f"{(duration(xla) if xla else 'n/a'):>9} {r['rays_per_s_per_chip'] or 0:>12,.0f} "
         f"{(r['rays_per_s'] or 0):>12,.0f} {r['compile_seconds']:>7.1f}s")
+  if "regions" in report:
+    g = report["regions"]
+    lines.append(f"  regions: {g['regions']} over a region axis of {g['region_axis']}, {g['regions_per_chip']} per "
+                 f"chip; each chip holds its region group's {g['rays_per_chip']} rays (the batch over the "
+                 f"{g['batch_devices']} chips of the batch's axes)")
+    evals = (f"{g['regions_per_chip']} region(s) x {{}} rows x {g['field_samples_per_ray']} samples x "
+             f"{g['microbatches']} micro-batch(es)")
+    dense = f"{evals.format(g['rows_per_region'])} = {g['field_evals_per_chip_dense']:,} dense"
+    if g["capacity_rows"]:
+      lines.append(f"  field evaluations per chip and step: {evals.format(g['capacity_rows'])} = "
+                   f"{g['field_evals_per_chip']:,} at model.region_capacity={g['capacity']:g} "
+                   f"({g['field_evals_per_chip'] / g['field_evals_per_chip_dense']:.3g} of dense: {dense})")
+    else:
+      lines.append(f"  field evaluations per chip and step: {dense}")
   if "step" in report and report["step"]["seconds"] is not None:
     s = report["step"]
     split = s["seconds_split"]
