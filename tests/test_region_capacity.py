@@ -9,8 +9,10 @@ import optax
 import pytest
 from jax.sharding import Mesh
 
-from conftest import smoke_config
-from nerfpod import data, distributed, scenes
+import procs
+from test_region_step import _batches, _region_mesh
+from test_region_step import _config as _region_step_config
+from nerfpod import distributed
 from nerfpod.errors import UserError
 from nerfpod.nerf import regions, sampling
 from nerfpod.run import components, step, train, train_state
@@ -23,32 +25,12 @@ TINY = 0.125  # C = 16 of 128: most rays overflow
 
 
 def _config(**overrides):
-  tiny = {"model.regions": 4, "model.hashgrid.num_levels": 2, "model.hashgrid.log2_table_size": 6,
-          "model.hashgrid.max_resolution": 32, "model.hashgrid.hidden_width": 8,
-          "model.proposal.num_levels": 2, "model.proposal.log2_table_size": 6, "model.proposal.max_resolution": 32,
-          "model.proposal.hidden_width": 8, "render.proposal_samples": (8,), "render.num_samples": 6,
-          "train.batch_size": BATCH, "train.distortion_weight": 0.01, "model.hashgrid.bound": 1.5}
-  return smoke_config(**(tiny | overrides))
-
-
-def _batches(config, steps, with_frames=False):
-  scene = scenes.load(config.data)
-  dataset = data.ray_batches(scene.split("train"), 0, config.train.batch_size, slice(0, config.train.batch_size),
-                             0.5, steps, with_frames=with_frames)
-  out = []
-  for i in range(steps):
-    batch = dict(dataset[i])
-    batch.pop("step")
-    out.append(batch)
-  return scene, out
+  """tests/test_region_step.py's tiny 4-region config with BATCH rays a step."""
+  return _region_step_config(**({"train.batch_size": BATCH} | overrides))
 
 
 def _one():
   return Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-
-
-def _region_mesh(shape):
-  return Mesh(np.array(jax.devices()).reshape(shape), (distributed.DATA_AXIS, distributed.REGION_AXIS))
 
 
 def _run(mesh, capacity, steps=2, batches=None, optimizer=None, microbatches=1, compiler_options=None, **overrides):
@@ -70,16 +52,12 @@ def _run(mesh, capacity, steps=2, batches=None, optimizer=None, microbatches=1, 
   return jax.device_get(state), metrics
 
 
-# LLVM's optimisation level 1 for the CPU kernels of the step whose values are pinned below, whatever the test
-# session's XLA_FLAGS (tests/procs.py): the level the values were recorded at, which computes the bits of XLA's
-# default level 2 (a program's bits at level 0 depend on its structure, not only on its arithmetic).
-OPTIMIZED = {"xla_backend_optimization_level": "1"}
-
-
 @pytest.fixture(scope="module")
 def dense():
-  """The dense step (capacity 0) on one device, two steps: the reference."""
-  return _run(_one(), 0.0, compiler_options=OPTIMIZED)
+  """The dense step (capacity 0) on one device, two steps: the reference. Compiled with procs.OPTIMIZED_KERNELS,
+  whatever the test session's flags: its values are pinned below, recorded at that level (XLA's default level 2
+  computes the same bits; at level 0 a program's bits depend on its structure, not only its arithmetic)."""
+  return _run(_one(), 0.0, compiler_options=procs.OPTIMIZED_KERNELS)
 
 
 @pytest.fixture(scope="module")
