@@ -753,15 +753,47 @@ FLAKY_INCREMENTAL = pytest.mark.xfail(strict=False, reason=(
     "2026-12-06)"))
 
 
+def _database_digests(db_path) -> dict:
+  """A digest of each table of a COLMAP database that a stage writes (the images' cameras, the features, the
+  matches, the verified pairs), each read in its key's order."""
+  import hashlib
+  import sqlite3
+  tables = {"cameras": "camera_id", "images": "image_id", "keypoints": "image_id", "descriptors": "image_id",
+            "matches": "pair_id", "two_view_geometries": "pair_id"}
+  con = sqlite3.connect(db_path)
+  try:
+    return {t: hashlib.sha1(repr(con.execute(f"SELECT * FROM {t} ORDER BY {key}").fetchall()).encode()).hexdigest()
+            for t, key in tables.items()}
+  finally:
+    con.close()
+
+
 @needs_pycolmap
 @pytest.mark.parametrize("mapper", [pytest.param("auto", marks=FLAKY_INCREMENTAL), "global"])
-def test_the_same_photos_and_seed_give_the_same_capture(textured, tmp_path, capsys, mapper):
+def test_the_same_photos_and_seed_give_the_same_capture(textured, tmp_path, capsys, monkeypatch, mapper):
   """Two runs on the same photos with 2 threads, and (the incremental mapper) a third with 1: the same images
-  registered and the same poses, cameras and points, bit for bit; prepare.json records the seed."""
+  registered and the same poses, cameras and points, bit for bit; prepare.json records the seed. Where they
+  differ, the message says from which stage on: the database's tables as the mapping stage found them, and each
+  mapper run's poses."""
   root, _ = textured
+  digests, mapped = [], []
+  real_stage, real_mapper = sfm.stage_mapping, sfm.run_mapper
+
+  def stage_mapping(db_path, *args, **kwargs):
+    digests.append(_database_digests(db_path))
+    return real_stage(db_path, *args, **kwargs)
+
+  def run_mapper(mapper, *args, **kwargs):
+    result = real_mapper(mapper, *args, **kwargs)
+    mapped[-1].append((mapper, result["seed"], result["poses"]))
+    return result
+  monkeypatch.setattr(sfm, "stage_mapping", stage_mapping)
+  monkeypatch.setattr(sfm, "run_mapper", run_mapper)
+  threads_of = (2, 2, 1) if mapper == "auto" else (2, 2)
   runs = []
-  for i, threads in enumerate((2, 2, 1) if mapper == "auto" else (2, 2)):
+  for i, threads in enumerate(threads_of):
     out = tmp_path / f"capture{i}"
+    mapped.append([])
     code, stdout, err = run_prepare(capsys, f"--input={root / 'photos'}", f"--out={out}", f"--threads={threads}",
                                     f"--mapper={mapper}")
     assert code == 0, err
@@ -770,16 +802,25 @@ def test_the_same_photos_and_seed_give_the_same_capture(textured, tmp_path, caps
   first = runs[0]
   assert first["summary"]["options"]["seed"] == 0 and first["summary"]["mapping"]["kept_seed"] == 0
   assert len(first["poses"]) >= 20
-  for n, again in enumerate(runs[1:], start=2):
-    assert sorted(again["poses"]) == sorted(first["poses"])  # the same images registered
+  for n, again in enumerate(runs[1:], start=1):
+    tables = [t for t in digests[0] if digests[n][t] != digests[0][t]]
+    runs_differ = [f"{m} (seed {s})" for (m, s, p), (m0, s0, p0) in zip(mapped[n], mapped[0])
+                   if (m, s) != (m0, s0) or sorted(p) != sorted(p0)
+                   or not all(np.array_equal(p[k], p0[k]) for k in p0)]
+    where = (f"the database's {', '.join(tables)} differ before mapping" if tables else
+             f"the database is the same; the mapper runs that differ: {', '.join(runs_differ) or 'none'} (run 1: "
+             f"{[(m, s) for m, s, _ in mapped[0]]}, this run: {[(m, s) for m, s, _ in mapped[n]]})")
+    label = f"run {n + 1} ({threads_of[n]} threads)"
+    assert sorted(again["poses"]) == sorted(first["poses"]), f"{label} registered other images; {where}"
     differ = {k: float(np.max(np.abs(again["poses"][k] - first["poses"][k]))) for k in first["poses"]
               if not np.array_equal(again["poses"][k], first["poses"][k])}
-    assert not differ, (f"run {n} (threads {(2, 2, 1)[n - 1]}) differs from run 1 in {len(differ)} poses, by up "
-                        f"to {max(differ.values()):.3g}; kept: {again['summary']['mapping']['kept']} against "
-                        f"{first['summary']['mapping']['kept']}")
-    assert again["cameras"] == first["cameras"] and again["points"] == first["points"]
-    assert again["poses_bounds"] == first["poses_bounds"] and again["transforms"] == first["transforms"]
-    assert again["summary"]["counts"] == first["summary"]["counts"]
+    assert not differ, (f"{label} differs from run 1 in {len(differ)} poses, by up to {max(differ.values()):.3g}; "
+                        f"kept: {again['summary']['mapping']['kept']} against {first['summary']['mapping']['kept']}; "
+                        f"{where}")
+    assert again["cameras"] == first["cameras"] and again["points"] == first["points"], where
+    assert again["poses_bounds"] == first["poses_bounds"] and again["transforms"] == first["transforms"], where
+    assert again["summary"]["counts"] == first["summary"]["counts"], where
+    assert not tables and not runs_differ, where
 
 
 @needs_pycolmap
