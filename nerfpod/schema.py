@@ -10,12 +10,15 @@ No module checks config fields on its own; a config that passed here is used as 
 
 This module imports no JAX (nor anything that does): checking a config takes milliseconds.
 """
+import abc
 import dataclasses
 import math
 import textwrap
 from typing import Any, Callable
 
 import ml_collections
+from absl import flags
+from ml_collections import config_flags
 
 from nerfpod import scenes
 from nerfpod.errors import UserError
@@ -39,6 +42,9 @@ class Field:
   default: Any = None
   doc: str = ""
   resumable: bool = False  # may differ between a workdir's config and the run that resumes it (RESUMABLE)
+  # The type ml_collections gives the field (its command-line parser's), where not its default's: a field that
+  # holds a number or a word (model.region_capacity) is a FieldReference of this type in defaults()
+  flag_type: type | None = None
 
   def message(self, name: str, value) -> str | None:
     if self.accepts(value):
@@ -98,6 +104,41 @@ def number(low: float | None = None, high: float | None = None, above: float | N
   bad = tuple(v for v in (None if low is None else low - 1.0, None if high is None else high + 1.0, above)
               if v is not None) + (float("nan"),)
   return Field(accepts, means, example, bad)
+
+
+class NumberOrWord(abc.ABC):
+  """The type ml_collections sees for a field that holds a number or a word (model.region_capacity: a fraction
+  or 'auto'): a float field's parser refuses --config.model.region_capacity=auto, and a string field's would
+  keep 0.5 a string. Its parser (_NumberOrWordParser) reads a number as a float, as a float field's does, and
+  anything else as the word it is, for the schema to accept or refuse in one sentence."""
+
+
+for _type in (float, int, str):
+  NumberOrWord.register(_type)
+
+
+class _NumberOrWordParser(flags.ArgumentParser):
+
+  def parse(self, argument):
+    if not isinstance(argument, str):
+      return argument
+    try:
+      return float(argument)
+    except ValueError:
+      return argument
+
+  def flag_type(self):
+    return "number or word"
+
+
+config_flags.register_flag_parser_for_type(NumberOrWord, _NumberOrWordParser())
+
+
+def number_or(word: str, low: float, high: float, example: float) -> Field:
+  """`word` (e.g. 'auto') or a finite number in [low, high]."""
+  numeric = number(low, high, example=example)
+  return Field(lambda v: (isinstance(v, str) and v == word) or numeric.accepts(v), f"'{word}' or {numeric.means}",
+               example, numeric.bad + ("nope",), flag_type=NumberOrWord)
 
 
 def boolean() -> Field:
@@ -231,11 +272,13 @@ FIELDS: dict[str, Field] = _declare({
         "the box each region's fields span with model.regions > 1: 'scene' (the hash grid's whole box: a hash "
         "grid stores only what its region's points touch) or 'own' (the region's cell, mapped onto the field's "
         "box axis by axis: finer along the cell's short sides; 1.2 dB lower on the street, docs/results.md)"),
-    "model.region_capacity": (0.0, number(0.0, 1.0, example=0.5),
+    "model.region_capacity": (0.0, number_or("auto", 0.0, 1.0, example=0.5),
         "model.regions > 1, training: each chip renders, per region, only the rays whose segment meets it, up to "
         "this fraction of its rays (rows C, rounded up to a multiple of 8); a ray over capacity is dropped whole, "
-        "counted, and a run dropping over 0.1% of its rays stops (docs/scale.md#dispatch-and-capacity); 0: every "
-        "ray through every region (dense). Evaluation and renders are always dense", RESUMABLE),
+        "counted, and a run dropping over 0.1% of its rays stops (docs/scale.md#dispatch-and-capacity); 'auto': "
+        "the fullest region's share of the training rays, measured before the first step, plus a margin for a "
+        "batch's spread (the fraction is recorded in the workdir's config.json, which a resume with 'auto' "
+        "keeps); 0: every ray through every region (dense). Evaluation and renders are always dense", RESUMABLE),
     # model.mlp: NeRF's MLP: the Tiny NeRF tutorial's by default
     "model.mlp.num_frequencies": (6, integer(0, 30, example=10),
         "positional-encoding frequencies L of points; 0 switches it off"),
@@ -480,7 +523,8 @@ def defaults() -> ml_collections.ConfigDict:
       if section not in node:
         node[section] = ml_collections.ConfigDict()
       node = node[section]
-    node[leaf] = field.default
+    node[leaf] = (field.default if field.flag_type is None else
+                  ml_collections.FieldReference(field.default, field_type=field.flag_type))
   return config
 
 
@@ -586,7 +630,7 @@ def _rules(c: dict) -> list[str]:
                f"{c['render.space']} maps the rays out of it; use --config.render.space=euclidean "
                f"(or --config.model.regions=1).")
   if c["model.region_capacity"] and c["model.regions"] == 1:
-    out.append(f"model.region_capacity={c['model.region_capacity']:g} shares each region's rows out among the "
+    out.append(f"model.region_capacity={_show(c['model.region_capacity'])} shares each region's rows out among the "
                f"rays that meet it, and model.regions=1 has one region that every ray meets; leave it at 0 "
                f"(--config.model.region_capacity=0) or give more regions.")
   if c["model.regions"] > 1 and c["render.num_importance"]:

@@ -48,6 +48,26 @@ def test_every_field_is_declared_once_with_a_valid_default_and_what_it_means():
     assert f"--config.{name}={schema._show(field.default)}  ({field.means})" in listing, name
 
 
+@pytest.mark.parametrize("given,value", [(None, 0.0), ("auto", "auto"), ("0.5", 0.5), ("0", 0.0), ("1", 1.0),
+                                         ("nope", "nope")])
+@pytest.mark.filterwarnings("ignore:the load_module:DeprecationWarning")  # (ml_collections' loader of the file)
+def test_the_region_capacity_takes_auto_or_a_number_on_the_command_line(monkeypatch, given, value):
+  """--config.model.region_capacity=auto and =0.5 both parse (the field is a number or a word: schema.NumberOrWord),
+  a number as the float it always was; any other word is the schema's to refuse (tests/test_schema.py)."""
+  import sys
+  from absl import flags
+  from ml_collections import config_flags
+  argv = ["nerfpod", f"--config={REPO / 'configs' / 'street.py'}:regions=4"]
+  argv += [f"--config.model.region_capacity={given}"] if given is not None else []
+  monkeypatch.setattr(sys, "argv", argv)  # (config_flags reads the overrides from sys.argv)
+  flag_values = flags.FlagValues()
+  config_flags.DEFINE_config_file("config", None, "", flag_values=flag_values, lock_config=True)
+  flag_values(argv)
+  got = flag_values.config.model.region_capacity
+  assert got == value and type(got) is type(value)
+  assert json.loads(flag_values.config.to_json_best_effort())["model"]["region_capacity"] == value
+
+
 def test_tiny_config_is_the_tutorials_model_and_blender_the_papers():
   tiny = load_config("tiny")
   assert (tiny.model.field, tiny.model.use_viewdirs) == ("mlp", False)

@@ -1,7 +1,8 @@
 """model.region_capacity: each chip renders, per region, only the rays whose segment meets it, up to C rows
 (nerf/regions.py's dispatch, NeRF.render_partials' capacity, run/step.py's _region_loss_fn): the same step as the
 dense one where nothing is dropped, whole rays dropped where a region overflows, counted, and the training loop's
-refusal; the step's regions/* scalars."""
+refusal; the step's regions/* scalars; and model.region_capacity=auto, measured on the training rays before the
+first step, recorded in config.json and kept by a resume."""
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -278,6 +279,15 @@ def test_the_loop_refuses_a_window_that_drops_over_a_thousandth_of_its_rays():
       "--config.model.region_capacity=0.4 (or 0: every ray through every region).")
 
 
+def test_the_refusal_of_a_measured_capacity_says_it_was_auto():
+  watch = train.DropWatch(0.713, 128, auto=True)
+  watch.dispatched(5, {"regions/dropped": np.float32(3.0), "regions/fill": np.float32(1.05),
+                       "regions/capacity": np.float32(96)})
+  with pytest.raises(UserError, match=r"model.region_capacity=auto \(F = 0.713\) gives each region C = 96 rows .*"
+                                      r"resume with --config.model.region_capacity=0.85 "):
+    watch.check()
+
+
 def test_a_run_that_overflows_stops_with_the_sentence(tmp_path):
   from nerfpod.run import modes
   config = _config(**{"model.region_capacity": TINY, "train.num_steps": 3, "train.log_every": 1,
@@ -295,3 +305,171 @@ def test_a_run_that_overflows_stops_with_the_sentence(tmp_path):
   assert scalars["train/regions/dropped"].step == 1
   assert scalars["train/regions/dropped"].value == int(str(refused.value).split()[2])
   assert scalars["train/regions/capacity"].value == 8 and scalars["train/regions/fill"].value > 1
+
+
+# model.region_capacity=auto: the fraction measured on the training rays before the first step, recorded in the
+# workdir's config.json, kept by a resume.
+
+def _brute_force_counts(origins, directions, near, far, partition):
+  """(K,) how many rays have a piece of positive length in each region: each ray's [near, far] cut at every
+  plane of every region (float64), each piece between two cuts lying in one region, found by its midpoint
+  (the half-spaces tested directly: no slab method)."""
+  o, d = np.asarray(origins, np.float64), np.asarray(directions, np.float64)
+  near, far = np.asarray(near, np.float64)[:, 0], np.asarray(far, np.float64)[:, 0]
+  normals = np.asarray(partition.normals_KxPx3, np.float64).reshape(-1, 3)
+  offsets = np.asarray(partition.offsets_KxP, np.float64).reshape(-1)
+  counts = np.zeros(partition.size, np.int64)
+  for i in range(len(o)):
+    nd = normals @ d[i]
+    crossings = (offsets - normals @ o[i])[nd != 0] / nd[nd != 0]
+    cuts = np.unique(np.concatenate([[near[i], far[i]], np.clip(crossings, near[i], far[i])]))
+    met = set()
+    for a, b in zip(cuts[:-1], cuts[1:]):
+      point = o[i] + 0.5 * (a + b) * d[i]
+      values = np.einsum("kpc,c->kp", np.asarray(partition.normals_KxPx3, np.float64), point)
+      inside = np.all((values < partition.offsets_KxP) | (partition.closed_KxP & (values == partition.offsets_KxP)),
+                      axis=1)
+      met.add(int(np.argmax(inside)))
+    counts[sorted(met)] += 1
+  return counts
+
+
+@pytest.mark.parametrize("cut", ["grid", "cameras"])
+def test_auto_counts_the_rays_that_meet_each_region_as_a_brute_force_count(cut):
+  """regions.segment_counts (in chunks, the last one padded) of 3,000 rays of the procedural scene's training
+  pixels, clipped to the hash grid's box: the rays that cross each region, counted piece by piece."""
+  config = _config(**{"model.region_cut": cut})
+  scene, _ = _batches(config, 0)
+  split = scene.split("train")
+  model = components.make_model(config, camera_positions=np.asarray(split.poses)[:, :3, 3])
+  origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, 3000, seed=1)
+  counts = regions.segment_counts(origins, directions, 2.0, 6.0, model.partition, bound=1.5, chunk=1024)
+  near, far = sampling.clip_to_box(jnp.asarray(origins), jnp.asarray(directions), 2.0, 6.0, 1.5)
+  want = _brute_force_counts(origins, directions, near, far, model.partition)
+  np.testing.assert_array_equal(counts, want)
+  assert 0 < want.min() and want.max() < 3000 and want.sum() > 3000  # rays that miss some regions, cross several
+
+
+def test_auto_draws_its_rays_as_the_training_batches_are_drawn():
+  """regions.pixel_rays with the pipeline's seed of a step is that step's batch: uniform over every pixel."""
+  config = _config()
+  scene, (batch,) = _batches(config, 1)
+  split = scene.split("train")
+  origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, BATCH, seed=[0, 0])
+  np.testing.assert_array_equal(origins, batch["origins"])
+  np.testing.assert_array_equal(directions, batch["directions"])
+
+
+def test_the_auto_fraction_is_the_fullest_share_and_its_margin():
+  # 0.5 + 4 sqrt(0.25 / 128) + 0.01 = 0.68678: rounded up to a thousandth
+  assert regions.auto_fraction(0.5, 128) == 0.687
+  assert regions.auto_fraction(0.0, 128) == 0.01 and regions.auto_fraction(1.0, 128) == 1.0
+  assert regions.auto_fraction(0.9, 16) == 1.0  # capped
+  assert regions.auto_fraction(0.25, 1024) == pytest.approx(0.25 + 4 * np.sqrt(0.25 * 0.75 / 1024) + 0.01, abs=1e-3)
+
+
+def test_auto_measures_the_fullest_share_of_the_scenes_training_rays():
+  """step.measure_capacity: step.AUTO_RAYS training rays, their counts per region, F for a chip's rows."""
+  config = _config()
+  scene, _ = _batches(config, 0)
+  model = components.make_model(config)
+  measured = step.measure_capacity(config, scene, _one(), model.partition, 2.0, 6.0)
+  split = scene.split("train")
+  origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, step.AUTO_RAYS, step.AUTO_SEED)
+  want = regions.segment_counts(origins, directions, 2.0, 6.0, model.partition, bound=1.5)
+  assert measured.counts == tuple(want) and measured.rays == step.AUTO_RAYS and measured.rows == BATCH
+  assert measured.fraction == regions.auto_fraction(max(want) / step.AUTO_RAYS, BATCH)
+  # About half the rays meet each quarter of the 2 x 2 grid; the batches above fill 0.57 at most: F holds them.
+  assert 0.45 < max(want) / step.AUTO_RAYS < 0.6 and 0.66 < measured.fraction < 0.8
+  assert measured.capacity == regions.capacity_rows(measured.fraction, BATCH) == 96
+  assert measured.line().startswith(f"model.region_capacity=auto: of 65,536 training rays, the shares that meet "
+                                    f"regions 0 to 3 are {', '.join(f'{c / 65536:.3f}' for c in want)}; ")
+  assert measured.line().endswith(f"gives F = {measured.fraction:g}: C = 96 of 128 rows per region")
+
+
+def test_resolve_keeps_a_number_and_a_resumed_workdirs_record(tmp_path, monkeypatch):
+  """train.resolve_capacity: a number (and model.regions=1) as it is; auto measured on a fresh run, and on a
+  resume the fraction the workdir's config.json records (not measured again); a record of 0 (a dense run) or
+  none: measured."""
+  import dataclasses
+  import json
+  config = _config(**{"model.region_capacity": "auto"})
+  scene, _ = _batches(config, 0)
+  comps = components.build_program(config, _one(), scene=scene)
+  for number in (0.0, 0.5):
+    same = dataclasses.replace(comps, config=_config(**{"model.region_capacity": number}))
+    assert train.resolve_capacity(same, str(tmp_path), resuming=True) is same
+  measured = step.measure_capacity(config, scene, _one(), comps.model.partition, 2.0, 6.0).fraction
+  fresh = train.resolve_capacity(comps, str(tmp_path), resuming=False)
+  assert fresh.config.model.region_capacity == measured and config.model.region_capacity == "auto"
+  # The step's options of a config still at auto (nerfpod bench's): measured alike; without a scene, refused.
+  assert step.Options.of(comps, 1).region_capacity == measured
+  with pytest.raises(UserError, match="^model.region_capacity=auto is measured on the scene's training rays"):
+    step.Options.of(dataclasses.replace(comps, scene=None), 1)
+  (tmp_path / "config.json").write_text(json.dumps({"model": {"region_capacity": 0.3}}))
+  monkeypatch.setattr(step, "measure_capacity", lambda *args: pytest.fail("measured again on a resume"))
+  assert train.resolve_capacity(comps, str(tmp_path), resuming=True).config.model.region_capacity == 0.3
+  monkeypatch.undo()
+  (tmp_path / "config.json").write_text(json.dumps({"model": {"region_capacity": 0.0}}))
+  assert train.resolve_capacity(comps, str(tmp_path), resuming=True).config.model.region_capacity == measured
+
+
+def test_a_run_with_auto_records_its_fraction_and_its_resume_compiles_the_same_capacity(tmp_path, monkeypatch,
+                                                                                        capsys):
+  """A fresh run with model.region_capacity=auto measures F before its first step, says so in one line, trains
+  with C = capacity_rows(F, R) and records F in config.json; the same command resumed (two more steps) reads F
+  back from config.json, measures nothing, and compiles the same C."""
+  import json
+  from nerfpod import monitor
+  from tensorboard.backend.event_processing import event_accumulator
+
+  def run(steps):
+    config = _config(**{"model.region_capacity": "auto", "train.num_steps": steps, "train.log_every": 1,
+                        "train.image_every": 0, "orbit.render_after_training": False,
+                        "checkpoint.every_steps": 2})
+    comps = components.build(config, _one())
+    watch = monitor.Monitor(str(tmp_path), steps, BATCH, config)
+    try:
+      train.train(comps, str(tmp_path), watch)
+    finally:
+      watch.close(0)
+    return comps
+
+  comps = run(2)
+  measured = step.measure_capacity(comps.config, comps.scene, _one(), comps.model.partition, 2.0, 6.0)
+  printed = [l for l in capsys.readouterr().out.splitlines() if "model.region_capacity=auto" in l]
+  assert printed == [f"nerfpod: {measured.line()}"]
+  recorded = json.loads((tmp_path / "config.json").read_text())["model"]["region_capacity"]
+  assert recorded == measured.fraction
+  monkeypatch.setattr(step, "measure_capacity", lambda *args: pytest.fail("measured again on a resume"))
+  run(4)
+  printed = [l for l in capsys.readouterr().out.splitlines() if "model.region_capacity=auto" in l]
+  assert printed == [f"nerfpod: model.region_capacity=auto: F = {recorded:g}, as the workdir's config.json records "
+                     f"(the fraction its run trained with): C = {measured.capacity} of {BATCH} rows per region"]
+  assert json.loads((tmp_path / "config.json").read_text())["model"]["region_capacity"] == recorded
+  events = event_accumulator.EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})
+  events.Reload()
+  capacity = {e.step: e.value for e in events.Scalars("train/regions/capacity")}
+  assert capacity == {1: measured.capacity, 2: measured.capacity, 3: measured.capacity, 4: measured.capacity}
+
+
+def test_a_tool_without_a_run_measures_auto_on_a_built_in_scene_and_asks_for_a_number_otherwise(capsys):
+  """step.resolve_capacity (nerfpod aot's): the built-in scene made and measured, its line on stderr; a scene
+  it would have to read (data.kind=blender) refused in one sentence asking for a fraction; a number kept."""
+  config = _config(**{"model.region_capacity": "auto"})
+  resolved = step.resolve_capacity(config, _one())
+  scene, _ = _batches(config, 0)
+  model = components.make_model(config)
+  measured = step.measure_capacity(config, scene, _one(), model.partition, 2.0, 6.0)
+  assert resolved.model.region_capacity == measured.fraction and config.model.region_capacity == "auto"
+  assert capsys.readouterr().err.splitlines()[-1] == f"nerfpod: {measured.line()} (on data.kind=procedural)"
+  numbered = _config(**{"model.region_capacity": 0.5})
+  assert step.resolve_capacity(numbered, _one()) is numbered
+  with pytest.raises(UserError) as refused:
+    step.resolve_capacity(_config(**{"model.region_capacity": "auto", "data.kind": "blender", "data.path": "/x"}),
+                          _one())
+  assert str(refused.value) == (
+      "model.region_capacity=auto is measured on the scene's training rays, and this tool loads only the built-in "
+      "scenes (data.kind procedural or street), not data.kind=blender; give a fraction instead, e.g. the one a "
+      "training run with auto measured (its first lines print it, its workdir's config.json records it), or "
+      "--config.model.region_capacity=0.75.")

@@ -99,6 +99,10 @@ def test_every_bad_value_is_the_sentence_the_snapshot_pins():
      "model.region_capacity=0.5 shares each region's rows out among the rays that meet it, and model.regions=1 "
      "has one region that every ray meets; leave it at 0 (--config.model.region_capacity=0) or give more "
      "regions."),
+    ({"model.region_capacity": "auto"},
+     "model.region_capacity=auto shares each region's rows out among the rays that meet it, and model.regions=1 "
+     "has one region that every ray meets; leave it at 0 (--config.model.region_capacity=0) or give more "
+     "regions."),
     ({"train.coarse_to_fine": (0.1, 0.5), "model.field": "mlp"},
      "train.coarse_to_fine='(0.1,0.5)' opens the hash grid's levels one by one, and this run has model.field=mlp"),
     ({"train.pose_refine": True, "train.pose_b1": 0.9},
@@ -136,12 +140,13 @@ def test_the_batch_must_split_over_the_devices_and_micro_batches():
   assert schema.problems(smoke_config(**{"train.batch_size": 100})) == []  # devices not known yet
 
 
-def test_the_region_capacity_is_a_fraction_of_the_rays_or_0():
-  for capacity in (0.0, 0.01, 0.5, 1.0):
+def test_the_region_capacity_is_a_fraction_of_the_rays_or_0_or_auto():
+  for capacity in (0.0, 0.01, 0.5, 1.0, 1, "auto"):
     assert schema.problems(smoke_config(**{"model.regions": 4, "model.region_capacity": capacity})) == []
-  assert schema.problems(smoke_config(**{"model.regions": 4, "model.region_capacity": 1.5})) == [
-      "model.region_capacity=1.5 is not valid: it must be a finite number >= 0 and <= 1 "
-      "(e.g. --config.model.region_capacity=0.5)."]
+  for capacity, shown in ((1.5, "1.5"), ("Auto", "Auto"), ("0.5x", "0.5x"), ("", "''"), (True, "true")):
+    assert schema.problems(smoke_config(**{"model.regions": 4, "model.region_capacity": capacity})) == [
+        f"model.region_capacity={shown} is not valid: it must be 'auto' or a finite number >= 0 and <= 1 "
+        f"(e.g. --config.model.region_capacity=0.5)."]
 
 
 def test_the_regions_must_split_over_the_devices_of_a_slice():

@@ -25,6 +25,8 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
     capacity_rows, dispatch, gather_rows, scatter_rows   a chip's rows per region within a static capacity C:
                       the rays whose segment is not empty, up to C in ray order, and their sums put back
+    pixel_rays, segment_counts, auto_fraction   model.region_capacity=auto: rays drawn as the training batches
+                      draw them, how many meet each region, and the capacity's fraction from the fullest share
     composite_regions the regions' partial sums of a ray composited in the ray's order
     interlevel_loss   mip-NeRF 360's interlevel loss of one segment, weighed by what reaches it
 
@@ -331,6 +333,66 @@ def capacity_rows(fraction: float, rays: int) -> int:
   if not 0.0 < fraction <= 1.0 or rays < 1:
     raise ValueError(f"capacity_rows: the fraction must be in (0, 1] and the rays >= 1, got {fraction}, {rays}")
   return min(rays, -(-int(np.ceil(fraction * rays)) // 8) * 8)
+
+
+def pixel_rays(poses_Fx4x4, cams, num_rays: int, seed, pixel_center: float = 0.5):
+  """(origins, directions), each (num_rays, 3) float32: the rays through `num_rays` pixels of the frames (poses
+  (F, 4, 4), their Cameras), drawn uniformly over every pixel of every frame, with replacement, from a NumPy
+  generator seeded with `seed` (an int, or a sequence: the pipeline's [seed, step] gives that step's batch):
+  as the training pipeline draws a batch (nerfpod/data.py), so that what these rays show of the regions a
+  batch shows too. A pure function of its arguments."""
+  rng = np.random.default_rng(seed)
+  offsets = np.concatenate([[0], np.cumsum(cams.num_pixels)]).astype(np.int64)
+  flat = rng.integers(0, offsets[-1], num_rays, dtype=np.int64)
+  frames = np.searchsorted(offsets, flat, side="right") - 1
+  rows, cols = np.divmod(flat - offsets[frames], cams.width[frames])
+  return nerf_cameras.frame_rays(np.asarray(poses_Fx4x4)[frames], cams, frames, rows, cols, pixel_center)
+
+
+def segment_counts(origins_Rx3, directions_Rx3, near: float, far: float, partition: Partition,
+                   bound: float | None = None, chunk: int = 8192) -> np.ndarray:
+  """(K,) int64: how many of the rays have a segment in each region that is not empty, cut as the region step
+  cuts them (NeRF's region rendering; `dispatch`'s present): each ray's [near, far] clipped to the hash grid's
+  box [-bound, bound]^3 (sampling.clip_to_box; `bound` None: a field without a box, not clipped), then each
+  region's `segments`, region by region as the step's vmap cuts them. The rays go through one compiled
+  program in chunks of `chunk` (the last one padded, the padding not counted)."""
+  total = len(origins_Rx3)
+  padded = -(-max(total, 1) // chunk) * chunk
+  pad = lambda x: np.concatenate([np.asarray(x, np.float32), np.ones((padded - total, 3), np.float32)])  # noqa: E731
+  origins, directions = pad(origins_Rx3), pad(directions_Rx3)
+  valid = np.arange(padded) < total
+  planes = tuple(jnp.asarray(a) for a in partition)
+
+  @jax.jit
+  def count(o, d, keep):
+    lo, hi = (near, far) if bound is None else sampling.clip_to_box(o, d, near, far, bound)
+    lo = jnp.broadcast_to(jnp.asarray(lo, jnp.float32), (o.shape[0], 1))
+    hi = jnp.broadcast_to(jnp.asarray(hi, jnp.float32), (o.shape[0], 1))
+    t_in, t_out = jax.vmap(lambda n, b, c: tuple(t[0] for t in segments(o, d, lo, hi, Partition(
+        n[None], b[None], c[None]))))(*planes)
+    return jnp.sum((t_out > t_in) & keep, axis=1, dtype=jnp.int32)
+
+  counts = [np.asarray(count(origins[i:i + chunk], directions[i:i + chunk], valid[i:i + chunk]))
+            for i in range(0, padded, chunk)]
+  return np.sum(counts, axis=0, dtype=np.int64)
+
+
+# model.region_capacity=auto's margin over the fullest region's share p of the training rays, for a chip's R rays
+# (one micro-batch's): AUTO_SIGMAS standard deviations sqrt(p (1 - p) / R) of a batch's share (binomial), and
+# AUTO_FLOOR, which also covers the measured share's own error (under 0.002 for 65,536 rays).
+AUTO_SIGMAS, AUTO_FLOOR = 4.0, 0.01
+
+
+def auto_fraction(share: float, rays: int) -> float:
+  """model.region_capacity=auto's fraction F of `rays` R (a chip's rows per region and micro-batch) from the
+  fullest region's `share` p of the training rays: p + AUTO_SIGMAS sqrt(p (1 - p) / R) + AUTO_FLOOR, rounded up
+  to a thousandth, at most 1. Each of a chip's R rays meets the region with probability p, so its count is
+  binomial; one 4 standard deviations over the mean comes about 3 times in 100,000 (region, chip, step)s,
+  each time over capacity by a ray or so, far under the 0.1% of its rays a run may drop."""
+  if not 0.0 <= share <= 1.0 or rays < 1:
+    raise ValueError(f"auto_fraction: the share must be in [0, 1] and the rays >= 1, got {share}, {rays}")
+  margin = AUTO_SIGMAS * np.sqrt(share * (1.0 - share) / rays) + AUTO_FLOOR
+  return min(1.0, float(np.ceil(round((share + margin) * 1000, 6))) / 1000)
 
 
 class Dispatch(NamedTuple):

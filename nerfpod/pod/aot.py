@@ -290,10 +290,11 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
   from its shapes: a chip holds its region group's rays, `batch` / `batch_devices` (the chips of the batch's
   axes: data, and slice), and renders L = `regions` / `region_axis` regions; each micro-batch (of
   `microbatches`) gives each region R rows, or C = regions.capacity_rows(`capacity`, R) with
-  model.region_capacity; a row costs `field_samples` field evaluations (sum of NeRF.sample_counts(): the
-  proposal rounds' and the NeRF's). The same figures as the step's regions/field_evals_per_chip (dense:
-  L x R x field_samples x microbatches). `field_evals_per_chip` is the step's as configured (compacted where
-  a capacity is set, dense otherwise); `field_evals_per_chip_dense` the dense step's beside it."""
+  model.region_capacity (a fraction: 'auto' is measured before, step.resolve_capacity); a row costs
+  `field_samples` field evaluations (sum of NeRF.sample_counts(): the proposal rounds' and the NeRF's). The
+  same figures as the step's regions/field_evals_per_chip (dense: L x R x field_samples x microbatches).
+  `field_evals_per_chip` is the step's as configured (compacted where a capacity is set, dense otherwise);
+  `field_evals_per_chip_dense` the dense step's beside it."""
   from nerfpod.nerf import regions as regions_lib
   microbatches = max(1, microbatches)
   rays_per_chip = batch // batch_devices
@@ -351,6 +352,7 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   schema.validate(config, num_chips, backend="tpu", tpu_generation=pod.generation, pod=pod.name)
   devices = topology_devices(pod, slices)
   mesh = distributed.make_mesh(devices, num_slices=config.mesh.slices or None, regions=config.model.regions)
+  config = step.resolve_capacity(config, mesh)  # model.region_capacity=auto: measured on a built-in scene, or refused
   program = components.build_program(config, mesh, backend="tpu")
   tc = config.train
   hosts = sorted({d.process_index for d in devices})

@@ -4,22 +4,27 @@
     field_loss, local_step, accumulate   its pieces: the one-field loss (_region_loss_fn: a region model's), one
                        device's share of the step, the micro-batches' gradient accumulation
     Options            the loss's settings, micro-batches and the backend's policy; Options.of(config, ...)
+    measure_capacity, with_capacity, resolve_capacity   model.region_capacity=auto: the fraction measured on the
+                       training rays (a run's, nerfpod train.train; a tool's, on a built-in scene)
     for_program        the step of a config's Components (runs and the pod tool)
     compile_fitted     compiled for Components' shapes, with train.microbatches=0 fitted to a memory budget
     start_compiling    a run's step compiled in a background thread while its state initialises
 """
 import concurrent.futures
+import copy
 import dataclasses
 import functools
+import sys
 import typing
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.sharding import PartitionSpec as P
 
-from nerfpod import distributed, text
-from nerfpod.run import compilation, train_state
+from nerfpod import distributed, scenes, text
+from nerfpod.run import compilation, components, train_state
 from nerfpod.run.components import Components
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
@@ -67,7 +72,8 @@ class Options:
   # train.single_jitter: one random offset per ray and round, shared by its strata (step.round_uniforms)
   single_jitter: bool = False
   # model.region_capacity (model.regions > 1): each region renders C = regions.capacity_rows(this, the device's
-  # rays) rows, the rays whose segment meets it (a ray over capacity dropped whole); 0: every ray (dense)
+  # rays) rows, the rays whose segment meets it (a ray over capacity dropped whole); 0: every ray (dense). 'auto'
+  # is resolved to a number before (with_capacity; Options.of measures it where the config still says 'auto')
   region_capacity: float = 0.0
 
   @classmethod
@@ -76,13 +82,98 @@ class Options:
     JAX's; the pod compile tool asks for 'tpu')."""
     config = comps.config
     tc = config.train
+    capacity = config.model.region_capacity if config.model.regions > 1 else 0.0
+    if capacity == "auto":  # (a run resolves it first, and says so: nerfpod.run.train; so does nerfpod aot)
+      if comps.scene is None:
+        raise UserError(AUTO_WITHOUT_SCENE.format(kind=config.data.kind))
+      capacity = measure_capacity(config, comps.scene, comps.mesh, comps.model.partition, comps.near,
+                                  comps.far).fraction
     return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
                comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
                coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine),
                interlevel_blur=tuple(float(r) for r in tc.interlevel_blur),
                proposal_anneal_steps=int(tc.proposal_anneal_steps), single_jitter=bool(tc.single_jitter),
-               region_capacity=float(config.model.region_capacity) if config.model.regions > 1 else 0.0)
+               region_capacity=float(capacity))
+
+
+# model.region_capacity=auto is measured on AUTO_RAYS training rays drawn with AUTO_SEED (regions.pixel_rays, as the
+# batches are drawn): fixed, so that every process of a run, and every run of the same scene, measures the same.
+AUTO_RAYS, AUTO_SEED = 65536, 0
+AUTO_WITHOUT_SCENE = ("model.region_capacity=auto is measured on the scene's training rays, and this tool loads only "
+                      "the built-in scenes (data.kind procedural or street), not data.kind={kind}; give a fraction "
+                      "instead, e.g. the one a training run with auto measured (its first lines print it, its "
+                      "workdir's config.json records it), or --config.model.region_capacity=0.75.")
+
+
+def region_rows(config, mesh) -> int:
+  """R, the rays each region of a chip renders in one micro-batch: train.batch_size over the chips of the
+  batch's axes, over train.microbatches (0, fitted at start-up: taken as 1, the most rows there can be)."""
+  return config.train.batch_size // distributed.batch_devices(mesh) // max(1, config.train.microbatches)
+
+
+@dataclasses.dataclass(frozen=True)
+class MeasuredCapacity:
+  """model.region_capacity=auto measured (measure_capacity): `counts` (K,) of the `rays` training rays drawn
+  that meet each region, a chip's `rows` R, and the fraction F (regions.auto_fraction of the fullest share)."""
+  counts: tuple
+  rays: int
+  rows: int
+  fraction: float
+
+  @property
+  def capacity(self) -> int:
+    return regions.capacity_rows(self.fraction, self.rows)
+
+  def line(self) -> str:
+    shares = np.asarray(self.counts) / self.rays
+    fullest = int(np.argmax(shares))
+    margin = self.fraction - shares[fullest]
+    return (f"model.region_capacity=auto: of {self.rays:,} training rays, the shares that meet regions 0 to "
+            f"{len(shares) - 1} are {', '.join(f'{s:.3f}' for s in shares)}; the fullest (region {fullest}, "
+            f"{shares[fullest]:.3f}) plus {margin:.3f} for a batch's spread over a chip's {self.rows} rays gives "
+            f"F = {self.fraction:g}: C = {self.capacity} of {self.rows} rows per region")
+
+
+def measure_capacity(config, scene, mesh, partition: regions.Partition, near: float, far: float) -> MeasuredCapacity:
+  """model.region_capacity=auto on `scene`: AUTO_RAYS of its training rays (regions.pixel_rays: every host's frames,
+  whatever data.shards holds), the share whose segment in each region of `partition` is not empty, cut as the step
+  cuts them (regions.segment_counts: [near, far] clipped to the hash grid's box where the field is one), and F from
+  the fullest share for a chip's R rays of `mesh` (region_rows, regions.auto_fraction)."""
+  split = scene.split("train")
+  origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, AUTO_RAYS, AUTO_SEED,
+                                           config.data.pixel_center)
+  bound = config.model.hashgrid.bound if config.model.field == "hashgrid" else None
+  counts = regions.segment_counts(origins, directions, near, far, partition, bound)
+  rows = region_rows(config, mesh)
+  return MeasuredCapacity(tuple(int(c) for c in counts), AUTO_RAYS, rows,
+                          regions.auto_fraction(float(np.max(counts)) / AUTO_RAYS, rows))
+
+
+def with_capacity(config, fraction: float):
+  """A copy of `config` whose model.region_capacity is `fraction` (config.json then records it)."""
+  out = copy.deepcopy(config)
+  out.model.region_capacity = float(fraction)
+  return out
+
+
+def resolve_capacity(config, mesh):
+  """`config` with model.region_capacity=auto measured (measure_capacity, its line on stderr), for a tool that
+  has no run's scene (nerfpod aot): a built-in scene (no download) is made here; another is refused in one
+  sentence asking for a fraction. Any other config comes back as it is."""
+  if config.model.regions == 1 or config.model.region_capacity != "auto":
+    return config
+  loader = scenes.LOADERS.get(config.data.kind)
+  if loader is None or loader.needs_path:
+    raise UserError(AUTO_WITHOUT_SCENE.format(kind=config.data.kind))
+  scene = scenes.load(config.data)
+  near, far = components.ray_bounds(config, scene)
+  cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # as components.build_program cuts the regions
+  samples = components.balance_samples(config, scene) if config.model.region_cut == "balanced" else None
+  partition = components.region_partition(config, cameras, samples)
+  measured = measure_capacity(config, scene, mesh, partition, near, far)
+  print(f"nerfpod: {measured.line()} (on data.kind={config.data.kind})", file=sys.stderr, flush=True)
+  return with_capacity(config, measured.fraction)
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):

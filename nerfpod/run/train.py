@@ -1,4 +1,5 @@
 """Training: the loop (resume, steps, checkpoints, preemption, previews, logging); the step is nerfpod.run.step."""
+import dataclasses
 import json
 import os
 import sys
@@ -11,9 +12,10 @@ from nerfpod.render import renderer, video
 from nerfpod.run import components, preemption, profiling, train_state
 from nerfpod.workdir import checkpoints
 from nerfpod.run import step as train_step
-from nerfpod.workdir.files import write_config, write_regions, write_scene
+from nerfpod.workdir.files import saved_config, write_config, write_regions, write_scene
 from nerfpod.run.train_state import TrainState
 from nerfpod.errors import UserError
+from nerfpod.nerf import regions
 
 
 # Host <-> device transfers the loop may make without saying so (jax.transfer_guard's level): the tests set
@@ -137,11 +139,12 @@ class DropWatch:
   """model.region_capacity > 0: the rays the step dropped (a ray whose segment in some region found no row
   within the capacity C is dropped whole: the step's metric regions/dropped), summed over each log window (the
   steps since the previous log line). A window that dropped more than LIMIT of its rays stops training with one
-  sentence. The window's counts stay on the device until its log step (no wait per step)."""
+  sentence. The window's counts stay on the device until its log step (no wait per step). `auto`: the fraction
+  is model.region_capacity=auto's (the sentence says so)."""
   LIMIT = 1e-3
 
-  def __init__(self, fraction: float, batch_size: int):
-    self.fraction, self.batch_size = fraction, batch_size
+  def __init__(self, fraction: float, batch_size: int, auto: bool = False):
+    self.fraction, self.batch_size, self.auto = fraction, batch_size, auto
     self.window = []  # (step, dropped, fill, capacity) of each step of the window, on the device
 
   def dispatched(self, step: int, metrics) -> None:
@@ -158,9 +161,10 @@ class DropWatch:
       return
     fill = max(float(f) for _, _, f, _ in window)
     capacity = int(window[-1][3])
+    shown = f"auto (F = {self.fraction:g})" if self.auto else f"{self.fraction:g}"
     raise UserError(f"training dropped {dropped:,.0f} of the {rays:,} rays of steps {window[0][0]} to "
                     f"{window[-1][0]} ({dropped / rays:.2%}, over the {self.LIMIT:.1%} a run may drop): "
-                    f"model.region_capacity={self.fraction:g} gives each region C = {capacity} rows of each "
+                    f"model.region_capacity={shown} gives each region C = {capacity} rows of each "
                     f"device's rays and the fullest region's rays with a segment in it filled {fill:.2f} x C, so "
                     f"rays over capacity were dropped whole; resume with --config.model.region_capacity="
                     f"{min(1.0, _round_up(self.fraction * fill * 1.1, 0.05)):g} (or 0: every ray through every "
@@ -202,6 +206,30 @@ class StepLog:
         print(f"nerfpod: warning: {warning}", file=sys.stderr, flush=True)
       if self.drops is not None:  # the window ends here (logged): refused where it dropped too many rays
         self.drops.check()
+
+
+def resolve_capacity(comps: components.Components, workdir: str, resuming: bool) -> components.Components:
+  """`comps` with model.region_capacity=auto (model.regions > 1) resolved to a fraction, the same on every process:
+  where the run resumes (`resuming`: the workdir holds a checkpoint) and the workdir's config.json records a
+  fraction > 0 (what its run trained with: config.json is the resolved config), that one, so that the resumed
+  run compiles the same step; else measured on the training rays (step.measure_capacity). Process 0 says which
+  in one line; config.json then records the fraction (_announce). Any other config: `comps` as they are."""
+  config = comps.config
+  if config.model.regions == 1 or config.model.region_capacity != "auto":
+    return comps
+  recorded = ((saved_config(workdir) or {}).get("model") or {}).get("region_capacity") if resuming else None
+  if isinstance(recorded, (int, float)) and not isinstance(recorded, bool) and 0.0 < recorded <= 1.0:
+    fraction = float(recorded)
+    rows = train_step.region_rows(config, comps.mesh)
+    line = (f"model.region_capacity=auto: F = {fraction:g}, as the workdir's config.json records (the fraction its "
+            f"run trained with): C = {regions.capacity_rows(fraction, rows)} of {rows} rows per region")
+  else:
+    measured = train_step.measure_capacity(config, comps.scene, comps.mesh, comps.model.partition, comps.near,
+                                           comps.far)
+    fraction, line = measured.fraction, measured.line()
+  if jax.process_index() == 0:
+    print(f"nerfpod: {line}", flush=True)
+  return dataclasses.replace(comps, config=train_step.with_capacity(config, fraction))
 
 
 def _restore_or_init(comps: components.Components, ckpt) -> tuple[TrainState, int, dict | None]:
@@ -253,9 +281,12 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
   tc = config.train
   ckpt = checkpoints.Checkpoints(workdir, config.checkpoint.every_steps, config.checkpoint.max_to_keep,
                                  storage_timeout_s=config.checkpoint.storage_timeout_s)
+  auto_capacity = config.model.region_capacity == "auto"
   watch = preemption.Watch(ckpt.latest_step() or 0)
   profile = profiling.StepProfile(workdir, tc.profile_steps)
   try:
+    comps = resolve_capacity(comps, workdir, resuming=ckpt.latest_step() is not None)  # before the step compiles
+    config = comps.config
     # The step compiles while the state is restored or initialised (not when training is already done).
     compiling = train_step.start_compiling(comps) if (ckpt.latest_step() or 0) < tc.num_steps else None
     state, start_step, position = _restore_or_init(comps, ckpt)
@@ -267,7 +298,7 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
         distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
     _announce(comps, workdir, start_step)
     skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
-    drops = (DropWatch(config.model.region_capacity, tc.batch_size)
+    drops = (DropWatch(config.model.region_capacity, tc.batch_size, auto=auto_capacity)
              if config.model.regions > 1 and config.model.region_capacity else None)
     log = StepLog(monitor, tc, start_step, skips, drops)
     key = train_state.rays_key(tc.seed, comps.mesh)
