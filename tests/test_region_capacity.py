@@ -288,6 +288,8 @@ def test_the_refusal_of_a_measured_capacity_says_it_was_auto():
     watch.check()
 
 
+@pytest.mark.slow  # (a region run through the loop, ~14 s; the quick loop checks the refusal on the watch's
+# counts, test_the_loop_refuses_a_window_that_drops_over_a_thousandth_of_its_rays, and the step's drops above)
 def test_a_run_that_overflows_stops_with_the_sentence(tmp_path):
   from nerfpod.run import modes
   config = _config(**{"model.region_capacity": TINY, "train.num_steps": 3, "train.log_every": 1,
@@ -414,6 +416,8 @@ def test_resolve_keeps_a_number_and_a_resumed_workdirs_record(tmp_path, monkeypa
   assert train.resolve_capacity(comps, str(tmp_path), resuming=True).config.model.region_capacity == measured
 
 
+@pytest.mark.slow  # (two region runs through the loop, ~15 s; the quick loop checks the resume's rule,
+# test_resolve_keeps_a_number_and_a_resumed_workdirs_record, and the measurement, on the same config)
 def test_a_run_with_auto_records_its_fraction_and_its_resume_compiles_the_same_capacity(tmp_path, monkeypatch,
                                                                                         capsys):
   """A fresh run with model.region_capacity=auto measures F before its first step, says so in one line, trains
