@@ -14,6 +14,9 @@ _LIGHT = np.array([0.4, -0.5, 0.77]) / np.linalg.norm([0.4, -0.5, 0.77])
 _AMBIENT = 0.35
 CAMERA_ANGLE_X = 0.6911112070083618  # the Blender lego camera's horizontal field of view, radians
 RADIUS = 4.0
+# traced_splits traces the rays of several frames in one call, about this many (a few MiB a solid): per frame, the
+# Python of each solid's intersection cost more than its arithmetic at the small sizes the tests use
+RAYS_PER_TRACE = 2**16
 
 
 def _sphere(o, d, centre, radius):
@@ -139,9 +142,15 @@ def traced_splits(trace_fn, poses_fn, image_size: int, angle_x: float, counts: d
   focal = 0.5 * image_size / np.tan(0.5 * angle_x)
   intr = Intrinsics.from_focal(image_size, image_size, focal)
   splits = {}
+  per_call = max(1, RAYS_PER_TRACE // (image_size * image_size))  # frames traced together
   for seed, (name, n) in enumerate(counts.items(), start=first_seed):
     poses = poses_fn(n, seed)
-    traced = [trace_fn(*image_rays(p, intr, pixel_center), return_alpha=True) for p in poses]
-    images, alphas = np.stack([r[0] for r in traced]), np.stack([r[1] for r in traced])
+    traced = []
+    for start in range(0, n, per_call):
+      rays = [image_rays(p, intr, pixel_center) for p in poses[start:start + per_call]]
+      traced.append(trace_fn(np.stack([o for o, _ in rays]), np.stack([d for _, d in rays]), return_alpha=True))
+    images = np.concatenate([rgb for rgb, _ in traced]) if traced else np.zeros((0, image_size, image_size, 3),
+                                                                                np.float32)
+    alphas = np.concatenate([a for _, a in traced]) if traced else np.zeros((0, image_size, image_size), np.float32)
     splits[name] = Split.from_images(images, poses, intr, [f"{name}_{i}" for i in range(n)], alphas=alphas)
   return splits
