@@ -67,6 +67,8 @@ def test_a_region_no_camera_sees_is_one_sentence_before_training():
   assert "(region 2: its cell misses the field's box (x and y within +-1.50))" in str(refused.value)
 
 
+@pytest.mark.slow  # (a process of 16 devices, ~15 s; the quick loop checks the refusal's sentences above,
+# test_a_region_no_camera_sees_is_one_sentence_before_training, and the command's refusals path in test_main)
 def test_the_command_refuses_it_with_exit_2_and_leaves_no_workdir(tmp_path):
   """The smoke scene's cameras ring the field's box from outside: cut around 16 k-means centres of them, most
   cells miss the box. `nerfpod train` says so in one line, exits 2, and leaves no workdir behind."""
