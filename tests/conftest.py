@@ -3,6 +3,7 @@ real data, tiny configs."""
 import gc
 import os
 import pathlib
+import sys
 import tempfile
 
 import jax
@@ -91,6 +92,32 @@ SMOKE_RUN_OVERRIDES = {"train.log_every": 1, "train.image_every": 0, "orbit.rend
 # The shared run also measures LPIPS (the smoke config leaves it out), so that evaluation's LPIPS is tested
 # on a real run's checkpoint (tests/test_evaluate.py).
 SMOKE_RUN_EVAL = {"eval.lpips_net": "alex"}
+
+
+@pytest.fixture
+def run_start_held(monkeypatch):
+  """For a test that runs a run's start-up (nerfpod.main.main) in this process, to a refusal: what the start-up
+  sets for its whole process goes back after the test (absl's verbosity; the filters of the loggers and
+  sys.unraisablehook: quiet.quiet_library_reports; tensorstore's variables: storage.bound_clients, whose other
+  settings are those every run in this process sets), and glibc's malloc is left as it is (compilation.tune_host
+  not applied: tests/test_host_memory.py checks it in processes of their own)."""
+  import logging as python_logging
+
+  from absl import logging
+  from nerfpod.run import compilation
+  verbosity = logging.get_verbosity()
+  monkeypatch.setattr(sys, "unraisablehook", sys.unraisablehook)
+  for name in ("absl", "asyncio", "gcsfs", "fsspec"):
+    logger = python_logging.getLogger(name)
+    monkeypatch.setattr(logger, "filters", list(logger.filters))
+  for name in ("TENSORSTORE_CURL_LOW_SPEED_TIME_SECONDS", "TENSORSTORE_CURL_LOW_SPEED_LIMIT_BYTES"):
+    was = os.environ.get(name)
+    monkeypatch.setenv(name, was or "")  # restored after the test: to `was`, or to no variable at all
+    if was is None:
+      monkeypatch.delenv(name)
+  monkeypatch.setattr(compilation, "tune_host", lambda config: None)
+  yield
+  logging.set_verbosity(verbosity)
 
 
 @pytest.fixture(scope="session")
@@ -265,6 +292,15 @@ def pytest_collection_modifyitems(config, items):
   stale = [entry for entry in EXTENDED if entry not in used]
   if whole and stale:
     raise pytest.UsageError(f"tests/conftest.py EXTENDED names no slow test: {', '.join(stale)}")
+  if whole:
+    config.stash[COLLECTED] = {item.nodeid: {m for m in ("slow", "extended") if item.get_closest_marker(m)}
+                               for item in items}
+
+
+# Every test a session that collected whole folders found, with its marks among slow and extended (those above
+# added), before -m, -k or --deselect chose among them: tests/test_suite.py reads the suite's marks here rather
+# than collecting the suite again in a process of its own (every pytest-xdist worker collects it all).
+COLLECTED = pytest.StashKey[dict]()
 
 
 def _work_unit(nodeid: str) -> str:

@@ -397,21 +397,31 @@ if __name__ == "__main__":
   main.run()
 
 
-def in_process(run, program: str, capsys, monkeypatch, cwd):
+def in_process(run, program: str, capsys, monkeypatch, cwd, flag_values=()):
   """A function call(*args) that runs a command's entry point `run(argv)` in this process, as `program ARGS`
   (sys.argv set: ml_collections reads --config's overrides off it), from `cwd`: its exit code, stdout and
   stderr as a process's (subprocess.CompletedProcess). For claims about a command's parsing, help and
-  refusals, which end before any work (no process of its own needed)."""
+  refusals, which end before any work (no process of its own needed). The flags ml_collections defines as a
+  call parses --config.* overrides (one per override) are removed after it, from absl's FLAGS and from
+  `flag_values` (a command's own FlagValues), as a process starts without them: two calls may override the same
+  field."""
+  from absl import flags
   monkeypatch.chdir(cwd)
+  held = [flags.FLAGS, *flag_values]
 
   def call(*args):
     monkeypatch.setattr(sys, "argv", [program, *args])
     capsys.readouterr()
+    defined = [set(values) for values in held]
     try:
       run(list(args))
       code = 0
     except SystemExit as e:
       code = e.code if isinstance(e.code, int) else int(e.code is not None)
+    finally:  # the overrides' flags (`config.train.num_steps`: a config flag's name, a dot, the field's path)
+      for values, names in zip(held, defined):
+        for name in [name for name in values if name not in names and name.split(".")[0] in names]:
+          delattr(values, name)
     out, err = capsys.readouterr()
     return subprocess.CompletedProcess([program, *args], code, out, err)
   return call

@@ -19,21 +19,42 @@ needs_libtpu = pytest.mark.skipif(not HAS_LIBTPU, reason="libtpu is not installe
 
 
 AOT = ["-m", "nerfpod.pod.aot"]
-# The ways in: `nerfpod aot` (its run(argv), the words after the subcommand) and python -m nerfpod.pod.aot.
-ENTRY_POINTS = {"run": ["-c", "import sys; from nerfpod.pod import aot; aot.run(sys.argv[1:])"],
-                "module": AOT}
+# What the tool sets in its process (aot._quiet_libtpu: the variables libtpu reads, and JAX_PLATFORMS, which a
+# process of the tool starts without: _aot).
+TOOL_ENVIRONMENT = ("TPU_ACCELERATOR_TYPE", "TPU_WORKER_HOSTNAMES", "TPU_SKIP_MDS_QUERY", "ALLOW_MULTIPLE_LIBTPU_LOAD",
+                    "JAX_PLATFORMS")
 
 
 def _aot(*args, timeout=600, entry=AOT) -> subprocess.CompletedProcess:
+  """`python -m nerfpod.pod.aot ARGS` in a process of its own: for the compiles for a TPU topology (libtpu,
+  loaded with the variables the tool sets first) and the module's own entry point."""
   env = procs.environment(1)
   env.pop("JAX_PLATFORMS")  # the tool chooses its own
   return subprocess.run([sys.executable, *entry, *args], cwd=REPO, env=env, capture_output=True, text=True,
                         timeout=timeout)
 
 
-@pytest.mark.parametrize("entry", ENTRY_POINTS.values(), ids=ENTRY_POINTS.keys())
-def test_unknown_topology_is_refused_in_one_sentence_listing_the_known_ones(entry):
-  out = _aot("--config=configs/default.py:smoke", "--topology=v9-1024", entry=entry)
+@pytest.fixture
+def aot_here(capsys, monkeypatch):
+  """`nerfpod aot ARGS` in this process (aot.run, as the `nerfpod` command calls it; procs.in_process), for the
+  tool's refusals, which come before any compile and any JAX call (this process's JAX, already started on its
+  CPU devices, plays no part). The variables the tool sets with os.environ.setdefault (TOOL_ENVIRONMENT) go
+  back to what they were after the test; JAX_PLATFORMS is unset during it, as in _aot's process."""
+  from nerfpod.pod import aot
+  for name in TOOL_ENVIRONMENT:
+    was = os.environ.get(name)
+    monkeypatch.setenv(name, was or "")  # restored after the test: to `was`, or to no variable at all
+    if was is None or name == "JAX_PLATFORMS":
+      monkeypatch.delenv(name)
+  return procs.in_process(aot.run, "nerfpod aot", capsys, monkeypatch, REPO, flag_values=[aot.FLAGS])
+
+
+@pytest.mark.parametrize("entry", ["run", "module"])
+def test_unknown_topology_is_refused_in_one_sentence_listing_the_known_ones(aot_here, entry):
+  """The ways in: `nerfpod aot` (its run(argv), in this process) and `python -m nerfpod.pod.aot` (the module's
+  __main__, in a process of its own: it refuses before importing JAX, a fraction of a second)."""
+  args = ("--config=configs/default.py:smoke", "--topology=v9-1024")
+  out = aot_here(*args) if entry == "run" else _aot(*args)
   assert out.returncode == 2
   lines = out.stderr.strip().splitlines()
   assert len(lines) == 1 and lines[0].startswith("nerfpod: error: unknown --topology=v9-1024; known pods:")
@@ -69,32 +90,33 @@ def _one_sentence(out: subprocess.CompletedProcess, code: int = 2) -> str:
     (["--topology=v5e-8", "--slices=0"], "--slices=0 must be 1 (one slice) or more"),
     (["--topology=v5e-8", "--slices=two"], "--slices=two: invalid literal"),
 ], ids=lambda v: " ".join(v) if isinstance(v, list) else None)
-def test_bad_arguments_are_one_sentence_and_exit_2(args, message):
+def test_bad_arguments_are_one_sentence_and_exit_2(aot_here, args, message):
   if not any(a.startswith("--config=") for a in args) and "--config=configs/default.py:smoke" not in args:
     args = ["--config=configs/default.py:smoke", *args]
-  line = _one_sentence(_aot(*args, timeout=120))
+  line = _one_sentence(aot_here(*args))
   assert message in line, line
 
 
-def test_a_compiler_refusal_is_one_sentence_naming_the_program_the_pod_and_xlas_reason_exit_1():
+def test_a_compiler_refusal_is_one_sentence_naming_the_program_the_pod_and_xlas_reason_exit_1(aot_here, monkeypatch):
   """As the TPU compiler refused the orbit's per-host program on v5e pods (tests/test_pod_sweep.py has the
   real refusal): here a stand-in compile_pod raises XLA's error through the tool's own handling."""
-  script = (
-      "import sys, jax\n"
-      "from nerfpod.pod import aot, chips\n"
-      "def refuse(config, pod, what, slices=1):\n"
-      "  def compile_fn():\n"
-      "    raise jax.errors.JaxRuntimeError('INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count\\n"
-      "   == target.Topology()->LogicalDeviceCount() should include all slice devices\\nmore detail')\n"
-      "  return {'orbit': aot._compile('orbit', compile_fn, pod, 4, 1024)}\n"
-      "aot.compile_pod = refuse\n"
-      "aot.run(sys.argv[1:])\n")
-  out = _aot("--config=configs/default.py:smoke", "--topology=v5e-64", "--what=orbit", entry=["-c", script])
-  line = _one_sentence(out, code=1)
+  import jax
+  from nerfpod.pod import aot
+  xla = ("INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count\n"
+         "   == target.Topology()->LogicalDeviceCount() should include all slice devices\nmore detail")
+
+  def refusing(error):
+    def compile_pod(config, pod, what, slices=1):  # noqa: ARG001 (compile_pod's signature)
+      def compile_fn():
+        raise error
+      return {"orbit": aot._compile("orbit", compile_fn, pod, 4, 1024)}
+    return compile_pod
+  monkeypatch.setattr(aot, "compile_pod", refusing(jax.errors.JaxRuntimeError(xla)))
+  line = _one_sentence(aot_here("--config=configs/default.py:smoke", "--topology=v5e-64", "--what=orbit"), code=1)
   assert line == ("nerfpod: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 hosts): "
                   "INTERNAL: RET_CHECK failure (deepsea_compiler_base.cc:1879) device_count")
-  crash = script.replace("raise jax.errors.JaxRuntimeError(", "raise IndexError(")
-  line = _one_sentence(_aot("--config=configs/default.py:smoke", "--topology=v5e-64", entry=["-c", crash]), code=1)
+  monkeypatch.setattr(aot, "compile_pod", refusing(IndexError(xla)))  # a crash, not XLA's error
+  line = _one_sentence(aot_here("--config=configs/default.py:smoke", "--topology=v5e-64"), code=1)
   assert line.startswith("nerfpod: error: the orbit renderer does not compile for v5litepod-64 (64 chips on 16 "
                          "hosts): IndexError: INTERNAL: RET_CHECK")
 
@@ -109,8 +131,8 @@ def test_json_to_stdout_is_the_report_alone_and_the_tables_go_to_stderr():
   assert "v4-8 (v4:2x2x1, 4 chips of TPU v4 on 1 hosts)" in out.stderr and "Traceback" not in out.stderr
 
 
-def test_a_batch_that_does_not_split_over_the_pod_is_refused():
-  out = _aot("--config=configs/default.py:smoke", "--config.train.batch_size=100", "--topology=v5e-64")
+def test_a_batch_that_does_not_split_over_the_pod_is_refused(aot_here):
+  out = aot_here("--config=configs/default.py:smoke", "--config.train.batch_size=100", "--topology=v5e-64")
   assert out.returncode == 2
   assert "train.batch_size=100 does not split over 64 devices" in out.stderr and "Traceback" not in out.stderr
 
@@ -198,6 +220,8 @@ def test_two_slices_compile_as_one_program_with_the_cross_slice_reduction_over_d
 
 @needs_libtpu
 def test_a_config_whose_slices_are_not_the_topologys_is_one_sentence():
+  """In a process of its own: refused once libtpu has described the topology's devices (libtpu loaded into the
+  process, with the variables the tool sets before it loads)."""
   line = _one_sentence(_aot("--config=configs/default.py:smoke", "--topology=v5e-4", "--slices=2",
                             "--config.mesh.slices=4", "--what=step"))
   assert "mesh.slices=4 but the 8 devices are in 2 slices" in line

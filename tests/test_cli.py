@@ -12,14 +12,6 @@ from conftest import REPO
 from nerfpod import cli
 
 
-def _nerfpod(*args, timeout=120):
-  """`nerfpod ARGS` as the console script runs it (nerfpod.cli.run), in a process of its own: for a claim about
-  what the command sets up in its process (the backend, jax.distributed, the host's settings)."""
-  env = dict(os.environ, JAX_PLATFORMS="cpu")
-  return subprocess.run([sys.executable, "-c", "from nerfpod import cli; cli.run()", *args], cwd=REPO, env=env,
-                        capture_output=True, text=True, timeout=timeout)
-
-
 @pytest.fixture
 def nerfpod(capsys, monkeypatch):
   """`nerfpod ARGS` in this process (nerfpod.cli.run, as the console script calls it; procs.in_process)."""
@@ -68,8 +60,10 @@ def test_train_checks_the_config_before_anything_runs(nerfpod, tmp_path):
   assert not (tmp_path / "run").exists()
 
 
-def test_eval_of_a_workdir_without_a_checkpoint_is_refused(tmp_path):
-  done = _nerfpod("eval", "--config=configs/default.py:smoke", f"--workdir={tmp_path}")
+def test_eval_of_a_workdir_without_a_checkpoint_is_refused(nerfpod, run_start_held, tmp_path):
+  """Refused by the run's start-up, after JAX has started (here, the test process's 8 CPU devices), before
+  anything is restored or written."""
+  done = nerfpod("eval", "--config=configs/default.py:smoke", f"--workdir={tmp_path}")
   assert done.returncode == 2 and "holds no checkpoint yet; train first" in done.stderr
 
 
@@ -110,12 +104,6 @@ def test_the_wheel_installs_one_top_level_package_and_declares_what_it_imports(t
   assert {imported[name] for name in third_party} <= required, sorted({imported[n] for n in third_party} - required)
 
 
-# Every subcommand's module, imported once by the interpreter procs.run_forked_each forks a child from per
-# command line (JAX not started): each child parses its flags from scratch, as the command does.
-_CLI_IMPORTS = """from nerfpod import bench, cli, export, main, prepare, view
-from nerfpod.export import cameras, depth, mesh, pointcloud, video
-from nerfpod.pod import aot"""
-
 # Every subcommand (each kind of export too): the words that make its command line whole, flags of its own that
 # its --help lists, flags of other subcommands that it must not list, and a flag given a value it refuses.
 _CONFIG = "--config=configs/default.py:smoke"
@@ -147,20 +135,40 @@ _COMMANDS = {
 }
 
 
+def _case_argv(name: str, case: str) -> list[str]:
+  """The words after `nerfpod` of one case of a subcommand (_COMMANDS): --help, an unknown flag, a bad value, or
+  the required flags left out."""
+  argv, _, _, bad = _COMMANDS[name]
+  words = argv[:len(name.split())]
+  return {"help": [*words, "--help"], "unknown": [*argv, "--bogus=1"], "bad": [*argv, bad], "missing": words}[case]
+
+
+_CASES = ("help", "unknown", "bad", "missing")
+
+
 @pytest.fixture(scope="module")
-def command_lines():
-  """{(subcommand, case): (exit code, stdout, stderr)} of --help, an unknown flag, a bad value and the required
-  flags left out, for every subcommand, through nerfpod.cli.run."""
-  cases = {}
-  for name, (argv, _, _, bad) in _COMMANDS.items():
-    words = argv[:len(name.split())]
-    cases[name, "help"] = [*words, "--help"]
-    cases[name, "unknown"] = [*argv, "--bogus=1"]
-    cases[name, "bad"] = [*argv, bad]
-    cases[name, "missing"] = words
-  env = dict(os.environ, JAX_PLATFORMS="cpu")
-  return dict(zip(cases, procs.run_forked_each(_CLI_IMPORTS, "cli.run(argv)", list(cases.values()), env),
-                  strict=True))
+def modes_command_lines():
+  """{(mode, case): (exit code, stdout, stderr)} of each case of the modes (train, eval, render: nerfpod.main),
+  each in a child forked from one interpreter that has imported nerfpod.cli and nerfpod.main only (no JAX),
+  as the `nerfpod` command's process has: the modes' flags are absl's global FLAGS, whose --help and unknown-flag
+  sentence list the flags of every module the process imported (procs.run_forked_each)."""
+  from nerfpod.run import MODES
+  cases = [(name, case) for name in _COMMANDS if name in MODES for case in _CASES]
+  results = procs.run_forked_each("from nerfpod import cli, main", "cli.run(argv)",
+                                  [_case_argv(*case) for case in cases], dict(os.environ, JAX_PLATFORMS="cpu"))
+  return dict(zip(cases, results, strict=True))
+
+
+@pytest.fixture
+def command_lines(nerfpod, modes_command_lines):
+  """The case's (exit code, stdout, stderr) through nerfpod.cli.run: the modes' from their forked children
+  (modes_command_lines); the other subcommands', whose flags are their own (a FlagValues each), in this process."""
+  def result(name: str, case: str) -> tuple[int, str, str]:
+    if (name, case) in modes_command_lines:
+      return modes_command_lines[name, case]
+    done = nerfpod(*_case_argv(name, case))
+    return done.returncode, done.stdout, done.stderr
+  return result
 
 
 def _the_one_error(result) -> str:
@@ -175,7 +183,7 @@ def _the_one_error(result) -> str:
 @pytest.mark.parametrize("name", _COMMANDS)
 def test_every_subcommands_help_lists_its_own_flags_only(command_lines, name):
   _, own, others, _ = _COMMANDS[name]
-  code, out, err = command_lines[name, "help"]
+  code, out, err = command_lines(name, "help")
   assert code == 0 and err == "", (code, err)
   assert out.startswith(f"usage: nerfpod {name} [flags]\n\n"), out
   about = out.split("\n")[2]
@@ -188,7 +196,7 @@ def test_every_subcommands_help_lists_its_own_flags_only(command_lines, name):
 
 @pytest.mark.parametrize("name", _COMMANDS)
 def test_every_subcommands_unknown_flag_is_one_sentence_and_exit_2(command_lines, name):
-  line = _the_one_error(command_lines[name, "unknown"])
+  line = _the_one_error(command_lines(name, "unknown"))
   assert line.startswith("nerfpod: error: unknown flag --bogus; ") and f"`nerfpod {name} --help`" in line, line
   for flag in _COMMANDS[name][1]:  # the flags it does take, named
     assert flag in line, line
@@ -197,7 +205,7 @@ def test_every_subcommands_unknown_flag_is_one_sentence_and_exit_2(command_lines
 @pytest.mark.parametrize("name", _COMMANDS)
 def test_every_subcommands_bad_value_is_one_sentence_naming_the_flag_and_a_valid_value(command_lines, name):
   bad = _COMMANDS[name][3]
-  line = _the_one_error(command_lines[name, "bad"])
+  line = _the_one_error(command_lines(name, "bad"))
   flag = bad.split("=")[0]
   assert line.startswith(f"nerfpod: error: {bad}") or line.startswith(f"nerfpod: error: {flag}="), line
   assert f"e.g. {flag}=" in line or f"a yes/no flag is given as {flag} or --no{flag[2:]}" in line, line
@@ -205,7 +213,7 @@ def test_every_subcommands_bad_value_is_one_sentence_naming_the_flag_and_a_valid
 
 @pytest.mark.parametrize("name", _COMMANDS)
 def test_every_subcommands_required_flags_are_named_with_an_example(command_lines, name):
-  line = _the_one_error(command_lines[name, "missing"])
+  line = _the_one_error(command_lines(name, "missing"))
   assert " required, e.g. --" in line, line
 
 

@@ -1,9 +1,10 @@
 """The entry point as a user runs it: one command, a workdir with config, events and metrics.
 
 The whole job (the smoke config, in a process of its own on one device) is marked slow; the refusals below
-stop before any work and stay in the quick loop: those refused before JAX starts (a bad flag, config file or
-field) in this process, through nerfpod.main.run; those refused by the run's start-up (the scene, the devices)
-in a process of its own, as a user's run starts."""
+stop before any work and stay in the quick loop, in this process, through nerfpod.main.run: those refused before
+JAX starts (a bad flag, config file or field), and those refused by the run's start-up (the scene, the devices),
+after JAX has started on this process's 8 CPU devices (conftest.run_start_held: what the start-up sets for its
+whole process goes back after each)."""
 import json
 import os
 import subprocess
@@ -84,15 +85,16 @@ def test_unknown_config_key_is_refused_clearly(main_here, tmp_path):
   assert not (tmp_path / "config.json").exists()
 
 
-# Refused by the run's start-up, after JAX has started on the process's devices: a process of its own, 8 devices.
+# Refused by the run's start-up, after JAX has started on the process's devices (this process's 8).
 @pytest.mark.parametrize("args,message", [
     (["--config.data.kind=blender", "--config.data.path=/nonexistent/lego"], "not found"),
     (["--config.data.kind=tiny", "--config.data.path=/nonexistent/tiny.npz"], "not found"),
     (["--config.train.batch_size=100", "--config.data.image_size=8"], None),
 ])
-def test_bad_input_exits_non_zero_with_one_sentence(tmp_path, args, message):
-  result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *args,
-                    devices_per_process=8)
+def test_bad_input_exits_non_zero_with_one_sentence(main_here, run_start_held, tmp_path, args, message):
+  import jax
+  assert jax.device_count() == 8  # the devices the batch must split over
+  result = main_here("--config=configs/default.py:smoke", f"--workdir={tmp_path}", *args)
   if message is None:  # 100 rays over 8 devices
     message = "does not split over 8 devices"
   _assert_one_sentence(result, message)

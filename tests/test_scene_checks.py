@@ -304,15 +304,20 @@ def test_a_damaged_image_is_one_sentence_naming_its_file(tmp_path, kind, damage)
   assert "\n" not in message and "BufferedReader" not in message
 
 
-def test_a_damaged_training_image_exits_2_with_one_sentence_and_no_workdir(tmp_path):
-  """Through the command line: the sentence, exit 2, and no workdir made."""
-  from procs import run_main
+def test_a_damaged_training_image_exits_2_with_one_sentence_and_no_workdir(tmp_path, capsys, monkeypatch,
+                                                                            run_start_held):
+  """Through the command line (nerfpod.main.run, in this process: refused by the run's start-up, which
+  conftest.run_start_held undoes): the sentence, exit 2, and no workdir made."""
+  import procs
+  from conftest import REPO
+  from nerfpod import main
   (tmp_path / "capture").mkdir()
   path = _write("nerfstudio", tmp_path / "capture", _poses(6))
   bad = path / "images" / "03.png"
   bad.write_bytes(bad.read_bytes()[:40])
-  result = run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path / 'run'}", "--config.data.kind=auto",
-                    f"--config.data.path={path}")
+  result = procs.in_process(main.run, "nerfpod.main", capsys, monkeypatch, REPO)(
+      "--config=configs/default.py:smoke", f"--workdir={tmp_path / 'run'}", "--config.data.kind=auto",
+      f"--config.data.path={path}")
   assert result.returncode == 2, result.stderr[-2000:]
   errors = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: error:")]
   assert len(errors) == 1 and f"{bad} is not a readable image" in errors[0], result.stderr[-2000:]

@@ -44,16 +44,22 @@ sys.exit(pytest.main(["-q", "--collect-only", "-p", "no:cacheprovider", "tests"]
 EXTENDED_SIZE = 54
 
 
-def _marks() -> dict[str, set[str]]:
-  """Every test of the suite (its id from tests/) and its marks among slow and extended: one collection."""
+def _marks(config) -> dict[str, set[str]]:
+  """Every test of the suite (its id from tests/) and its marks among slow and extended: this session's
+  collection where it collected every test file (conftest.COLLECTED: the gate, the quick loop), else one
+  collection in a process of its own."""
+  collected = config.stash.get(conftest.COLLECTED, None)
+  files = {f"tests/{path.name}" for path in (REPO / "tests").glob("test_*.py")}
+  if collected is not None and {nodeid.split("::")[0] for nodeid in collected} == files:
+    return {nodeid.split("tests/", 1)[1]: set(marks) for nodeid, marks in collected.items()}
   done = subprocess.run([sys.executable, "-c", _REPORT_MARKS], cwd=REPO, capture_output=True, text=True, timeout=300)
   assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
   lines = [line.split()[1:] for line in done.stdout.splitlines() if line.startswith("MARKS ")]
   return {words[0].split("tests/", 1)[1]: set(words[1:]) for words in lines}
 
 
-def test_the_extended_set_is_slow_tests_that_an_entry_names_and_the_gate_keeps_the_rest():
-  marks = _marks()
+def test_the_extended_set_is_slow_tests_that_an_entry_names_and_the_gate_keeps_the_rest(pytestconfig):
+  marks = _marks(pytestconfig)
   extended = {test for test, its in marks.items() if "extended" in its}
   assert len(marks) > 900 and "test_suite.py::test_ci_runs_exactly_the_readmes_test_command" in marks
   assert all("slow" in marks[test] for test in extended)  # so the quick loop lies inside the gate
