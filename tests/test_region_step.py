@@ -255,10 +255,16 @@ def test_regions_cut_around_the_cameras():
   assert components.make_model(config).partition.size == 3  # without cameras: a placeholder ring
 
 
-def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(tmp_path):
+def test_regions_that_do_not_split_over_the_devices_are_one_sentence_and_exit_2(tmp_path, capsys, monkeypatch,
+                                                                               run_start_held):
+  """`python -m nerfpod.main` refuses before any work; in this process (procs.in_process; conftest.run_start_held
+  puts back what the run's start-up sets), on its 8 CPU devices."""
   import procs
-  result = procs.run_main("--config=configs/default.py:smoke", f"--workdir={tmp_path}", "--config.model.regions=3",
-                          devices_per_process=8)
+  from conftest import REPO
+  from nerfpod import main
+  assert jax.device_count() == 8  # the devices the regions must split over
+  main_here = procs.in_process(main.run, "nerfpod.main", capsys, monkeypatch, REPO)
+  result = main_here("--config=configs/default.py:smoke", f"--workdir={tmp_path}", "--config.model.regions=3")
   assert result.returncode == 2, result.stderr
   lines = [line for line in result.stderr.splitlines() if line.startswith("nerfpod: error:")]
   assert lines == ["nerfpod: error: model.regions=3 does not split over the 8 devices of a slice (each region's "
