@@ -201,3 +201,20 @@ def test_every_loader_has_the_one_signature_and_a_new_format_is_one_table_entry(
   assert scenes.load(data) is made and calls == [(str(tmp_path), 2, None)]
   with pytest.raises(UserError, match=r"data.kind='pretend' needs a data path"):
     scenes.load(ml_collections.ConfigDict({"kind": "pretend", "path": "", "downscale": 1}))
+
+
+@pytest.mark.parametrize("kind, path", [("procedural", ""), ("street", "blocks=2")])
+def test_a_built_in_scenes_cameras_come_without_tracing_its_frames(kind, path):
+  """scenes.cameras_only (what nerfpod aot measures model.region_capacity=auto on): the poses, cameras and
+  bounds load() gives, every pixel the background and no coverage; a scene read from files is not for it."""
+  data = ml_collections.ConfigDict({"kind": kind, "path": path, "image_size": 6, "pixel_center": 0.5})
+  loaded, bare = scenes.load(data), scenes.cameras_only(data)
+  assert (bare.name, bare.near, bare.far, bare.kind) == (loaded.name, loaded.near, loaded.far, loaded.kind)
+  for name, split in loaded.splits.items():
+    np.testing.assert_array_equal(bare.splits[name].poses, split.poses)
+    for field in ("width", "height", "fx", "fy", "cx", "cy", "distortion"):
+      np.testing.assert_array_equal(getattr(bare.splits[name].cameras, field), getattr(split.cameras, field))
+    assert (np.asarray(bare.splits[name].pixels) == 255).all() and not np.asarray(bare.splits[name].alphas).any()
+    assert np.asarray(split.alphas).any()  # (the traced frames do hit something)
+  with pytest.raises(ValueError, match="data.kind=blender is not a built-in scene"):
+    scenes.cameras_only(ml_collections.ConfigDict({"kind": "blender", "path": "/x"}))

@@ -166,7 +166,7 @@ def resolve_capacity(config, mesh):
   loader = scenes.LOADERS.get(config.data.kind)
   if loader is None or loader.needs_path:
     raise UserError(AUTO_WITHOUT_SCENE.format(kind=config.data.kind))
-  scene = scenes.load(config.data)
+  scene = scenes.cameras_only(config.data)  # (the measurement reads the cameras only: no frame traced)
   near, far = components.ray_bounds(config, scene)
   cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # as components.build_program cuts the regions
   samples = components.balance_samples(config, scene) if config.model.region_cut == "balanced" else None

@@ -24,7 +24,8 @@ from nerfpod.errors import UserError
 from nerfpod.scenes.base import SPACES, Scene, Shards, Split, with_pose_noise
 from nerfpod.scenes.formats import COLMAP_MODEL, LOADERS, Loader
 
-__all__ = ["CAPTURE_KINDS", "KINDS", "LOADERS", "Loader", "SPACES", "Scene", "Shards", "Split", "detect", "load"]
+__all__ = ["CAPTURE_KINDS", "KINDS", "LOADERS", "Loader", "SPACES", "Scene", "Shards", "Split", "cameras_only",
+           "detect", "load"]
 
 KINDS = tuple(LOADERS) + ("auto",)  # data.kind's values ('auto': told by data.path's files, detect())
 CAPTURE_KINDS = tuple(kind for kind, loader in LOADERS.items() if loader.capture)
@@ -74,6 +75,17 @@ def detect(path: str) -> str:
   names = [name for _, loader in by_precedence for name in loader.files]
   raise UserError(f"cannot tell the format of {path!r}: it holds none of {', '.join(names)}; set "
                   f"--config.data.kind to one of {', '.join(k for k in KINDS if k not in ('auto', 'procedural'))}.")
+
+
+def cameras_only(data_config) -> Scene:
+  """A built-in scene (a kind whose loader needs no data.path: procedural, street) with the cameras and poses
+  load() gives it and its images left untraced (every pixel the background; its module's cameras()): for a tool
+  that reads only the cameras (nerfpod aot's model.region_capacity=auto), without tracing every frame. Another kind is a ValueError
+  (its cameras are in its files: load() it)."""
+  loader = LOADERS.get(data_config.kind)
+  if loader is None or loader.needs_path:
+    raise ValueError(f"cameras_only: data.kind={data_config.kind} is not a built-in scene")
+  return importlib.import_module(f"nerfpod.scenes.{loader.module}").cameras(data_config.path, data_config)
 
 
 def load(data_config, shards: Shards | None = None) -> Scene:

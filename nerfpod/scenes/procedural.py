@@ -89,6 +89,13 @@ def trace(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = 
   return trace_solids(_objects(), origins, directions, background, return_alpha)
 
 
+def untraced(origins, directions, background=(1.0, 1.0, 1.0), return_alpha: bool = False):
+  """A stand-in for `trace` that traces nothing: every ray the background, alpha 0; for a scene's cameras alone
+  (make(traced=False): a tool that reads only the cameras, scenes.cameras_only)."""
+  colour = np.broadcast_to(np.asarray(background, np.float32), np.shape(origins)).copy()
+  return (colour, np.zeros(np.shape(origins)[:-1], np.float32)) if return_alpha else colour
+
+
 def trace_solids(objects, origins, directions, background, return_alpha: bool):
   """`trace` over any solids: (intersect(o, d) -> (t, normal), albedo) pairs, the albedo a colour (3,) or a
   function of the hit points (..., 3) -> (..., 3) (a texture; nerfpod/scenes/street.py's)."""
@@ -126,11 +133,17 @@ def load(path: str, data_config, shards=None) -> Scene:
   return make(data_config.image_size, pixel_center=data_config.pixel_center)
 
 
+def cameras(path: str, data_config) -> Scene:
+  """load()'s scene with its images untraced (blank): its cameras only (scenes.cameras_only)."""
+  return make(data_config.image_size, pixel_center=data_config.pixel_center, traced=False)
+
+
 def make(image_size: int = 100, num_train: int = 100, num_val: int = 8, num_test: int = 8,
-         pixel_center: float = 0.5) -> Scene:
-  """The procedural scene; the same arguments always give the same pixels."""
-  splits = traced_splits(trace, lambda n, seed: hemisphere_poses(n, seed=seed), image_size, CAMERA_ANGLE_X,
-                         {"train": num_train, "val": num_val, "test": num_test}, pixel_center)
+         pixel_center: float = 0.5, traced: bool = True) -> Scene:
+  """The procedural scene; the same arguments always give the same pixels (`traced` False: the same cameras,
+  every pixel the background, untraced)."""
+  splits = traced_splits(trace if traced else untraced, lambda n, seed: hemisphere_poses(n, seed=seed), image_size,
+                         CAMERA_ANGLE_X, {"train": num_train, "val": num_val, "test": num_test}, pixel_center)
   return Scene("procedural", splits, near=2.0, far=6.0, background=(1.0, 1.0, 1.0), kind="procedural")
 
 

@@ -127,13 +127,20 @@ def load(path: str, data_config, shards=None) -> Scene:
   return make(data_config.image_size, pixel_center=data_config.pixel_center, blocks=blocks_of(path))
 
 
+def cameras(path: str, data_config) -> Scene:
+  """load()'s scene with its images untraced (blank): its cameras only (scenes.cameras_only)."""
+  return make(data_config.image_size, pixel_center=data_config.pixel_center, blocks=blocks_of(path), traced=False)
+
+
 def make(image_size: int = 64, num_train: int = 120, num_val: int = 8, num_test: int = 8,
-         pixel_center: float = 0.5, blocks: int = 1) -> Scene:
+         pixel_center: float = 0.5, blocks: int = 1, traced: bool = True) -> Scene:
   """The street scene (module docstring); `blocks` B > 1: B times as long, with B times num_train (the same
-  spacing of training cameras) and the held-out counts as given."""
+  spacing of training cameras) and the held-out counts as given. `traced` False: the same cameras, every pixel
+  the sky, untraced (tracing every frame against every solid grows as B^2: minutes at B = 8)."""
   length = LENGTH * blocks
   splits = procedural.traced_splits(
-      lambda o, d, **kw: trace(o, d, length=length, **kw), lambda n, seed: street_poses(n, seed, length),
+      (lambda o, d, **kw: trace(o, d, length=length, **kw)) if traced else procedural.untraced,
+      lambda n, seed: street_poses(n, seed, length),
       image_size, FIELD_OF_VIEW, {"train": num_train * blocks, "val": num_val, "test": num_test}, pixel_center,
       first_seed=100)
   return Scene("street" if blocks == 1 else f"street_x{blocks}", splits, near=NEAR, far=FAR,
