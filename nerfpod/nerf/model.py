@@ -239,8 +239,7 @@ is the model above, unchanged.
     if uniforms is None:
       uniforms = (None,) * len(self.sample_counts())
     # Each region's segment of each ray (L, R), as RegionRenderer cuts it (the same vmapped function).
-    t_in, t_out = jax.vmap(lambda n, o, c: tuple(t[0] for t in nerf_regions.segments(
-        origins_Rx3, directions_Rx3, near, far, nerf_regions.Partition(n[None], o[None], c[None]))))(*planes)
+    t_in, t_out = nerf_regions.segments_one_by_one(origins_Rx3, directions_Rx3, near, far, planes)
     settings = dict(model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype,
                     spacing=self.spacing, proposal_samples=tuple(self.proposal_samples),
                     proposal_padding=self.proposal_padding, grid_matmul_max_rows=self.grid_matmul_max_rows,

@@ -21,7 +21,8 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     cells             each region's cell in the ground plane within a square, a convex polygon (the viewer's)
     unseen            the regions that no ray of a set (the training cameras') crosses
     boxes, to_box     each region's own box (its cell's bounds, the whole height) and the map of it onto a field's
-    segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised)
+    segments          each ray's segment [t_in, t_out] in each region (the slab method, generalised);
+                      segments_one_by_one, region by region as the region step cuts them
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
     capacity_rows, dispatch, gather_rows, scatter_rows   a chip's rows per region within a static capacity C:
                       the rays whose segment is not empty, up to C in ray order, and their sums put back
@@ -300,6 +301,14 @@ def segments(origins_Rx3, directions_Rx3, near, far, partition: Partition):
   return jax.lax.stop_gradient(t_in), jax.lax.stop_gradient(t_out)
 
 
+def segments_one_by_one(origins_Rx3, directions_Rx3, near, far, planes):
+  """`segments` ((t_in, t_out), each (L, R)) of the L regions whose planes are `planes` (a Partition's three
+  arrays, e.g. a device's own regions'), cut region by region (a vmap of one region's `segments`), as the region
+  step cuts them: what decides which segments are present (NeRF's region rendering, `segment_counts`)."""
+  return jax.vmap(lambda n, o, c: tuple(t[0] for t in segments(
+      origins_Rx3, directions_Rx3, near, far, Partition(n[None], o[None], c[None]))))(*planes)
+
+
 def partial_sums(rgb_RxSx3, sigma_RxS, t_RxS, deltas_RxS, directions_Rx3, s_edges_RxS1=None):
   """One region's per-ray partial sums of its S samples, each at t holding over an interval of (ray-parameter)
   length `deltas`, composited from transmittance 1 at the segment's start: a dict of
@@ -368,8 +377,7 @@ def segment_counts(origins_Rx3, directions_Rx3, near: float, far: float, partiti
     lo, hi = (near, far) if bound is None else sampling.clip_to_box(o, d, near, far, bound)
     lo = jnp.broadcast_to(jnp.asarray(lo, jnp.float32), (o.shape[0], 1))
     hi = jnp.broadcast_to(jnp.asarray(hi, jnp.float32), (o.shape[0], 1))
-    t_in, t_out = jax.vmap(lambda n, b, c: tuple(t[0] for t in segments(o, d, lo, hi, Partition(
-        n[None], b[None], c[None]))))(*planes)
+    t_in, t_out = segments_one_by_one(o, d, lo, hi, planes)
     return jnp.sum((t_out > t_in) & keep, axis=1, dtype=jnp.int32)
 
   counts = [np.asarray(count(origins[i:i + chunk], directions[i:i + chunk], valid[i:i + chunk]))
