@@ -457,6 +457,20 @@ def test_a_run_with_auto_records_its_fraction_and_its_resume_compiles_the_same_c
   assert capacity == {1: measured.capacity, 2: measured.capacity, 3: measured.capacity, 4: measured.capacity}
 
 
+@pytest.mark.parametrize("cut", ["grid", "cameras", "balanced"])
+def test_the_tools_region_cut_is_the_run_models(cut):
+  """components.region_cut (what nerfpod aot's auto measures on) is the partition of the model that
+  build_program makes for a run of the same scene: the training cameras' k-means cells, the balanced cut of the
+  training rays' samples, or the grid."""
+  config = _config(**{"model.region_cut": cut})
+  scene, _ = _batches(config, 0)
+  want = components.build_program(config, _one(), scene=scene).model.partition
+  got = components.region_cut(config, scene)
+  jax.tree.map(np.testing.assert_array_equal, tuple(got), tuple(want))
+  if cut != "grid":  # (cut from the scene: not the placeholders' cut without one)
+    assert not np.array_equal(got.offsets_KxP, components.region_partition(config).offsets_KxP)
+
+
 def test_a_tool_without_a_run_measures_auto_on_a_built_in_scene_and_asks_for_a_number_otherwise(capsys):
   """step.resolve_capacity (nerfpod aot's): the built-in scene made and measured, its line on stderr; a scene
   it would have to read (data.kind=blender) refused in one sentence asking for a fraction; a number kept."""

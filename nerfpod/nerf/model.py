@@ -238,18 +238,18 @@ is the model above, unchanged.
     boxes = tuple(jnp.asarray(a)[region_ids_L] for a in self.region_boxes)
     if uniforms is None:
       uniforms = (None,) * len(self.sample_counts())
-    # Each region's segment of each ray (L, R), as RegionRenderer cuts it (the same vmapped function).
+    # Each region's segment of each ray (L, R), cut once: what the regions render, and which are present.
     t_in, t_out = nerf_regions.segments_one_by_one(origins_Rx3, directions_Rx3, near, far, planes)
     settings = dict(model_config=self.model_config, num_samples=self.num_samples, dtype=self.dtype,
                     spacing=self.spacing, proposal_samples=tuple(self.proposal_samples),
                     proposal_padding=self.proposal_padding, grid_matmul_max_rows=self.grid_matmul_max_rows,
                     grid_materialize=self.grid_materialize, grid_layout=self.grid_layout,
                     grid_lookup=self.grid_lookup, near_gradient_distance=self.near_gradient_distance, name=REGIONS)
-    if not capacity:  # dense: every ray through every region (the segments cut again inside, as always)
+    if not capacity:  # dense: every ray through every region
       renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                         in_axes=(0, 0, 0, 0, 0, None, None, None, None, None, None, None), out_axes=0)(**settings)
-      partials, local = renderer(*planes, boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes,
-                                 near, far, anneal)
+                         in_axes=(0, 0, None, None, None, None, None, None, None, 0), out_axes=0)(**settings)
+      partials, local = renderer(boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far,
+                                 anneal, (t_in, t_out))
       local["present"] = t_out > t_in
       return partials, local
     # Compacted: each region's C rows (its rays with a segment there, in ray order), the rays' inputs and
@@ -262,8 +262,8 @@ is the model above, unchanged.
     segment = (jnp.where(used, own_rows(t_in), far_rows[..., 0]),
                jnp.where(used, own_rows(t_out), far_rows[..., 0]))
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                       in_axes=(0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, None, 0), out_axes=0)(**settings)
-    partials, local = renderer(*planes, boxes, tuple(own_rows(u) for u in uniforms), rows(origins_Rx3),
+                       in_axes=(0, 0, 0, 0, 0, 0, 0, 0, None, 0), out_axes=0)(**settings)
+    partials, local = renderer(boxes, tuple(own_rows(u) for u in uniforms), rows(origins_Rx3),
                                rows(directions_Rx3), rows(viewdirs), rows(codes), rows(near), far_rows, anneal,
                                segment)
     far_R = far[..., 0]
@@ -352,15 +352,10 @@ class RegionRenderer(nn.Module):
   grid_lookup: str = "gather"
 
   @nn.compact
-  def __call__(self, normals_Px3, offsets_P, closed_P, box, uniforms, origins, directions, viewdirs, codes, near,
-               far, anneal=None, segment=None):
-    """`segment`: each ray's (t_in, t_out) (R,) in the region, where already cut (a compacted region's rows);
-    None: cut here."""
+  def __call__(self, box, uniforms, origins, directions, viewdirs, codes, near, far, anneal, segment):
+    """`segment`: each ray's (t_in, t_out) (R,) in the region (nerf_regions.segments_one_by_one's cut)."""
     bound = self.model_config.hashgrid.bound
     local = lambda points: nerf_regions.to_box(points, *box, bound)  # noqa: E731  (the region's own box)
-    if segment is None:
-      partition = nerf_regions.Partition(normals_Px3[None], offsets_P[None], closed_P[None])
-      segment = tuple(t[0] for t in nerf_regions.segments(origins, directions, near, far, partition))
     t_in, t_out = (t[:, None] for t in segment)
     to_s = lambda t: jnp.clip(coord.t_to_s(t, near, far, self.spacing), 0.0, 1.0)  # noqa: E731
     warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731

@@ -218,6 +218,20 @@ def region_partition(config, camera_positions_Nx3=None, samples_Nx3=None) -> ner
   return nerf_regions.voronoi(nerf_regions.kmeans(ground, count))
 
 
+def region_inputs(config, scene) -> tuple:
+  """(camera positions (N, 3), samples (N, 3) or None): what `scene`'s regions are cut from (region_partition):
+  the training cameras' centres (model.region_cut=cameras cuts around them) and, for model.region_cut=balanced
+  with model.regions > 1, the training rays' samples it splits evenly (balance_samples)."""
+  cameras = np.asarray(scene.split("train").poses)[:, :3, 3]
+  balanced = config.model.regions > 1 and config.model.region_cut == "balanced"
+  return cameras, balance_samples(config, scene) if balanced else None
+
+
+def region_cut(config, scene) -> nerf_regions.Partition:
+  """The regions of `config` on `scene`, cut as build_program's model cuts them (region_inputs)."""
+  return region_partition(config, *region_inputs(config, scene))
+
+
 def _as_tuples(part: nerf_regions.Partition) -> tuple:
   """A partition as nested tuples (a flax module's attributes are hashed)."""
   nested = lambda x: tuple(map(nested, x)) if isinstance(x, list) else x  # noqa: E731
@@ -285,10 +299,8 @@ def build_program(config, mesh: Mesh, backend: str | None = None, scene: scenes.
     near, far = ray_bounds(config, scene)
     background, with_alpha = tuple(scene.background), scene.split("train").alphas is not None
     num_frames = len(scene.split("train"))
-    cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # model.region_cut=cameras cuts around them
+    cameras, samples = region_inputs(config, scene)
     pixel_angle = pixel_angle_of(scene)
-    samples = (balance_samples(config, scene)  # model.region_cut=balanced splits them evenly
-               if config.model.regions > 1 and config.model.region_cut == "balanced" else None)
   else:
     cameras = samples = None
     num_frames = _PLACEHOLDER_FRAMES

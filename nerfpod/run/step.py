@@ -168,10 +168,7 @@ def resolve_capacity(config, mesh):
     raise UserError(AUTO_WITHOUT_SCENE.format(kind=config.data.kind))
   scene = scenes.cameras_only(config.data)  # (the measurement reads the cameras only: no frame traced)
   near, far = components.ray_bounds(config, scene)
-  cameras = np.asarray(scene.split("train").poses)[:, :3, 3]  # as components.build_program cuts the regions
-  samples = components.balance_samples(config, scene) if config.model.region_cut == "balanced" else None
-  partition = components.region_partition(config, cameras, samples)
-  measured = measure_capacity(config, scene, mesh, partition, near, far)
+  measured = measure_capacity(config, scene, mesh, components.region_cut(config, scene), near, far)
   print(f"nerfpod: {measured.line()} (on data.kind={config.data.kind})", file=sys.stderr, flush=True)
   return with_capacity(config, measured.fraction)
 
