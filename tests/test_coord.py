@@ -7,6 +7,12 @@ import pytest
 
 from nerfpod.nerf import cameras, coord
 
+# One program each rather than one per operation; the cameras' numbers (Python floats) static, as they are to an
+# eager call.
+_ndc_rays = jax.jit(coord.ndc_rays, static_argnums=(2, 3, 4, 5, 6))
+_ndc_to_disparity = jax.jit(coord.ndc_to_disparity, static_argnums=1)
+_contract = jax.jit(coord.contract)
+
 def _reference_ndc_rays(H, W, focal, near, rays_o, rays_d):
   """bmild/nerf run_nerf_helpers.ndc_rays, verbatim but for tf -> np."""
   t = -(near + rays_o[..., 2]) / rays_d[..., 2]
@@ -33,8 +39,8 @@ def _camera_rays(n=200, seed=0):
 
 def test_ndc_rays_equal_the_original_code():
   intr, origins, directions = _camera_rays()
-  got_o, got_d = coord.ndc_rays(jnp.asarray(origins), jnp.asarray(directions), intr.fx, intr.fy, intr.width,
-                                intr.height, near=1.0)
+  got_o, got_d = _ndc_rays(jnp.asarray(origins), jnp.asarray(directions), intr.fx, intr.fy, intr.width,
+                           intr.height, 1.0)
   want_o, want_d = _reference_ndc_rays(intr.height, intr.width, intr.fx, 1.0, origins, directions)
   np.testing.assert_allclose(got_o, want_o, rtol=1e-5, atol=1e-6)
   np.testing.assert_allclose(got_d, want_d, rtol=1e-5, atol=1e-6)
@@ -45,7 +51,7 @@ def test_ndc_rays_pass_through_the_projections_of_their_world_points():
   every projection, at a t' that grows with distance, starts at 0 on the near plane and nears 1 far away."""
   intr, origins, directions = _camera_rays()
   near = 1.0
-  o_ndc, d_ndc = (np.asarray(a, np.float64) for a in coord.ndc_rays(
+  o_ndc, d_ndc = (np.asarray(a, np.float64) for a in _ndc_rays(
       jnp.asarray(origins, jnp.float32), jnp.asarray(directions, jnp.float32), intr.fx, intr.fy, intr.width,
       intr.height, near))
   start = -(near + origins[:, 2]) / directions[:, 2]  # where each ray crosses z = -near
@@ -58,7 +64,7 @@ def test_ndc_rays_pass_through_the_projections_of_their_world_points():
     t_ndc = (ndc[:, 2] - o_ndc[:, 2]) / d_ndc[:, 2]
     np.testing.assert_allclose(o_ndc + t_ndc[:, None] * d_ndc, ndc, atol=2e-4)
     assert (t_ndc > previous - 1e-6).all() and (t_ndc < 1.0).all()
-    np.testing.assert_allclose(coord.ndc_to_disparity(t_ndc, near), 1.0 / depth, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(_ndc_to_disparity(t_ndc, near), 1.0 / depth, rtol=1e-4, atol=1e-6)
     if extra == 0.0:
       np.testing.assert_allclose(t_ndc, 0.0, atol=1e-5)
     previous = t_ndc
@@ -77,7 +83,7 @@ def _points(n=2000, seed=1):
 
 def test_contraction_is_identity_inside_the_unit_ball_and_maps_everything_into_radius_2():
   points = _points()
-  contracted = np.asarray(coord.contract(points))
+  contracted = np.asarray(_contract(points))
   radius = np.linalg.norm(np.asarray(points), axis=-1)
   inside = radius <= 1.0
   np.testing.assert_array_equal(contracted[inside], np.asarray(points)[inside])
@@ -93,14 +99,14 @@ def test_contraction_is_identity_inside_the_unit_ball_and_maps_everything_into_r
 
 
 def test_contraction_and_its_derivative_are_continuous_at_the_unit_sphere():
-  direction = jnp.asarray([0.48, -0.6, 0.64])  # unit length
+  direction = np.asarray([0.48, -0.6, 0.64], np.float32)  # unit length
   jacobian = jax.jit(jax.jacfwd(lambda x: coord.contract(x[None])[0]))
   for eps in (1e-3, 1e-4):
-    below, above = direction * (1.0 - eps), direction * (1.0 + eps)
-    np.testing.assert_allclose(coord.contract(below[None]), coord.contract(above[None]), atol=3 * eps)
+    below, above = (jnp.asarray(direction * scale, jnp.float32) for scale in (1.0 - eps, 1.0 + eps))
+    np.testing.assert_allclose(_contract(below[None]), _contract(above[None]), atol=3 * eps)
     np.testing.assert_allclose(jacobian(below), jacobian(above), atol=10 * eps)
-  np.testing.assert_allclose(jacobian(direction * 1.0001), np.eye(3), atol=1e-3)
-  grads = jax.grad(lambda x: coord.contract(x).sum())(jnp.zeros((1, 3)))  # finite at the origin too
+  np.testing.assert_allclose(jacobian(jnp.asarray(direction * 1.0001, jnp.float32)), np.eye(3), atol=1e-3)
+  grads = jax.jit(jax.grad(lambda x: coord.contract(x).sum()))(jnp.zeros((1, 3)))  # finite at the origin too
   assert np.isfinite(np.asarray(grads)).all()
 
 
@@ -115,34 +121,42 @@ def test_inverse_contraction_undoes_the_contraction():
   points = _points()
   # In float32, 2 - |contract(x)| = 1 / |x| keeps ~7 digits less the log10 of |x|: test up to |x| = 1e3.
   points = points[np.linalg.norm(np.asarray(points), axis=-1) < 1e3]
-  np.testing.assert_allclose(_uncontract(coord.contract(points)), points, rtol=2e-3)
+  # One program each rather than one per operation.
+  np.testing.assert_allclose(jax.jit(lambda p: _uncontract(coord.contract(p)))(points), points, rtol=2e-3)
   rng = np.random.default_rng(2)
   ball = rng.normal(size=(1000, 3))
   ball = ball / np.linalg.norm(ball, axis=-1, keepdims=True) * rng.uniform(0, 1.99, (1000, 1))
   ball = jnp.asarray(ball, jnp.float32)
-  np.testing.assert_allclose(coord.contract(_uncontract(ball)), ball, atol=1e-5)
+  np.testing.assert_allclose(jax.jit(lambda b: coord.contract(_uncontract(b)))(ball), ball, atol=1e-5)
 
 
 @pytest.mark.parametrize("spacing", ["linear", "inverse", "piecewise"])
 def test_warps_are_inverse_pairs_that_map_the_bounds_to_0_and_1(spacing):
   near, far = (2.0, 6.0) if spacing == "linear" else (0.2, 1e6)
-  s = jnp.linspace(0.0, 1.0, 101)
-  t = coord.s_to_t(s, near, far, spacing)
-  np.testing.assert_allclose([t[0], t[-1]], [near, far], rtol=1e-5)
-  assert (np.diff(np.asarray(t)) > 0).all()
-  np.testing.assert_allclose(coord.t_to_s(t, near, far, spacing), s, atol=1e-5)
   # Per-ray bounds broadcast: (R, 1) near/far against (S,) s.
   nears, fars = jnp.asarray([[near], [near * 2]]), jnp.asarray([[far], [far * 2]])
-  t2 = coord.s_to_t(s, nears, fars, spacing)
+
+  @jax.jit  # one program rather than one per operation (the float bounds stay Python floats, as eagerly)
+  def warps(s, nears, fars):
+    t, t2 = coord.s_to_t(s, near, far, spacing), coord.s_to_t(s, nears, fars, spacing)
+    return t, coord.t_to_s(t, near, far, spacing), t2, coord.t_to_s(t2, nears, fars, spacing)
+
+  s = jnp.linspace(0.0, 1.0, 101)
+  t, s_again, t2, s2_again = warps(s, nears, fars)
+  t = np.asarray(t)
+  np.testing.assert_allclose([t[0], t[-1]], [near, far], rtol=1e-5)
+  assert (np.diff(t) > 0).all()
+  np.testing.assert_allclose(s_again, s, atol=1e-5)
   assert t2.shape == (2, 101)
-  np.testing.assert_allclose(coord.t_to_s(t2, nears, fars, spacing), np.broadcast_to(s, (2, 101)), atol=1e-5)
+  np.testing.assert_allclose(s2_again, np.broadcast_to(s, (2, 101)), atol=1e-5)
 
 
 def test_linear_warp_is_even_in_distance_and_inverse_warp_even_in_disparity():
-  s = jnp.linspace(0.0, 1.0, 9)
-  t = np.asarray(coord.s_to_t(s, 2.0, 6.0, "linear"))
+  warps = jax.jit(lambda s: (coord.s_to_t(s, 2.0, 6.0, "linear"), coord.s_to_t(s, 0.2, 1e6, "inverse")))
+  linear, inverse = warps(jnp.linspace(0.0, 1.0, 9))  # one program rather than one per operation
+  t = np.asarray(linear)
   np.testing.assert_allclose(t, np.linspace(2.0, 6.0, 9), rtol=1e-6)
-  t = np.asarray(coord.s_to_t(s, 0.2, 1e6, "inverse"), np.float64)
+  t = np.asarray(inverse, np.float64)
   np.testing.assert_allclose(np.diff(1.0 / t), np.full(8, (1e-6 - 5.0) / 8), rtol=1e-4)
   # Half the samples lie within twice the near bound: the foreground gets them.
   assert t[4] < 0.41
@@ -156,17 +170,24 @@ def test_piecewise_warp_is_linear_to_distance_1_and_even_in_disparity_beyond():
     y = g(near) + s * (g(far) - g(near))
     return np.where(y < 0.5, 2 * y, 1 / (2 * (1 - np.minimum(y, 1 - 1e-12))))
   s = np.linspace(0.0, 1.0, 201)
-  for near, far in ((0.2, 1e6), (0.05, 1000.0), (0.0, 5.0)):
-    t = np.asarray(coord.s_to_t(jnp.asarray(s, jnp.float32), near, far, "piecewise"), np.float64)
+  bounds = ((0.2, 1e6), (0.05, 1000.0), (0.0, 5.0))
+  pairs = ((0.1, 0.9, "piecewise"), (0.1, 0.9, "linear"), (1.0, 1e6, "piecewise"), (1.0, 1e6, "inverse"))
+
+  @jax.jit  # one program rather than one per operation (the bounds stay Python floats, as eagerly)
+  def warps(s):
+    return ([coord.s_to_t(s, near, far, "piecewise") for near, far in bounds],
+            [coord.s_to_t(s, near, far, spacing) for near, far, spacing in pairs])
+
+  piecewise, (inside_piecewise, inside_linear, beyond_piecewise, beyond_inverse) = warps(jnp.asarray(s, jnp.float32))
+  for (near, far), t in zip(bounds, piecewise):
+    t = np.asarray(t, np.float64)
     np.testing.assert_allclose(t, reference(s, near, far), rtol=2e-5, atol=1e-6)
-  t = np.asarray(coord.s_to_t(jnp.asarray(s, jnp.float32), 0.2, 1e6, "piecewise"), np.float64)
+  t = np.asarray(piecewise[0], np.float64)
   inside = t < 1.0
   np.testing.assert_allclose(np.diff(t[inside]), np.diff(t[inside])[0], rtol=1e-3)  # even in distance
   beyond = t >= 1.0
   np.testing.assert_allclose(np.diff(1.0 / t[beyond]), np.diff(1.0 / t[beyond])[1], rtol=1e-3)
   assert 0.43 < inside.mean() < 0.46  # (g(1) - g(0.2)) / (g(1e6) - g(0.2)) = 0.4 / 0.9 of the samples
   # Inside distance 1 it is the linear warp, beyond it the inverse one.
-  np.testing.assert_allclose(coord.s_to_t(jnp.asarray(s), 0.1, 0.9, "piecewise"),
-                             coord.s_to_t(jnp.asarray(s), 0.1, 0.9, "linear"), rtol=1e-5)
-  np.testing.assert_allclose(coord.s_to_t(jnp.asarray(s), 1.0, 1e6, "piecewise"),
-                             coord.s_to_t(jnp.asarray(s), 1.0, 1e6, "inverse"), rtol=1e-4)
+  np.testing.assert_allclose(inside_piecewise, inside_linear, rtol=1e-5)
+  np.testing.assert_allclose(beyond_piecewise, beyond_inverse, rtol=1e-4)

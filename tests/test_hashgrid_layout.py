@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import procs
 from conftest import smoke_config
 from nerfpod.nerf import encodings
 from nerfpod.run import components
@@ -72,8 +73,12 @@ def test_lane_dense_gather_gradients_equal_level_gathers(level):
   def lane_dense_loss(t, p):
     return jnp.sum(encodings.level_gather_lane_dense(t, p.T, res).T * readout)
 
-  want_t, want_x = jax.grad(rows_loss, argnums=(0, 1))(table, x)
-  got_t, got_x = jax.grad(lane_dense_loss, argnums=(0, 1))(table, x)
+  # One program rather than one per operation; optimised kernels, as for every bit-for-bit claim between two
+  # computations (procs.OPTIMIZED_KERNELS).
+  grads = jax.jit(lambda t, p: (jax.grad(rows_loss, argnums=(0, 1))(t, p),
+                                jax.grad(lane_dense_loss, argnums=(0, 1))(t, p)),
+                  compiler_options=procs.OPTIMIZED_KERNELS)
+  (want_t, want_x), (got_t, got_x) = grads(table, x)
   np.testing.assert_allclose(got_t, want_t, rtol=0, atol=1e-6 * float(np.abs(want_t).max()))  # (4.8e-7 of 3.5)
   np.testing.assert_array_equal(got_x, want_x)  # per point: the same products summed in the same order
 
@@ -81,14 +86,18 @@ def test_lane_dense_gather_gradients_equal_level_gathers(level):
 def test_lane_dense_matmul_lookup_equals_the_gather_values_and_gradients():
   res, rows = LEVELS["dense"]
   table, x = _table(rows), _points(500)
-  want = encodings.level_gather(table, x, res)
-  got = encodings.dense_level_matmul_lane_dense(table, x.T, res)
-  np.testing.assert_allclose(np.asarray(got).T, want, rtol=1e-5, atol=1e-6)
-  np.testing.assert_allclose(got, encodings.dense_level_matmul(table, x, res).T, rtol=1e-6, atol=1e-7)
   readout = jax.random.normal(jax.random.key(2), (len(x), 2))
-  grads = lambda f: jax.grad(lambda t, p: jnp.sum(f(t, p) * readout), argnums=(0, 1))(table, x)  # noqa: E731
-  want_t, want_x = grads(lambda t, p: encodings.level_gather(t, p, res))
-  got_t, got_x = grads(lambda t, p: encodings.dense_level_matmul_lane_dense(t, p.T, res).T)
+
+  @jax.jit  # one program rather than one per operation
+  def run(table, x):
+    grads = lambda f: jax.grad(lambda t, p: jnp.sum(f(t, p) * readout), argnums=(0, 1))(table, x)  # noqa: E731
+    return (encodings.level_gather(table, x, res), encodings.dense_level_matmul_lane_dense(table, x.T, res),
+            encodings.dense_level_matmul(table, x, res), grads(lambda t, p: encodings.level_gather(t, p, res)),
+            grads(lambda t, p: encodings.dense_level_matmul_lane_dense(t, p.T, res).T))
+
+  want, got, rows_matmul, (want_t, want_x), (got_t, got_x) = run(table, x)
+  np.testing.assert_allclose(np.asarray(got).T, want, rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(got, rows_matmul.T, rtol=1e-6, atol=1e-7)
   np.testing.assert_allclose(got_t, want_t, rtol=1e-5, atol=1e-5)
   np.testing.assert_allclose(got_x, want_x, rtol=1e-4, atol=1e-4)
 
@@ -105,14 +114,18 @@ def test_the_encoding_has_the_same_parameters_and_features_in_either_layout(matm
   x = _points()
   rows, lane_dense = _encoding("rows", matmul_max_rows, materialize), _encoding("lane_dense", matmul_max_rows,
                                                                                 materialize)
-  params = rows.init(jax.random.key(0), x)
-  assert jax.tree.map(jnp.shape, lane_dense.init(jax.random.key(0), x)) == jax.tree.map(jnp.shape, params)
-  for a, b in zip(jax.tree.leaves(lane_dense.init(jax.random.key(0), x)), jax.tree.leaves(params)):
+  # One program for both initialisations and one for both encodings rather than one per operation; the
+  # features' bits from optimised kernels (procs.OPTIMIZED_KERNELS), as in every bit-for-bit claim between two
+  # computations.
+  params, lane_dense_params = jax.jit(lambda key, x: (rows.init(key, x), lane_dense.init(key, x)))(
+      jax.random.key(0), x)
+  assert jax.tree.map(jnp.shape, lane_dense_params) == jax.tree.map(jnp.shape, params)
+  for a, b in zip(jax.tree.leaves(lane_dense_params), jax.tree.leaves(params)):
     np.testing.assert_array_equal(a, b)
   params = jax.tree.map(lambda p: jax.random.normal(jax.random.key(3), p.shape), params)
-  scales, opened = jnp.linspace(0.0, 0.05, len(x)), jnp.array([1.0, 0.7, 0.2, 0.0])
-  want = rows.apply(params, x, scales, opened)
-  got = lane_dense.apply(params, x, scales, opened)
+  scales, opened = jnp.asarray(np.linspace(0.0, 0.05, len(x)), jnp.float32), jnp.array([1.0, 0.7, 0.2, 0.0])
+  want, got = jax.jit(lambda *args: (rows.apply(*args), lane_dense.apply(*args)),
+                      compiler_options=procs.OPTIMIZED_KERNELS)(params, x, scales, opened)
   if matmul_max_rows:  # matmuls of other shapes: the same sums, perhaps in another order
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
   else:
@@ -160,17 +173,20 @@ def test_a_checkpoint_of_one_layout_restores_under_the_other(tmp_path):
   lane-dense model's parameter shapes (no differing leaf to refuse), render under it as under rows."""
   from nerfpod.workdir import checkpoints
   rows, lane_dense = _model("rows"), _model("lane_dense")
-  x, dirs = jnp.full((4, 3), 0.1), jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (4, 1))
+  # (NumPy inputs: no program each to build them.)
+  x, dirs = np.full((4, 3), 0.1, np.float32), np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (4, 1))
+  background = np.ones(3, np.float32)
   init = lambda model: jax.jit(model.init, static_argnums=(3, 4))(  # noqa: E731
-      jax.random.key(0), x, dirs, 2.0, 6.0, jnp.ones(3))
-  params = jax.tree.map(lambda p: p + 0.01 * jax.random.normal(jax.random.key(7), p.shape), init(rows))
+      jax.random.key(0), x, dirs, 2.0, 6.0, background)
+  perturb = jax.jit(lambda ps: jax.tree.map(lambda p: p + 0.01 * jax.random.normal(jax.random.key(7), p.shape), ps))
+  params = perturb(init(rows))  # (jitted: one program rather than one per operation and leaf)
   with checkpoints.Checkpoints(str(tmp_path), every_steps=1, max_to_keep=1) as ckpt:
     ckpt.save(1, {"params": params}, {"next_step": 1})
   abstract = {"params": jax.tree.map(lambda p: jax.ShapeDtypeStruct(p.shape, p.dtype, sharding=p.sharding),
                                      init(lane_dense))}
   step, restored = checkpoints.restore_newest(str(tmp_path), abstract)
   assert step == 1
-  render = lambda model, p: jax.jit(model.apply, static_argnums=(3, 4))(p, x, dirs, 2.0, 6.0, jnp.ones(3))  # noqa: E731
+  render = lambda model, p: jax.jit(model.apply, static_argnums=(3, 4))(p, x, dirs, 2.0, 6.0, background)  # noqa: E731
   for w, g in zip(jax.tree.leaves(render(rows, params)), jax.tree.leaves(render(lane_dense, restored["params"]))):
     np.testing.assert_allclose(g, w, rtol=1e-5, atol=1e-6)
 

@@ -98,15 +98,15 @@ PARTITIONS = {"grid4": regions.grid(4, 1.0), "grid3": regions.grid(3, 1.5), "gri
 
 
 def test_grid_and_voronoi_cells_hold_every_point_once():
-  points = jnp.asarray(np.random.default_rng(0).uniform(-3, 3, (2000, 3)), jnp.float32)
+  points = np.random.default_rng(0).uniform(-3, 3, (2000, 3)).astype(np.float32)  # (NumPy: read on the host)
   partition = regions.grid(6, 1.5)
   assert regions.grid_shape(6) == (3, 2) and partition.size == 6
   which = np.asarray(_region_of(points, partition))
-  column = np.clip(np.floor((np.asarray(points[:, 0]) + 1.5) / 1.0), 0, 2)
-  row = np.clip(np.floor((np.asarray(points[:, 1]) + 1.5) / 1.5), 0, 1)
+  column = np.clip(np.floor((points[:, 0] + 1.5) / 1.0), 0, 2)
+  row = np.clip(np.floor((points[:, 1] + 1.5) / 1.5), 0, 1)
   np.testing.assert_array_equal(which, row * 3 + column)
   centres = np.array([[0.0, 1.0], [-1.0, -0.5], [1.2, -0.4]])
-  nearest = np.argmin(np.sum((np.asarray(points)[:, None, :2] - centres[None])**2, -1), axis=1)
+  nearest = np.argmin(np.sum((points[:, None, :2] - centres[None])**2, -1), axis=1)
   np.testing.assert_array_equal(np.asarray(_region_of(points, regions.voronoi(centres))), nearest)
   # On a shared boundary exactly, one region only (the lower cell holds nothing of its upper cut).
   on_cut = jnp.array([[0.0, 0.2, 0.0], [-0.5, 0.0, 0.0]])
@@ -175,9 +175,10 @@ def test_prefix_is_what_reaches_each_region_in_its_own_order():
   origins = jnp.array([[3.0, 0.0, 0.0]])
   directions = jnp.array([[-1.0, 0.0, 0.0]])  # meets the regions in the order 2, 1, 0
   partials = {"t_in": jnp.array([[4.0], [2.0], [0.0]]), "optical_depth": jnp.array([[0.3], [0.2], [0.1]]),
-              "rgb": jnp.zeros((3, 1, 3)), "depth": jnp.zeros((3, 1)), "acc": jnp.zeros((3, 1))}
-  out = regions.composite_regions(partials)
-  np.testing.assert_allclose(out["prefix"][:, 0], np.exp(-np.array([0.3, 0.1, 0.0])), rtol=1e-6)
+              "rgb": np.zeros((3, 1, 3), np.float32), "depth": np.zeros((3, 1), np.float32),
+              "acc": np.zeros((3, 1), np.float32)}
+  out = jax.jit(regions.composite_regions)(partials)  # one program rather than one per operation
+  np.testing.assert_allclose(np.asarray(out["prefix"])[:, 0], np.exp(-np.array([0.3, 0.1, 0.0])), rtol=1e-6)
   del origins, directions
 
 
@@ -191,19 +192,9 @@ def test_interlevel_loss_per_segment_sums_to_the_whole_rays_where_the_prefixes_a
   lo = np.concatenate([np.zeros((rays, 1)), bounds], -1).T  # (K, R): the segments tile [0, 1]
   hi = np.concatenate([bounds, np.ones((rays, 1))], -1).T
   prefix = np.cumprod(np.concatenate([np.ones((1, rays)), rng.uniform(0.2, 0.9, (count - 1, rays))]), 0)
-  env, nerf, total = [], [], np.zeros(rays)
-  # (Jitted: a program per function, not each of their operations compiled one by one.)
-  sample_intervals = jax.jit(stepfun.sample_intervals, static_argnums=2)
-  segment_loss = jax.jit(regions.interlevel_loss, static_argnames="radius")
-  for k in range(count):
-    a, b = jnp.asarray(lo[k][:, None]), jnp.asarray(hi[k][:, None])
-    env_edges = a + (b - a) * jnp.linspace(0, 1, 9)
-    env_weights = jnp.asarray(rng.uniform(0, 0.2, (rays, 8)))
-    edges = sample_intervals(env_edges, env_weights, 6, jnp.asarray(rng.uniform(size=(rays, 6))), domain=(a, b))
-    weights = jnp.asarray(rng.uniform(0, 0.3, (rays, 6)))
-    total = total + segment_loss(edges, weights, env_edges, env_weights, jnp.asarray(prefix[k]))
-    env.append((env_edges, prefix[k][:, None] * env_weights))
-    nerf.append((edges, prefix[k][:, None] * weights))
+  # Per segment: the proposal's weights, the jitter of the NeRF's intervals and the NeRF's weights.
+  draws = [(rng.uniform(0, 0.2, (rays, 8)), rng.uniform(size=(rays, 6)), rng.uniform(0, 0.3, (rays, 6)))
+           for _ in range(count)]
 
   def union(parts):  # edges in ray order, with a zero-weight interval over any gap between two segments
     edges, weights = [parts[0][0]], [parts[0][1]]
@@ -212,15 +203,28 @@ def test_interlevel_loss_per_segment_sums_to_the_whole_rays_where_the_prefixes_a
       weights += [jnp.zeros((rays, 1)), w]
     return jnp.concatenate(edges, -1), jnp.concatenate(weights, -1)
 
-  whole = jax.jit(stepfun.interlevel_loss)(*union(nerf), *union(env))
+  @jax.jit  # one program rather than one per operation (the arrays in float32, as jnp.asarray made them)
+  def losses(lo, hi, prefix, draws):
+    env, nerf, total = [], [], jnp.zeros(rays)
+    for k, (env_weights, jitter, weights) in enumerate(draws):
+      a, b = lo[k][:, None], hi[k][:, None]
+      env_edges = a + (b - a) * jnp.linspace(0, 1, 9)
+      edges = stepfun.sample_intervals(env_edges, env_weights, 6, jitter, domain=(a, b))
+      total = total + regions.interlevel_loss(edges, weights, env_edges, env_weights, prefix[k])
+      env.append((env_edges, prefix[k][:, None] * env_weights))
+      nerf.append((edges, prefix[k][:, None] * weights))
+    whole = stepfun.interlevel_loss(*union(nerf), *union(env))
+    # Zip-NeRF's form (train.interlevel_blur) at radius 0, the NeRF's histogram resampled onto the proposal's
+    # intervals: per segment it sums to the whole ray's too (a radius > 0 blurs weight across the segments'
+    # ends, which no segment sees, so there the sum is the whole ray's less that).
+    blurred = sum(regions.interlevel_loss(nerf[k][0], nerf[k][1] / prefix[k][:, None], env[k][0],
+                                          env[k][1] / prefix[k][:, None], prefix[k], radius=0.0)
+                  for k in range(count))
+    whole_blurred = stepfun.blurred_interlevel_loss(*union(nerf), *union(env), 0.0)
+    return total, whole, blurred, whole_blurred
+
+  total, whole, blurred, whole_blurred = losses(lo, hi, prefix, draws)
   np.testing.assert_allclose(total, whole, rtol=1e-5, atol=1e-8)
-  # Zip-NeRF's form (train.interlevel_blur) at radius 0, the NeRF's histogram resampled onto the proposal's
-  # intervals: per segment it sums to the whole ray's too (a radius > 0 blurs weight across the segments'
-  # ends, which no segment sees, so there the sum is the whole ray's less that).
-  blurred = sum(segment_loss(nerf[k][0], nerf[k][1] / prefix[k][:, None], env[k][0],
-                              env[k][1] / prefix[k][:, None], jnp.asarray(prefix[k]), radius=0.0)
-                for k in range(count))
-  whole_blurred = jax.jit(stepfun.blurred_interlevel_loss, static_argnums=4)(*union(nerf), *union(env), 0.0)
   np.testing.assert_allclose(blurred, whole_blurred,
                              rtol=1e-4, atol=1e-8)
   assert np.all(np.abs(np.asarray(blurred) - np.asarray(total)) > 0)  # another loss than mip-NeRF 360's

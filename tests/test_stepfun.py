@@ -80,7 +80,7 @@ def test_interlevel_gradient_raises_the_proposal_where_it_falls_short():
   edges = jnp.array([[0.0, 0.25, 0.5, 0.75, 1.0]])
   nerf = jnp.array([[0.0, 0.8, 0.1, 0.0]])
   proposal = jnp.array([[0.1, 0.1, 0.0, 0.0]])
-  grad = jax.grad(lambda w: jnp.sum(J.interlevel_loss(edges, nerf, edges, w)))(proposal)
+  grad = np.asarray(jax.jit(jax.grad(lambda w: jnp.sum(J.interlevel_loss(edges, nerf, edges, w))))(proposal))
   assert float(grad[0, 1]) < 0.0 and float(grad[0, 2]) < 0.0  # descent raises the mass near the NeRF's
   assert float(grad[0, 3]) == 0.0  # beyond every interval the NeRF weighs, no pressure at all
 
@@ -112,12 +112,12 @@ def test_distortion_loss_equals_its_brute_force_double_integral():
 
 
 def test_inverse_cdf_of_uniform_numbers_reproduces_the_weight_distribution():
-  bins = jnp.linspace(0.0, 1.0, 11)[None]
-  weights = jnp.array([[0.0, 1, 4, 0, 0, 2, 8, 1, 0, 4]])
+  bins = np.asarray(jnp.linspace(0.0, 1.0, 11))[None]  # (NumPy: read on the host without a program each)
+  weights = np.array([[0.0, 1, 4, 0, 0, 2, 8, 1, 0, 4]], np.float32)
   u = jax.random.uniform(jax.random.key(1), (1, 200_000))
   samples = np.asarray(J.inverse_cdf(bins, weights, u))[0]
-  hist, _ = np.histogram(samples, bins=np.asarray(bins[0]))
-  expected = np.asarray(weights[0]) / np.sum(weights)
+  hist, _ = np.histogram(samples, bins=bins[0])
+  expected = weights[0] / np.sum(weights)
   np.testing.assert_allclose(hist / len(samples), expected, atol=3e-3)
   # Within one interval the density is uniform: samples in [0.6, 0.7) spread evenly.
   inner = samples[(samples >= 0.6) & (samples < 0.7)]
@@ -126,31 +126,31 @@ def test_inverse_cdf_of_uniform_numbers_reproduces_the_weight_distribution():
 
 def test_inverse_cdf_at_quantiles_from_0_to_1_spans_the_edges():
   # The hierarchical sampler's evaluation: quantiles 0 and 1 inclusive, weights padded by 1e-5 (nerf/model.py).
-  bins = jnp.linspace(0.0, 4.0, 5)[None]
-  weights = jnp.array([[1.0, 1.0, 1.0, 1.0]]) + 1e-5
-  samples = np.asarray(J.inverse_cdf(bins, weights, jnp.linspace(0.0, 1.0, 9)[None]))[0]
+  bins = np.asarray(jnp.linspace(0.0, 4.0, 5))[None]
+  weights = np.array([[1.0, 1.0, 1.0, 1.0]], np.float32) + np.float32(1e-5)
+  samples = np.asarray(J.inverse_cdf(bins, weights, np.asarray(jnp.linspace(0.0, 1.0, 9))[None]))[0]
   np.testing.assert_allclose(samples, np.linspace(0, 4, 9), atol=1e-3)
   assert samples[0] == 0.0 and samples[-1] == 4.0 and np.all(np.diff(samples) > 0)
 
 
 def test_no_gradient_flows_through_inverse_cdf_positions():
-  bins = jnp.linspace(0.0, 1.0, 9)[None]
+  bins = np.asarray(jnp.linspace(0.0, 1.0, 9))[None]
   u = jax.random.uniform(jax.random.key(2), (1, 32))
   f = lambda w, b: jnp.sum(J.inverse_cdf(b, w, u))
-  grad_w, grad_b = jax.grad(f, argnums=(0, 1))(jnp.linspace(0.1, 1.0, 8)[None], bins)
+  grad_w, grad_b = jax.jit(jax.grad(f, argnums=(0, 1)))(np.asarray(jnp.linspace(0.1, 1.0, 8))[None], bins)
   np.testing.assert_array_equal(grad_w, 0.0)
   np.testing.assert_array_equal(grad_b, 0.0)
 
 
 def test_resampling_reproduces_a_known_histogram():
-  edges = jnp.array([[0.0, 0.1, 0.3, 0.35, 0.6, 0.9, 1.0]])
-  weights = jnp.array([[0.0, 0.4, 0.05, 0.3, 0.0, 0.25]])
+  edges = np.array([[0.0, 0.1, 0.3, 0.35, 0.6, 0.9, 1.0]], np.float32)
+  weights = np.array([[0.0, 0.4, 0.05, 0.3, 0.0, 0.25]], np.float32)
   n = 100_000
-  jitter = jax.random.uniform(jax.random.key(3), (1, n))
+  jitter = np.asarray(jax.random.uniform(jax.random.key(3), (1, n)))
   points = np.asarray(J.inverse_cdf(edges, weights, J.stratified_uniforms(n, jitter)))[0]
   assert np.all(np.diff(points) >= 0)  # stratified inverse CDF keeps the points sorted
-  hist, _ = np.histogram(points, bins=np.asarray(edges[0]))
-  np.testing.assert_allclose(hist / n, np.asarray(weights[0]) / 1.0, atol=2e-4)
+  hist, _ = np.histogram(points, bins=edges[0])
+  np.testing.assert_allclose(hist / n, weights[0] / 1.0, atol=2e-4)
   # Uniform inside an interval: [0.35, 0.6) splits evenly.
   inner = points[(points >= 0.35) & (points < 0.6)]
   np.testing.assert_allclose(np.histogram(inner, bins=5, range=(0.35, 0.6))[0] / len(inner), 0.2, atol=0.01)
@@ -174,18 +174,18 @@ def test_deterministic_resampling_and_an_empty_ray():
 
 
 def test_no_gradient_flows_through_sampled_positions():
-  edges = jnp.linspace(0.0, 1.0, 9)[None]
+  edges = np.asarray(jnp.linspace(0.0, 1.0, 9))[None]
   jitter = jax.random.uniform(jax.random.key(4), (1, 16))
   f = lambda w, e: jnp.sum(J.sample_intervals(e, w, 16, jitter))
-  grad_w, grad_e = jax.grad(f, argnums=(0, 1))(jnp.linspace(0.1, 1.0, 8)[None], edges)
+  grad_w, grad_e = jax.jit(jax.grad(f, argnums=(0, 1)))(np.asarray(jnp.linspace(0.1, 1.0, 8))[None], edges)
   np.testing.assert_array_equal(grad_w, 0.0)
   np.testing.assert_array_equal(grad_e, 0.0)
 
 
 @pytest.mark.parametrize("intervals", [1, 3])
 def test_shapes_are_static(intervals):
-  edges = jnp.linspace(0.0, 1.0, intervals + 1)[None].repeat(5, 0)
-  weights = jnp.ones((5, intervals))
+  edges = np.asarray(jnp.linspace(0.0, 1.0, intervals + 1))[None].repeat(5, 0)
+  weights = np.ones((5, intervals), np.float32)
   out = jax.eval_shape(lambda e, w: J.sample_intervals(e, w, 7), edges, weights)
   assert out.shape == (5, 8)
 
@@ -225,7 +225,7 @@ def test_blurred_weights_keep_the_mass_and_give_exact_zeros_away_from_it():
   edges = jnp.array([[0.0, 0.5, 0.6, 1.0]])
   weights = jnp.array([[0.0, 0.7, 0.0]])
   # Query edges wide enough to hold all of the blurred weight: its sum is the histogram's.
-  wide = jnp.linspace(-0.5, 1.5, 21)[None]
+  wide = np.asarray(jnp.linspace(-0.5, 1.5, 21))[None]
   np.testing.assert_allclose(np.sum(J.blurred_weights(edges, weights, wide, 0.03)), 0.7, rtol=1e-6)
   # Weight only on [0.5, 0.6], blurred by 0.03, reaches [0.47, 0.63]: outside it, exactly nothing.
   query = jnp.array([[0.0, 0.2, 0.46, 0.47, 0.55, 0.63, 0.64, 1.0]])
@@ -251,5 +251,5 @@ def test_blurred_interlevel_loss_is_zero_where_the_proposal_holds_the_blurred_we
   short = target * 0.5
   np.testing.assert_allclose(np.asarray(loss(jnp.asarray(short))),
                              np.sum((target - short)**2 / (short + stepfun.EPS), axis=-1), rtol=1e-4)
-  grad = np.asarray(jax.grad(lambda p: jnp.sum(loss(p)))(jnp.asarray(short)))
+  grad = np.asarray(jax.jit(jax.grad(lambda p: jnp.sum(loss(p))))(jnp.asarray(short)))
   assert np.all(grad[target > 1e-6] < 0.0) and np.all(grad[target == 0.0] == 0.0)
