@@ -201,8 +201,8 @@ def ray_samples(poses_Fx4x4, cams, near: float, far: float, bound: float | None,
   if bound is None:
     lo, hi = np.full((num_rays, 1), near, np.float32), np.full((num_rays, 1), far, np.float32)
   else:
-    lo, hi = (np.asarray(v) for v in sampling.clip_to_box(jnp.asarray(origins), jnp.asarray(directions), near, far,
-                                                           bound))
+    clip = jax.jit(sampling.clip_to_box, static_argnums=(2, 3, 4))  # (one program, not one per operation)
+    lo, hi = (np.asarray(v) for v in clip(jnp.asarray(origins), jnp.asarray(directions), near, far, bound))
   inside = (hi - lo)[:, 0] > 2e-3  # a ray that misses the box gets [near, near + 1e-3]: it samples nothing
   return stratified_points(origins[inside], directions[inside], lo[inside], hi[inside], per_ray, rng)
 
@@ -274,7 +274,7 @@ def unseen(partition: Partition, origins_Rx3, directions_Rx3, near, far) -> list
   (R, 1)): regions whose fields no training pixel could ever teach."""
   t_in, t_out = jax.jit(segments)(jnp.asarray(origins_Rx3, jnp.float32), jnp.asarray(directions_Rx3, jnp.float32),
                                   near, far, partition)  # (one program, not each operation compiled on its own)
-  crossed = np.asarray(jnp.any(t_out > t_in, axis=-1))
+  crossed = np.any(np.asarray(t_out) > np.asarray(t_in), axis=-1)
   return [int(k) for k in np.flatnonzero(~crossed)]
 
 
