@@ -162,13 +162,18 @@ class FakeGcs:
       return 404, b"", {}
     if headers.get("Metadata-Flavor") != "Google":
       return 403, {"error": "Missing Metadata-Flavor:Google header"}, flavor
-    account = "/computeMetadata/v1/instance/service-accounts/default/"
+    # The account by its alias or by its email, as a VM's metadata server serves it (google-auth asks by the
+    # email once it has read it, e.g. when its regional access boundary lookup, in a thread of its own, got it
+    # first).
+    email = "vm@nerfpod-test.iam.gserviceaccount.com"
+    account = next((f"/computeMetadata/v1/instance/service-accounts/{name}/" for name in ("default", email)
+                    if path.startswith(f"/computeMetadata/v1/instance/service-accounts/{name}/")), None)
     if path == "/":
       return 200, b"", flavor
     if path == account:
-      return 200, {"aliases": ["default"], "email": "vm@nerfpod-test.iam.gserviceaccount.com",
+      return 200, {"aliases": ["default"], "email": email,
                    "scopes": ["https://www.googleapis.com/auth/cloud-platform"]}, flavor
-    if path == account + "token":
+    if account and path == account + "token":
       return 200, {"access_token": self.token, "expires_in": 3599, "token_type": "Bearer"}, flavor
     return 404, b"not found", flavor
 
