@@ -2,12 +2,15 @@
 (Umeyama) against known answers, held-out cameras aligned into a refined frame that drifted by one
 similarity, the pinned mean of the pose corrections, NeRF-W's half-image appearance fit, BARF's test-time
 pose fit, and the blocks evaluate() adds to metrics.json. Tiny fields and images: seconds."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+import procs
 from conftest import smoke_config
 from nerfpod import distributed
 from nerfpod.nerf import alignment, cameras, pose_correction
@@ -91,19 +94,27 @@ def test_held_out_rays_through_the_gauge_are_the_given_rays_moved_by_the_scenes_
 def test_pinned_mean_keeps_the_corrections_mean_at_zero_and_leaves_the_field_alone():
   plain = {"train.pose_refine": True, "train.lr_warmup_steps": 0, "train.pose_gate": 0.0}  # moving from step 1
   config = smoke_config(**plain, **{"train.pose_pin_mean": True})
-  params = {"params": {pose_correction.PARAM: jnp.zeros((6, 6)), "field": jnp.zeros(3)}}
   pinned = train_state.make_optimizer(config.train)
   free = train_state.make_optimizer(smoke_config(**plain).train)
   rng = np.random.default_rng(3)
-  out = {}
-  for name, optimizer in (("pinned", pinned), ("free", free)):
-    p, state = params, optimizer.init(params)
-    for i in range(5):
-      grads = {"params": {pose_correction.PARAM: jnp.asarray(rng.normal(size=(6, 6)) + 1.0, jnp.float32),
-                          "field": jnp.ones(3)}}
-      updates, state = optimizer.update(grads, state, p)
-      p = optax.apply_updates(p, updates)
-    out[name] = p
+  corrections_grads = [[(rng.normal(size=(6, 6)) + 1.0).astype(np.float32) for i in range(5)] for _ in range(2)]
+
+  # One program rather than one per operation, its bits from optimised kernels (procs.OPTIMIZED_KERNELS), as in
+  # every claim that two computations give the same bits.
+  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)
+  def run(corrections_grads):
+    params = {"params": {pose_correction.PARAM: jnp.zeros((6, 6)), "field": jnp.zeros(3)}}
+    out = {}
+    for (name, optimizer), grads_of_steps in zip((("pinned", pinned), ("free", free)), corrections_grads):
+      p, state = params, optimizer.init(params)
+      for g in grads_of_steps:
+        grads = {"params": {pose_correction.PARAM: g, "field": jnp.ones(3)}}
+        updates, state = optimizer.update(grads, state, p)
+        p = optax.apply_updates(p, updates)
+      out[name] = p
+    return out
+
+  out = jax.tree.map(np.asarray, run(corrections_grads))
   corrections = np.asarray(out["pinned"]["params"][pose_correction.PARAM])
   np.testing.assert_allclose(corrections.mean(0), 0.0, atol=1e-9)
   assert np.abs(corrections).max() > 1e-5
@@ -115,10 +126,11 @@ def _tiny_model():
   config = smoke_config(**{"render.proposal_samples": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
                            "render.num_samples": 8})
   model = components.make_model(config, num_frames=5)
-  origins = jnp.asarray([[0.0, 0.0, 4.0]] * 2, jnp.float32)
-  params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, jnp.asarray([[0.0, 0.0, -1.0]] * 2),
-                                                       2.0, 6.0, jnp.ones(3))
-  table = jnp.asarray(np.random.default_rng(5).normal(size=(5, 4)) * 0.3, jnp.float32)
+  # (NumPy float32 inputs, put on the device as they are: no program each.)
+  origins = np.float32([[0.0, 0.0, 4.0]] * 2)
+  params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, np.float32([[0.0, 0.0, -1.0]] * 2),
+                                                       2.0, 6.0, np.ones(3, np.float32))
+  table = jax.device_put((np.random.default_rng(5).normal(size=(5, 4)) * 0.3).astype(np.float32))
   return model, {**params, "params": {**params["params"], "appearance": table}}
 
 
@@ -197,7 +209,7 @@ def test_evaluate_adds_each_protocols_numbers_and_leaves_the_plain_ones_as_they_
                                                          "eval.appearance_steps": 2}))
   params = comps.init_state().params
   frames = len(comps.scene.split("train"))
-  shift = jnp.tile(jnp.asarray([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]), (frames, 1))
+  shift = jax.device_put(np.tile(np.float32([0.05, 0.0, 0.0, 0.0, 0.0, 0.0]), (frames, 1)))  # (no program to build)
   params = {**params, "params": {**params["params"], pose_correction.PARAM: shift}}
   result = evaluate.evaluate(comps, params, str(tmp_path / "both"), 0)
   assert result["protocol"] == protocols.PLAIN and plain["protocol"] == protocols.PLAIN

@@ -1,9 +1,12 @@
 """The NeRF renderer: hierarchical sampling, view directions, fields, mixed precision."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import procs
 from conftest import smoke_config
 from nerfpod.nerf import fields
 from nerfpod.nerf import model as nerf_model
@@ -51,8 +54,9 @@ def test_hierarchical_sampling_renders_coarse_and_fine_with_union_of_samples():
   assert coarse["t"].shape == (64, 16) and fine["t"].shape == (64, 40)
   assert (np.diff(np.asarray(fine["t"]), axis=-1) >= 0).all()
   # The fine set contains every coarse sample.
+  coarse_t, fine_t = np.asarray(coarse["t"]), np.asarray(fine["t"])  # (rows read on the host: no program each)
   for ray in range(4):
-    assert np.isin(np.asarray(coarse["t"][ray]), np.asarray(fine["t"][ray])).all()
+    assert np.isin(coarse_t[ray], fine_t[ray]).all()
   for out in (coarse, fine):
     assert out["rgb"].shape == (64, 3) and out["depth"].shape == (64,)
 
@@ -72,12 +76,18 @@ def test_fine_loss_sends_no_gradient_to_the_coarse_network_through_sample_positi
 
 def test_view_directions_change_colour_but_not_density():
   field = _mlp_field(depth=3, width=32, skips=(1,), use_viewdirs=True)
-  points = jax.random.normal(jax.random.key(0), (10, 3))
-  dirs_a = jnp.tile(jnp.array([[0.0, 0.0, 1.0]]), (10, 1))
-  dirs_b = jnp.tile(jnp.array([[1.0, 0.0, 0.0]]), (10, 1))
-  params = field.init(jax.random.key(1), points, dirs_a)
-  rgb_a, sigma_a = field.apply(params, points, dirs_a)
-  rgb_b, sigma_b = field.apply(params, points, dirs_b)
+  dirs_a = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (10, 1))
+  dirs_b = np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (10, 1))
+
+  # One program rather than one per operation, its bits from optimised kernels (procs.OPTIMIZED_KERNELS), as in
+  # every claim that two computations give the same bits.
+  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)
+  def run(dirs_a, dirs_b):
+    points = jax.random.normal(jax.random.key(0), (10, 3))
+    params = field.init(jax.random.key(1), points, dirs_a)
+    return field.apply(params, points, dirs_a), field.apply(params, points, dirs_b)
+
+  (rgb_a, sigma_a), (rgb_b, sigma_b) = jax.tree.map(np.asarray, run(dirs_a, dirs_b))
   np.testing.assert_array_equal(sigma_a, sigma_b)
   assert not np.allclose(rgb_a, rgb_b)
 
@@ -112,7 +122,8 @@ def _proposal_model(field="hashgrid", proposal_samples=(12, 8), num_samples=6):
                            "render.num_samples": num_samples, "render.proposal_samples": proposal_samples})
   model = components.make_model(config)
   origins, directions = _rays(32)
-  directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)  # near 2 .. far 6 crosses the box
+  # Unit directions (one program): near 2 .. far 6 crosses the box.
+  directions = jax.jit(lambda d: d / jnp.linalg.norm(d, axis=-1, keepdims=True))(directions)
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0,
                                                       jnp.ones(3))
   return model, params, origins, directions
@@ -168,14 +179,20 @@ def test_photometric_loss_reaches_only_the_nerf_and_interlevel_loss_only_the_pro
 
 def test_near_gradient_scaling_leaves_outputs_and_scales_their_gradients_by_squared_distance():
   rng = np.random.default_rng(0)
-  rgb, sigma = jnp.asarray(rng.uniform(size=(4, 5, 3)), jnp.float32), jnp.asarray(rng.uniform(size=(4, 5)))
-  t = jnp.asarray(np.sort(rng.uniform(0.1, 3.0, size=(4, 5)), -1), jnp.float32)
-  directions = jnp.asarray(rng.normal(size=(4, 3)), jnp.float32)  # not unit: the distance is t |d|
-  (out_rgb, out_sigma), vjp = jax.vjp(lambda a, b: nerf_model.near_gradients(a, b, t, directions, 2.0), rgb, sigma)
+  # (NumPy float32 inputs, as jnp.asarray made them: no program each.)
+  rgb, sigma = rng.uniform(size=(4, 5, 3)).astype(np.float32), rng.uniform(size=(4, 5)).astype(np.float32)
+  t = np.sort(rng.uniform(0.1, 3.0, size=(4, 5)), -1).astype(np.float32)
+  directions = rng.normal(size=(4, 3)).astype(np.float32)  # not unit: the distance is t |d|
+
+  @jax.jit  # one program rather than one per operation
+  def run(rgb, sigma, t, directions):
+    outs, vjp = jax.vjp(lambda a, b: nerf_model.near_gradients(a, b, t, directions, 2.0), rgb, sigma)
+    return outs, vjp((jnp.ones_like(rgb), jnp.ones_like(sigma)))
+
+  (out_rgb, out_sigma), (grad_rgb, grad_sigma) = run(rgb, sigma, t, directions)
   np.testing.assert_array_equal(out_rgb, rgb)
   np.testing.assert_array_equal(out_sigma, sigma)
-  grad_rgb, grad_sigma = vjp((jnp.ones_like(rgb), jnp.ones_like(sigma)))
-  want = np.minimum(1.0, (np.asarray(t) * np.linalg.norm(directions, axis=-1, keepdims=True) / 2.0) ** 2)
+  want = np.minimum(1.0, (t * np.linalg.norm(directions, axis=-1, keepdims=True) / 2.0) ** 2)
   assert 0.0 < want.min() < 0.1 and want.max() == 1.0
   np.testing.assert_allclose(grad_sigma, want, rtol=1e-6)
   np.testing.assert_allclose(grad_rgb, np.broadcast_to(want[..., None], rgb.shape), rtol=1e-6)

@@ -35,7 +35,7 @@ def _camera_rays(n=64):
   intr = cameras.Intrinsics.from_focal(40, 30, 35.0)
   rng = np.random.default_rng(0)
   origins, directions = cameras.rays_for_pixels(np.eye(4), intr, rng.integers(0, 30, n), rng.integers(0, 40, n))
-  return intr, jnp.asarray(origins), jnp.asarray(directions)
+  return intr, origins.astype(np.float32), directions.astype(np.float32)  # (NumPy: no program each)
 
 
 def test_ndc_model_sees_a_wall_at_its_world_depth(monkeypatch):
@@ -76,8 +76,12 @@ def test_ndc_model_takes_view_directions_from_the_world_rays(monkeypatch):
   world = np.asarray(directions) / np.linalg.norm(np.asarray(directions), axis=-1, keepdims=True)
   np.testing.assert_allclose(np.asarray(seen["viewdirs"]).reshape(8, 4, 3), np.repeat(world[:, None], 4, 1),
                              rtol=1e-6)
-  o_ndc, d_ndc = coord.ndc_rays(origins, directions, *camera)
-  want = o_ndc[:, None] + jnp.linspace(0.0, 1.0, 4)[None, :, None] * d_ndc[:, None]
+
+  @jax.jit  # one program rather than one per operation
+  def points(origins, directions):
+    o_ndc, d_ndc = coord.ndc_rays(origins, directions, *camera)
+    return o_ndc[:, None] + jnp.linspace(0.0, 1.0, 4)[None, :, None] * d_ndc[:, None]
+  want = points(origins, directions)
   np.testing.assert_allclose(np.asarray(seen["points"]).reshape(8, 4, 3), want, rtol=1e-5, atol=1e-6)
 
 

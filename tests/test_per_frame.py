@@ -39,26 +39,32 @@ def test_so3_exp_is_the_matrix_exponential_of_the_skew_matrix(scale):
   w = rng.normal(size=(16, 3))
   w = scale * w / np.linalg.norm(w, axis=-1, keepdims=True)
   want = np.stack([_expm_series(_skew(v)) for v in w])
-  np.testing.assert_allclose(np.asarray(pose_correction.so3_exp(jnp.asarray(w, jnp.float32))), want, atol=2e-6)
+  got = jax.jit(pose_correction.so3_exp)(w.astype(np.float32))  # one program rather than one per operation
+  np.testing.assert_allclose(np.asarray(got), want, atol=2e-6)
   np.testing.assert_allclose(pose_correction.so3_exp_numpy(w), want, atol=1e-12)
 
 
 def test_so3_exp_gradient_is_finite_at_zero_and_matches_finite_differences():
-  d = jnp.array([0.3, -0.5, 0.8])
+  d = np.array([0.3, -0.5, 0.8], np.float32)
   f = lambda w: pose_correction.so3_exp(w) @ d  # noqa: E731
-  jac = np.asarray(jax.jacfwd(f)(jnp.zeros(3)))
-  np.testing.assert_allclose(jac, -_skew(np.asarray(d)), atol=1e-6)  # d(exp(w) d)/dw at 0 = -[d]x
-  w0 = jnp.array([0.2, -0.1, 0.4])
   eps = 1e-2
-  numeric = np.stack([(f(w0 + eps * e) - f(w0 - eps * e)) / (2 * eps) for e in jnp.eye(3)], -1)
-  np.testing.assert_allclose(np.asarray(jax.jacfwd(f)(w0)), numeric, atol=1e-3)
+
+  @jax.jit  # one program rather than one per operation
+  def run(w0):
+    numeric = jnp.stack([(f(w0 + eps * e) - f(w0 - eps * e)) / (2 * eps) for e in jnp.eye(3)], -1)
+    return jax.jacfwd(f)(jnp.zeros(3)), numeric, jax.jacfwd(f)(w0)
+
+  jac, numeric, jac_w0 = run(np.array([0.2, -0.1, 0.4], np.float32))
+  np.testing.assert_allclose(np.asarray(jac), -_skew(d), atol=1e-6)  # d(exp(w) d)/dw at 0 = -[d]x
+  np.testing.assert_allclose(np.asarray(jac_w0), np.asarray(numeric), atol=1e-3)
 
 
 def test_a_zero_correction_leaves_rays_bit_identical():
   rng = np.random.default_rng(1)
-  origins = jnp.asarray(rng.normal(size=(257, 3)), jnp.float32)
-  directions = jnp.asarray(rng.normal(size=(257, 3)), jnp.float32)
-  o, d = jax.jit(pose_correction.correct_rays)(origins, directions, jnp.zeros((257, 6)))
+  # (NumPy float32 inputs: no program each.)
+  origins = rng.normal(size=(257, 3)).astype(np.float32)
+  directions = rng.normal(size=(257, 3)).astype(np.float32)
+  o, d = jax.jit(pose_correction.correct_rays)(origins, directions, np.zeros((257, 6), np.float32))
   np.testing.assert_array_equal(np.asarray(o), np.asarray(origins))
   np.testing.assert_array_equal(np.asarray(d), np.asarray(directions))
 
@@ -71,8 +77,8 @@ def test_corrected_rays_are_the_rays_of_the_corrected_pose():
   rows, cols = rng.integers(0, 30, 50), rng.integers(0, 40, 50)
   correction = np.array([0.05, -0.02, 0.03, 0.04, -0.03, 0.02])
   origins, directions = cameras.rays_for_pixels(pose, intr, rows, cols)
-  o, d = pose_correction.correct_rays(jnp.asarray(origins), jnp.asarray(directions),
-                                      jnp.asarray(np.tile(correction, (50, 1)), jnp.float32))
+  o, d = jax.jit(pose_correction.correct_rays)(  # one program rather than one per operation
+      origins.astype(np.float32), directions.astype(np.float32), np.tile(correction, (50, 1)).astype(np.float32))
   moved = pose_correction.corrected_poses(pose[None], correction[None])[0]
   want_o, want_d = cameras.rays_for_pixels(moved, intr, rows, cols)
   np.testing.assert_allclose(np.asarray(o), want_o, atol=1e-6)
@@ -101,9 +107,9 @@ def test_a_known_pose_perturbation_is_recovered_on_a_textured_plane(gate):
   given = pose_correction.corrected_poses(truths, error)  # the SfM poses: the truth moved by the error
   rows, cols = (x.ravel() for x in np.meshgrid(np.arange(32), np.arange(32), indexing="ij"))
   frames = np.repeat(np.arange(4), 32 * 32)
-  rays_of = lambda poses: [jnp.asarray(np.concatenate(x)) for x in zip(  # noqa: E731
+  rays_of = lambda poses: [np.concatenate(x) for x in zip(  # noqa: E731
       *[cameras.rays_for_pixels(p, intr, rows, cols) for p in poses])]
-  target = _plane_colour(*rays_of(truths))
+  target = jax.jit(_plane_colour)(*rays_of(truths))  # (jitted, as below: one program, not one per operation)
   given_o, given_d = rays_of(given)
 
   def loss(corrections):
@@ -112,8 +118,8 @@ def test_a_known_pose_perturbation_is_recovered_on_a_textured_plane(gate):
 
   optimizer = optax.adam(3e-3) if not gate else optax.chain(
       train_state.scale_by_gated_adam(0.99, 0.999, 1e-8, gate), optax.scale_by_learning_rate(3e-3))
-  corrections = jnp.zeros((4, 6))
-  opt_state = optimizer.init(corrections)
+  corrections, opt_state = jax.jit(lambda: (jnp.zeros((4, 6)), optimizer.init(jnp.zeros((4, 6)))))()
+  loss_of = jax.jit(loss)
 
   @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)  # (runs 600 or 1,500 times: faster kernels)
   def update(corrections, opt_state):
@@ -121,10 +127,10 @@ def test_a_known_pose_perturbation_is_recovered_on_a_textured_plane(gate):
     updates, opt_state = optimizer.update(grads, opt_state)
     return optax.apply_updates(corrections, updates), opt_state
 
-  start = float(loss(corrections))
+  start = float(loss_of(corrections))
   for _ in range(600 if not gate else 1500):  # the gate's momentum (b1 = 0.99) is slower to settle
     corrections, opt_state = update(corrections, opt_state)
-  assert float(loss(corrections)) < 1e-4 * start
+  assert float(loss_of(corrections)) < 1e-4 * start
   recovered = pose_correction.corrected_poses(given, np.asarray(corrections))
   np.testing.assert_allclose(recovered[:, :3, 3], truths[:, :3, 3], atol=2e-3)
   np.testing.assert_allclose(recovered[:, :3, :3], truths[:, :3, :3], atol=2e-3)
@@ -216,18 +222,25 @@ def test_make_optimizer_preconditions_the_corrections_only():
   field's update is the one without preconditioners, the corrections' is M times that of an identity M's."""
   config = smoke_config(**{"train.pose_refine": True, "train.lr_warmup_steps": 0})
   rng = np.random.default_rng(6)
-  params = {"params": {"pose_correction": jnp.zeros((3, 6)), "field": jnp.asarray(rng.normal(size=(4,)))}}
-  grads = {"params": {"pose_correction": jnp.asarray(rng.normal(size=(3, 6)), jnp.float32),
-                      "field": jnp.asarray(rng.normal(size=(4,)), jnp.float32)}}
+  # (NumPy float32 inputs: no program each to build them.)
+  params = {"params": {"pose_correction": np.zeros((3, 6), np.float32),
+                       "field": rng.normal(size=(4,)).astype(np.float32)}}
+  grads = {"params": {"pose_correction": rng.normal(size=(3, 6)).astype(np.float32),
+                      "field": rng.normal(size=(4,)).astype(np.float32)}}
   a = rng.normal(size=(3, 6, 6))
   m = (a @ np.swapaxes(a, 1, 2) + 6 * np.eye(6)).astype(np.float32)
 
-  def one_update(preconditioners):
+  def one_update(preconditioners, grads, params):
     optimizer = train_state.make_optimizer(config.train, pose_preconditioners=preconditioners)
     return optimizer.update(grads, optimizer.init(params), params)[0]["params"]
 
-  plain, identity = one_update(None), one_update(np.tile(np.eye(6, dtype=np.float32), (3, 1, 1)))
-  got = one_update(m)
+  # One program rather than one per operation, its bits from optimised kernels (procs.OPTIMIZED_KERNELS), as in
+  # every claim that two computations give the same bits.
+  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)
+  def run(grads, params):
+    return [one_update(p, grads, params) for p in (None, np.tile(np.eye(6, dtype=np.float32), (3, 1, 1)), m)]
+
+  plain, identity, got = jax.tree.map(np.asarray, run(grads, params))
   np.testing.assert_array_equal(got["field"], plain["field"])
   np.testing.assert_array_equal(identity["pose_correction"], plain["pose_correction"])
   # One Adam step from zero state moves each entry of v by -lr sign(its gradient) (bias-corrected): M g's
@@ -266,17 +279,18 @@ def test_appearance_codes_change_colour_never_density_and_held_out_views_get_the
   model, params, origins, directions = _model_and_params({"model.field": field, "model.appearance_dim": 4})
   table = params["params"]["appearance"]
   assert table.shape == (5, 4) and not np.any(np.asarray(table))  # zeros at the start
-  table = jnp.asarray(np.random.default_rng(5).normal(size=(5, 4)), jnp.float32)
+  table = jax.device_put(np.random.default_rng(5).normal(size=(5, 4)).astype(np.float32))
   params = {"params": {**params["params"], "appearance": table}}
   apply = jax.jit(model.apply, static_argnums=(3, 4))
-  frames = jnp.asarray(np.arange(32) % 5, jnp.int32)
+  frames = (np.arange(32) % 5).astype(np.int32)  # (NumPy, as the codes' mean below: no program each)
   out = apply(params, origins, directions, 2.0, 6.0, jnp.ones(3), frames=frames)[-1]
   other = apply(params, origins, directions, 2.0, 6.0, jnp.ones(3), frames=(frames + 1) % 5)[-1]
   assert np.abs(np.asarray(out["rgb"]) - np.asarray(other["rgb"])).max() > 1e-4  # codes reach the colour
   np.testing.assert_array_equal(np.asarray(out["weights"]), np.asarray(other["weights"]))  # not the density
   # Without frames (held-out views, orbits): every ray gets the mean code.
   held_out = apply(params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
-  mean = {"params": {**params["params"], "appearance": jnp.broadcast_to(table.mean(0), table.shape)}}
+  mean_code = jax.jit(lambda t: jnp.broadcast_to(t.mean(0), t.shape))(table)  # one program
+  mean = {"params": {**params["params"], "appearance": mean_code}}
   as_mean = apply(mean, origins, directions, 2.0, 6.0, jnp.ones(3), frames=frames)[-1]
   np.testing.assert_allclose(np.asarray(held_out["rgb"]), np.asarray(as_mean["rgb"]), atol=1e-6)
 

@@ -3,16 +3,22 @@ that measures it (data.pose_noise, scenes.base.with_pose_noise): the first momen
 a Monte Carlo estimate, the gate off as Adam to the last bit, a pure-noise gradient held still while a
 gradient with a mean still moves, and every training camera moved by exactly the angle and distance asked.
 NumPy and a few jitted updates: seconds."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
 
+import procs
 from conftest import smoke_config
 from nerfpod import scenes
 from nerfpod.nerf import alignment, pose_correction
 from nerfpod.run import train_state
+
+# One program each rather than one per operation (b1, a Python float, static as it is eagerly).
+_noise_variance = jax.jit(train_state.noise_variance, static_argnums=0)
 
 
 @pytest.mark.parametrize("b1", [0.9, 0.99])
@@ -24,20 +30,23 @@ def test_the_first_moments_noise_variance_matches_a_monte_carlo_estimate(b1):
     m = b1 * m + (1 - b1) * g[:, t - 1]
     if t in (1, 2, 5, 20, 60):
       estimate = np.var(m / (1 - b1**t))
-      np.testing.assert_allclose(float(train_state.noise_variance(b1, jnp.float32(t))), estimate, rtol=0.02)
+      np.testing.assert_allclose(float(_noise_variance(b1, np.float32(t))), estimate, rtol=0.02)
 
 
 def _run(transform, grads):
   """The sum of a transform's updates over a sequence of gradients (T, ...)."""
-  state = transform.init(jnp.zeros(grads.shape[1:]))
-  update = jax.jit(transform.update)
+  @jax.jit  # one program for the whole sequence, not one call per step (nor a program per operation of init)
+  def updates(grads):
+    def step(state, g):
+      u, state = transform.update(g, state)
+      return state, u
+    return jax.lax.scan(step, transform.init(jnp.zeros(grads.shape[1:])), grads)[1]
+
+  steps = np.asarray(updates(grads.astype(np.float32)))
   total = np.zeros(grads.shape[1:])
-  steps = []
-  for g in grads:
-    u, state = update(jnp.asarray(g, jnp.float32), state)
-    steps.append(np.asarray(u))
-    total += np.asarray(u)
-  return total, np.stack(steps)
+  for u in steps:
+    total += u
+  return total, steps
 
 
 def test_the_gate_at_zero_is_adams_step():
@@ -70,21 +79,31 @@ def test_a_noise_gradient_stays_put_under_the_gate_while_a_mean_still_moves():
 def test_make_optimizer_gates_the_pose_corrections_only():
   tc = smoke_config(**{"train.pose_refine": True, "train.pose_gate": 3.0, "train.pose_b1": 0.99,
                        "train.lr_warmup_steps": 0}).train
-  params = {"params": {pose_correction.PARAM: jnp.zeros((4, 6)), "w": jnp.zeros((3,))}}
   optimizer = train_state.make_optimizer(tc)
-  state = optimizer.init(params)
   # The field alone under plain Adam on the same schedule: what the gate must leave the field's updates.
   adam = optax.adam(train_state.learning_rate_schedule(tc), b1=tc.adam_b1, b2=tc.adam_b2, eps=tc.adam_eps)
-  field = params["params"]["w"]
-  field_state = adam.init(field)
   rng = np.random.default_rng(3)
+  all_grads = []
   for _ in range(20):  # noise on the corrections, a steady gradient with noise on the field
-    grads = {"params": {pose_correction.PARAM: jnp.asarray(rng.normal(size=(4, 6)) * 1e-3, jnp.float32),
-                        "w": jnp.asarray(1e-3 * (1.0 + 0.5 * rng.uniform(size=3)), jnp.float32)}}
-    updates, state = optimizer.update(grads, state, params)
-    params = optax.apply_updates(params, updates)
-    field_updates, field_state = adam.update(grads["params"]["w"], field_state, field)
-    field = optax.apply_updates(field, field_updates)
+    all_grads.append({"params": {pose_correction.PARAM: (rng.normal(size=(4, 6)) * 1e-3).astype(np.float32),
+                                 "w": (1e-3 * (1.0 + 0.5 * rng.uniform(size=3))).astype(np.float32)}})
+
+  # One program rather than one per operation, its bits from optimised kernels (procs.OPTIMIZED_KERNELS), as in
+  # every claim that two computations give the same bits.
+  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)
+  def run(all_grads):
+    params = {"params": {pose_correction.PARAM: jnp.zeros((4, 6)), "w": jnp.zeros((3,))}}
+    state = optimizer.init(params)
+    field = params["params"]["w"]
+    field_state = adam.init(field)
+    for grads in all_grads:
+      updates, state = optimizer.update(grads, state, params)
+      params = optax.apply_updates(params, updates)
+      field_updates, field_state = adam.update(grads["params"]["w"], field_state, field)
+      field = optax.apply_updates(field, field_updates)
+    return params, field
+
+  params, field = jax.tree.map(np.asarray, run(all_grads))
   assert np.all(np.asarray(params["params"][pose_correction.PARAM]) == 0)
   assert np.all(np.asarray(params["params"]["w"]) < 0)
   np.testing.assert_array_equal(params["params"]["w"], field)
@@ -141,7 +160,7 @@ def test_a_gradient_without_noise_takes_adams_step_times_one_less_the_gate_over_
   _, gated = _run(train_state.scale_by_gated_adam(0.99, 0.999, 1e-8, 5.0), grads)
   _, adam = _run(optax.scale_by_adam(0.99, 0.999, 1e-8), grads)
   t = np.arange(1, 401, dtype=np.float64)
-  ceiling = 1 / np.sqrt(np.asarray(train_state.noise_variance(0.99, jnp.asarray(t, jnp.float32))))
+  ceiling = 1 / np.sqrt(np.asarray(_noise_variance(0.99, t.astype(np.float32))))
   factor = np.maximum(0.0, 1.0 - 5.0 / ceiling)
   np.testing.assert_allclose(gated[:, 0], factor * adam[:, 0], rtol=1e-4, atol=1e-7)
   assert factor[:20].max() == 0.0 and 0.6 < factor[-1] < 0.66

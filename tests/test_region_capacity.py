@@ -3,6 +3,8 @@
 dense one where nothing is dropped, whole rays dropped where a region overflows, counted, and the training loop's
 refusal; the step's regions/* scalars; and model.region_capacity=auto, measured on the training rays before the
 first step, recorded in config.json and kept by a resume."""
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -67,16 +69,16 @@ def segments():
   config = _config()
   model = components.make_model(config)
   _, batches = _batches(config, 2)
-  out = []
-  for batch in batches:
-    o, d = jnp.asarray(batch["origins"]), jnp.asarray(batch["directions"])
+
+  @jax.jit  # one program rather than one per operation
+  def segments_of(o, d):
     near, far = sampling.clip_to_box(o, d, 2.0, 6.0, config.model.hashgrid.bound)
-    out.append(jax.jit(lambda o, d, near, far: regions.segments(o, d, near, far, model.partition))(o, d, near, far))
-  return out
+    return regions.segments(o, d, near, far, model.partition)
+  return [segments_of(batch["origins"], batch["directions"]) for batch in batches]
 
 
 def _present(t_in, t_out):
-  return np.asarray(t_out > t_in)
+  return np.asarray(t_out) > np.asarray(t_in)  # (on the host: no program)
 
 
 def _dropped(present_KxR, capacity):
@@ -161,17 +163,22 @@ def test_roomy_capacity_with_per_frame_tables_and_stratified_samples_steps_as_th
 
 
 def test_dispatch_compacts_the_present_segments_in_ray_order():
-  t_in = jnp.array([[0.0, 5.0, 1.0, 0.5, 2.0], [5.0, 5.0, 5.0, 1.0, 5.0]])
-  t_out = jnp.array([[1.0, 5.0, 2.0, 0.7, 3.0], [5.0, 5.0, 5.0, 2.0, 5.0]])  # (L 2, R 5); 5.0: empty [far, far]
-  d = regions.dispatch(t_in, t_out, 3)
+  # (L 2, R 5); 5.0: empty [far, far]
+  t_in = np.array([[0.0, 5.0, 1.0, 0.5, 2.0], [5.0, 5.0, 5.0, 1.0, 5.0]], np.float32)
+  t_out = np.array([[1.0, 5.0, 2.0, 0.7, 3.0], [5.0, 5.0, 5.0, 2.0, 5.0]], np.float32)
+
+  @jax.jit  # one program rather than one per operation
+  def run(t_in, t_out, x):
+    d = regions.dispatch(t_in, t_out, 3)
+    rows = regions.gather_rows(x, d)
+    return d, rows, regions.scatter_rows(rows + 1, d, -1.0)
+
+  d, rows, back = run(t_in, t_out, np.arange(5.0, dtype=np.float32) * 10)
   np.testing.assert_array_equal(d.present_LxR, [[1, 0, 1, 1, 1], [0, 0, 0, 1, 0]])
   np.testing.assert_array_equal(d.rows_LxC, [[0, 2, 3], [3, 5, 5]])  # 5 = R: a row left over
   np.testing.assert_array_equal(d.slots_LxR, [[0, 3, 1, 2, 3], [3, 3, 3, 0, 3]])  # 3 = C: no row
   np.testing.assert_array_equal(d.dropped_LxR, [[0, 0, 0, 0, 1], [0, 0, 0, 0, 0]])  # ray 4 over capacity
-  x = jnp.arange(5.0) * 10
-  rows = regions.gather_rows(x, d)
   np.testing.assert_array_equal(rows, [[0, 20, 30], [30, 40, 40]])
-  back = regions.scatter_rows(rows + 1, d, -1.0)
   np.testing.assert_array_equal(back, [[1, -1, 21, 31, -1], [-1, -1, -1, 31, -1]])
   assert [regions.capacity_rows(f, 128) for f in (0.01, 0.5, 0.51, 1.0)] == [8, 64, 72, 128]
   assert regions.capacity_rows(1.0, 20) == 20  # never more rows than rays
@@ -185,14 +192,25 @@ def test_an_absent_segment_takes_what_the_dense_path_gives_an_empty_one():
   config = _config()
   model = components.make_model(config)
   _, (batch,) = _batches(config, 1)
-  o, d = jnp.asarray(batch["origins"]), jnp.asarray(batch["directions"])
-  params = jax.jit(model.init)(jax.random.key(0), o[:2], d[:2], 2.0, 6.0, jnp.zeros(3))
-  uniforms = tuple(jax.random.uniform(jax.random.key(i), (4, BATCH, n)) for i, n in enumerate(model.sample_counts()))
-  partials, own = jax.jit(lambda: model.apply(params, o, d, 2.0, 6.0, jnp.arange(4), uniforms,
-                                              method="render_partials"))()
-  absent = ~np.asarray(own["present"])
+  o, d = batch["origins"], batch["directions"]  # (NumPy: sliced without a program)
+  params = jax.jit(model.init)(jax.random.key(0), o[:2], d[:2], 2.0, 6.0, np.zeros(3, np.float32))
+
+  # One program rather than one per operation, its bits from optimised kernels (procs.OPTIMIZED_KERNELS), as in
+  # every claim that two computations give the same bits (the segments' start and the ray's far bound).
+  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)
+  def run(params, o, d):
+    uniforms = tuple(jax.random.uniform(jax.random.key(i), (4, BATCH, n))
+                     for i, n in enumerate(model.sample_counts()))
+    partials, own = model.apply(params, o, d, 2.0, 6.0, jnp.arange(4), uniforms, method="render_partials")
+    far = sampling.clip_to_box(o, d, 2.0, 6.0, config.model.hashgrid.bound)[1][:, 0]
+    interlevel = jax.vmap(regions.interlevel_loss)(own["s_edges"], own["weights"], own["proposals"][0]["s_edges"],
+                                                   own["proposals"][0]["weights"], jnp.ones(own["present"].shape))
+    return partials, own["present"], far, interlevel
+
+  partials, present, far, interlevel = run(params, o, d)
+  absent = ~np.asarray(present)
   assert absent.sum() > 50 and (~absent).sum() > 50
-  far = np.asarray(sampling.clip_to_box(o, d, 2.0, 6.0, config.model.hashgrid.bound)[1])[:, 0]
+  far = np.asarray(far)
   for key, value in partials.items():
     want = np.broadcast_to(np.asarray(regions.empty_sums(far, key), np.float32), absent.shape)
     got = np.asarray(value)[absent]
@@ -200,9 +218,6 @@ def test_an_absent_segment_takes_what_the_dense_path_gives_an_empty_one():
       np.testing.assert_array_equal(got, want[absent], err_msg=key)
     else:
       np.testing.assert_allclose(got, 0.0, atol=2e-5, err_msg=key)
-  prefix = jnp.ones(absent.shape)
-  interlevel = jax.vmap(regions.interlevel_loss)(own["s_edges"], own["weights"], own["proposals"][0]["s_edges"],
-                                                 own["proposals"][0]["weights"], prefix)
   np.testing.assert_allclose(np.asarray(interlevel)[absent], 0.0, atol=1e-6)
 
 
@@ -240,13 +255,16 @@ def test_an_overflow_drops_whole_rays_counts_them_and_trains_on_the_rest(segment
 
 def test_the_scalars_on_a_hand_checked_case():
   # 3 regions x 4 rays: ray 0 crosses regions 0 and 1, ray 1 region 1, ray 2 all three, ray 3 region 1.
-  counts = jnp.array([2, 4, 1], jnp.float32)  # rays with a segment in each region
-  dense = step.region_metrics(counts, 4, None, 0, local=3, field_samples=14, microbatches=1, shares=1)
+  counts = np.array([2, 4, 1], np.float32)  # rays with a segment in each region
+  # (Jitted, here and below: one program rather than one per operation.)
+  dense = jax.jit(lambda c: step.region_metrics(c, 4, None, 0, local=3, field_samples=14, microbatches=1,
+                                                shares=1))(counts)
   assert {k: float(v) for k, v in dense.items()} == {
       "regions/segments_per_ray": 7 / 4, "regions/fill": 4 / 4, "regions/dropped": 0.0,
       "regions/field_evals_per_chip": 3 * 4 * 14}
-  dropped = jnp.array([[0, 0, 0, 0], [0, 0, 1, 1], [0, 0, 0, 0]], jnp.float32)  # C = 2: region 1's rays 2, 3
-  compact = step.region_metrics(counts, 4, dropped, 2, local=1, field_samples=14, microbatches=2, shares=4)
+  dropped = np.array([[0, 0, 0, 0], [0, 0, 1, 1], [0, 0, 0, 0]], np.float32)  # C = 2: region 1's rays 2, 3
+  compact = jax.jit(lambda c, d: step.region_metrics(c, 4, d, 2, local=1, field_samples=14, microbatches=2,
+                                                     shares=4))(counts, dropped)
   assert {k: float(v) for k, v in compact.items()} == {
       "regions/segments_per_ray": 7 / 4, "regions/fill": 4 / 2, "regions/dropped": 2 * 4,
       "regions/field_evals_per_chip": 1 * 2 * 14 * 2, "regions/capacity": 2}
@@ -346,7 +364,7 @@ def test_auto_counts_the_rays_that_meet_each_region_as_a_brute_force_count(cut):
   model = components.make_model(config, camera_positions=np.asarray(split.poses)[:, :3, 3])
   origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, 3000, seed=1)
   counts = regions.segment_counts(origins, directions, 2.0, 6.0, model.partition, bound=1.5, chunk=1024)
-  near, far = sampling.clip_to_box(jnp.asarray(origins), jnp.asarray(directions), 2.0, 6.0, 1.5)
+  near, far = jax.jit(sampling.clip_to_box, static_argnums=(2, 3, 4))(origins, directions, 2.0, 6.0, 1.5)  # one program
   want = _brute_force_counts(origins, directions, near, far, model.partition)
   np.testing.assert_array_equal(counts, want)
   assert 0 < want.min() and want.max() < 3000 and want.sum() > 3000  # rays that miss some regions, cross several

@@ -54,7 +54,9 @@ def _scrambled(params, seed=0):
   region to region (the initial hash grid's entries are near zero: an almost even density)."""
   leaves, treedef = jax.tree.flatten(params)
   rng = np.random.default_rng(seed)
-  return jax.tree.unflatten(treedef, [jnp.asarray(0.5 * rng.normal(size=leaf.shape), leaf.dtype) for leaf in leaves])
+  # (Cast in NumPy and put on the device as they are: no program per leaf.)
+  return jax.tree.unflatten(treedef, [jax.device_put((0.5 * rng.normal(size=leaf.shape)).astype(leaf.dtype))
+                                      for leaf in leaves])
 
 
 def _points(partition, seed=0):
@@ -105,7 +107,7 @@ def test_each_region_has_its_own_box_around_its_cell():
   cut = regions.voronoi(np.float32([[0.3, 0.2], [-0.9, 0.4], [0.1, -1.1]]))
   centres, halves = regions.boxes(cut, BOUND)
   points = np.random.default_rng(4).uniform(-BOUND, BOUND, (4000, 3)).astype(np.float32)
-  ids = np.asarray(regions.region_of(jnp.asarray(points), cut))
+  ids = np.asarray(jax.jit(lambda x: regions.region_of(x, cut))(points))  # one program, not one per operation
   local = (points - centres[ids]) * (BOUND / halves[ids])
   assert np.abs(local).max() <= BOUND and np.ptp(local[:, 0]) > BOUND  # inside, and spread over the box
   for k in range(3):  # each box is no larger than its cell's bounds (plus the margin)
@@ -126,12 +128,13 @@ def test_each_point_takes_the_field_of_its_own_region(cut, models):
   rng = np.random.default_rng(1)
   viewdirs = rng.normal(size=points.shape).astype(np.float32)
   viewdirs /= np.linalg.norm(viewdirs, axis=1, keepdims=True)
-  ids = np.asarray(regions.region_of(jnp.asarray(points), partition))
+  ids = np.asarray(jax.jit(lambda x: regions.region_of(x, partition))(points))  # one program, not one per operation
   assert sorted(set(ids.tolist())) == [0, 1, 2, 3]
   query = shared.FieldQuery(trained, 64)  # several chunks, each device's share meeting several regions
   rgb, sigma, normals = query.query(points, viewdirs)
   np.testing.assert_allclose(query.density(points), sigma, rtol=1e-6)
-  stacked = trained.params["params"]["regions"]["coarse"]
+  # (On the host: a region's parameters sliced in NumPy, not by a program per leaf.)
+  stacked = jax.tree.map(np.asarray, trained.params["params"]["regions"]["coarse"])
   centres, halves = trained.comps.model.region_boxes
   assert np.allclose(halves, BOUND) == (cut != "own")  # 'own': the cells' boxes, smaller than the field's
   at = _one_point(config)
@@ -154,7 +157,8 @@ def test_the_ground_order_puts_neighbours_together():
   points = np.random.default_rng(3).uniform(-BOUND, BOUND, (32768, 3))
   order = shared.ground_order(points)
   assert sorted(order.tolist()) == list(range(len(points)))
-  ids = np.asarray(regions.region_of(jnp.asarray(points, jnp.float32), regions.grid(16, BOUND)))
+  ids = np.asarray(jax.jit(lambda x: regions.region_of(x, regions.grid(16, BOUND)))(  # one program
+      points.astype(np.float32)))
   met = lambda ids: np.mean([len(set(block.tolist())) for block in ids.reshape(-1, 256)])  # noqa: E731
   assert met(ids[order]) < 2 and met(ids) > 15
 

@@ -248,7 +248,7 @@ def test_regions_cut_around_the_cameras():
   part = model.partition
   assert part.size == 3
   # Each camera lies in the region of its nearest k-means centre, and the centres share out the ring.
-  which = np.asarray(regions.region_of(jnp.asarray(cameras, jnp.float32), part))
+  which = np.asarray(jax.jit(lambda c: regions.region_of(c, part))(cameras.astype(np.float32)))  # one program
   centres = regions.kmeans(cameras[:, :2], 3)
   np.testing.assert_array_equal(which, np.argmin(((cameras[:, None, :2] - centres[None])**2).sum(-1), axis=1))
   assert min(np.bincount(which, minlength=3)) >= 8
@@ -301,8 +301,9 @@ def test_each_regions_resampling_is_padded_and_annealed_inside_its_segment():
   origins, directions = _rays()
   plain = components.make_model(_config())
   padded = components.make_model(_config(**{"render.proposal_padding": 0.05}))
-  params = jax.jit(plain.init)(jax.random.key(0), origins[:2], directions[:2], 2.0, 6.0, jnp.zeros(3))
-  ids = jnp.arange(4)
+  params = jax.jit(plain.init)(jax.random.key(0), np.asarray(origins)[:2], np.asarray(directions)[:2], 2.0, 6.0,
+                               np.zeros(3, np.float32))  # (NumPy slices: no program each)
+  ids = np.arange(4, dtype=np.int32)
   # (Jitted: one program per model and annealing, not hundreds of operations compiled one by one.)
   edges = lambda model, **kw: jax.jit(functools.partial(model.apply, method="render_partials"))(  # noqa: E731
       params, origins, directions, 2.0, 6.0, ids, **kw)[1]["s_edges"]
@@ -310,13 +311,18 @@ def test_each_regions_resampling_is_padded_and_annealed_inside_its_segment():
   np.testing.assert_array_equal(edges(plain, anneal=jnp.float32(1.0)), base)  # w^1: the raw histogram
   # Each region's segment [s_in, s_out] of the ray, as the model cuts it (the box, then the region's planes).
   from nerfpod.nerf import coord, sampling
-  near, far = sampling.clip_to_box(origins, directions, 2.0, 6.0, plain.model_config.hashgrid.bound)
-  t_in, t_out = regions.segments(origins, directions, near, far, plain.partition)  # (K, R)
-  to_s = lambda t: jnp.clip(coord.t_to_s(t[..., None], near, far, "linear"), 0.0, 1.0)  # noqa: E731
-  s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))  # (K, R, 1)
-  for moved in (base, wide, flat):
-    assert bool(jnp.all((moved >= s_in - 1e-6) & (moved <= s_out + 1e-6)))
+
+  @jax.jit  # one program rather than one per operation
+  def inside_and_spans(origins, directions, edges):
+    near, far = sampling.clip_to_box(origins, directions, 2.0, 6.0, plain.model_config.hashgrid.bound)
+    t_in, t_out = regions.segments(origins, directions, near, far, plain.partition)  # (K, R)
+    to_s = lambda t: jnp.clip(coord.t_to_s(t[..., None], near, far, "linear"), 0.0, 1.0)  # noqa: E731
+    s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))  # (K, R, 1)
+    return ([jnp.all((moved >= s_in - 1e-6) & (moved <= s_out + 1e-6)) for moved in edges],
+            [jnp.mean(e[..., -1] - e[..., 0]) for e in edges])
+
+  inside, (span_base, span_wide, _) = inside_and_spans(origins, directions, (base, wide, flat))
+  assert all(bool(i) for i in inside)
   for moved in (wide, flat):
     assert not np.array_equal(np.asarray(moved), np.asarray(base))
-  span = lambda e: float(jnp.mean(e[..., -1] - e[..., 0]))  # noqa: E731
-  assert span(wide) >= span(base)
+  assert float(span_wide) >= float(span_base)

@@ -3,7 +3,7 @@ scene, read off viser's handles on the server (no browser): each region's cell, 
 training cameras in their regions' colours. And the cells themselves (nerf/regions.py's cells)."""
 import json
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 import pytest
 
@@ -26,11 +26,12 @@ def test_a_grids_cells_are_its_squares_and_voronoi_cells_tile_the_square():
   centres = np.random.default_rng(0).uniform(-1, 1, (6, 2))
   partition = regions.voronoi(centres)
   cells = regions.cells(partition, 2.0)
+  region_of = jax.jit(lambda x: regions.region_of(x, partition))  # one program rather than one per operation
   assert sum(_area(c) for c in cells) == pytest.approx(16.0, rel=1e-9)  # the square, no gap, no overlap
   for k, cell in enumerate(cells):
     assert _area(cell) > 0
     inside = np.append(cell.mean(0), 0.0)[None]
-    assert int(regions.region_of(jnp.asarray(inside, jnp.float32), partition)[0]) == k
+    assert int(np.asarray(region_of(inside.astype(np.float32)))[0]) == k
     # Every corner is at least as near to its own centre as to any other (the planes are float32).
     distances = np.linalg.norm(cell[:, None] - centres[None], axis=-1)
     assert (distances[:, k] <= distances.min(1) + 1e-6).all()
@@ -78,7 +79,8 @@ def test_the_viewer_draws_each_region_and_colours_each_training_camera_by_its_re
   cells = regions.cells(viewer.partition, bound)
   train = viewer.comps.scene.split("train")
   positions = np.asarray(train.poses)[:, :3, 3]
-  held = np.asarray(regions.region_of(jnp.asarray(positions, jnp.float32), viewer.partition))
+  region_of = jax.jit(lambda x: regions.region_of(x, viewer.partition))  # one program rather than one per operation
+  held = np.asarray(region_of(positions.astype(np.float32)))
   assert sorted(set(held.tolist())) == [0, 1, 2, 3]
   handles = {h.name: h for h in viewer._regions}
   for k in range(4):
@@ -90,7 +92,7 @@ def test_the_viewer_draws_each_region_and_colours_each_training_camera_by_its_re
     assert tuple(cell.colors.reshape(-1, 3)[0]) == view.region_colour(k)
     centre = handles[f"/regions/{k}/centre"]
     np.testing.assert_allclose(centre.position, positions[held == k].mean(0), rtol=1e-5, atol=1e-6)
-    assert int(regions.region_of(jnp.asarray(centre.position[None], jnp.float32), viewer.partition)[0]) == k
+    assert int(np.asarray(region_of(np.asarray(centre.position[None], np.float32)))[0]) == k
     assert handles[f"/regions/{k}/label"].text == f"region {k} ({int(np.sum(held == k))} cameras)"
   frustums = {f.name: f for f in viewer._frustums}
   for i, k in enumerate(held):
