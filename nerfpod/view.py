@@ -46,6 +46,7 @@ import threading
 import time
 import types
 
+import jax
 import numpy as np
 from absl import flags, logging
 
@@ -332,7 +333,8 @@ class Viewer:
     self._regions = [] if self.partition is None else self._draw_regions(train_positions)
 
   def _region_of(self, points_Nx3) -> np.ndarray:
-    return np.asarray(nerf_regions.region_of(np.asarray(points_Nx3, np.float32), self.partition))
+    # (one compiled program, not one per operation)
+    return np.asarray(jax.jit(nerf_regions.region_of)(np.asarray(points_Nx3, np.float32), self.partition))
 
   def _draw_regions(self, camera_positions_Nx3) -> list:
     """A region model's regions on the page, each in its colour: /regions/K/cell, the wireframe of the region

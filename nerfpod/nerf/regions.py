@@ -370,7 +370,7 @@ def segment_counts(origins_Rx3, directions_Rx3, near: float, far: float, partiti
   pad = lambda x: np.concatenate([np.asarray(x, np.float32), np.ones((padded - total, 3), np.float32)])  # noqa: E731
   origins, directions = pad(origins_Rx3), pad(directions_Rx3)
   valid = np.arange(padded) < total
-  planes = tuple(jnp.asarray(a) for a in partition)
+  planes = tuple(np.asarray(a) for a in partition)  # (constants of the program below)
 
   @jax.jit
   def count(o, d, keep):
