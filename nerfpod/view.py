@@ -68,6 +68,10 @@ REGION_COLOURS = ((230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (
                   (128, 0, 0), (128, 128, 0), (0, 0, 128), (128, 128, 128))
 
 
+# The region of each point, one compiled program (not one per operation): the training cameras' regions.
+_region_of = jax.jit(nerf_regions.region_of)
+
+
 def region_colour(k: int) -> tuple[int, int, int]:
   return REGION_COLOURS[int(k) % len(REGION_COLOURS)]
 
@@ -314,7 +318,7 @@ class Viewer:
     scale = 0.03 * self._scene_extent()
     colours = {"train": (40, 90, 220)}
     corrections = pose_correction.of_params(self.params)
-    train_positions = None
+    train_positions = train_regions = None
     for name, split in self.comps.scene.splits.items():
       fov = cameras.fov_y(split.intrinsics)
       aspect = split.intrinsics.width / split.intrinsics.height
@@ -324,25 +328,22 @@ class Viewer:
       colour = [colours.get(name, (230, 120, 30))] * len(poses)
       if name == "train" and self.partition is not None:  # each in its region's colour
         train_positions = np.asarray(poses, np.float64)[:, :3, 3]
-        colour = [region_colour(k) for k in self._region_of(train_positions)]
+        train_regions = np.asarray(_region_of(np.asarray(train_positions, np.float32), self.partition))
+        colour = [region_colour(k) for k in train_regions]
       for i, (pose, image) in enumerate(zip(poses, split.images)):
         wxyz, position = cameras.pose_to_opencv(pose)
         self._frustums.append(scene.add_camera_frustum(
             f"/cameras/{name}/{i}", fov=float(fov), aspect=aspect, scale=scale, wxyz=wxyz, position=position,
             color=colour[i], image=_thumbnail(image), format="jpeg"))
-    self._regions = [] if self.partition is None else self._draw_regions(train_positions)
+    self._regions = [] if self.partition is None else self._draw_regions(train_positions, train_regions)
 
-  def _region_of(self, points_Nx3) -> np.ndarray:
-    # (one compiled program, not one per operation)
-    return np.asarray(jax.jit(nerf_regions.region_of)(np.asarray(points_Nx3, np.float32), self.partition))
-
-  def _draw_regions(self, camera_positions_Nx3) -> list:
+  def _draw_regions(self, camera_positions_Nx3, regions_N) -> list:
     """A region model's regions on the page, each in its colour: /regions/K/cell, the wireframe of the region
     within the field's box [-b, b]^3 (its ground polygon, nerf_regions.cells, at z = -b and z = b, joined at
     the corners); /regions/K/centre, a marker at the mean of its training cameras (the mean of its cell's
-    corners at z = 0 where it has none); /regions/K/label, its name and camera count there. Returns their handles."""
+    corners at z = 0 where it has none); /regions/K/label, its name and camera count there (`regions_N`: the
+    region of each camera). Returns their handles."""
     scene, bound = self.server.scene, float(self.config.model.hashgrid.bound)
-    held = self._region_of(camera_positions_Nx3) if camera_positions_Nx3 is not None else np.zeros(0, int)
     radius = 0.01 * self._scene_extent()
     handles = []
     for k, polygon in enumerate(nerf_regions.cells(self.partition, bound)):
@@ -354,7 +355,7 @@ class Viewer:
                             np.pad(polygon, ((0, 0), (0, 1)), constant_values=bound)], axis=1)
         handles.append(scene.add_line_segments(f"/regions/{k}/cell", np.concatenate(edges + [upright]), colour,
                                                thickness=2.0, thickness_units="screen"))
-      mine = camera_positions_Nx3[held == k] if camera_positions_Nx3 is not None else np.zeros((0, 3))
+      mine = camera_positions_Nx3[regions_N == k] if camera_positions_Nx3 is not None else np.zeros((0, 3))
       if len(mine):
         centre = mine.mean(0)
       elif len(polygon):
