@@ -69,17 +69,23 @@ def test_asyncio_words_its_reports_of_abandoned_tasks_as_matched(caplog, monkeyp
 
   def reports() -> list[logging.LogRecord]:
     caplog.clear()
-    with caplog.at_level(logging.ERROR, logger="asyncio"), warnings.catch_warnings():
-      warnings.simplefilter("ignore", RuntimeWarning)  # (a coroutine never awaited)
-      for namespace in sources.values():
-        loop = asyncio.new_event_loop()
-        failed = loop.create_task(namespace["fails"]())
-        loop.run_until_complete(asyncio.sleep(0))
-        assert failed.done()
-        pending = loop.create_task(namespace["waits"]())
-        loop.close()
-        del failed, pending
-        gc.collect()
+    # The tasks' cycles are collected with what was made after gc.freeze: the session's older objects (JAX's
+    # caches, every module imported; seconds of a full collection, four times) are not walked.
+    gc.freeze()
+    try:
+      with caplog.at_level(logging.ERROR, logger="asyncio"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # (a coroutine never awaited)
+        for namespace in sources.values():
+          loop = asyncio.new_event_loop()
+          failed = loop.create_task(namespace["fails"]())
+          loop.run_until_complete(asyncio.sleep(0))
+          assert failed.done()
+          pending = loop.create_task(namespace["waits"]())
+          loop.close()
+          del failed, pending
+          gc.collect()
+    finally:
+      gc.unfreeze()
     return [r for r in caplog.records if r.name == "asyncio"]
 
   said = [r.getMessage() for r in reports()]
