@@ -101,11 +101,13 @@ def test_the_schema_imports_no_jax():
 
 # Imports each module of the package in a child forked from a process that has loaded only third-party
 # packages: no module of nerfpod is loaded before the one under test, so an import circle or a missing
-# import between nerfpod's modules fails as in a fresh process, without paying each child's JAX import.
+# import between nerfpod's modules fails as in a fresh process, without paying each child's imports of JAX,
+# Pallas' TPU module, grain and tensorstore (half of what a child took).
 _IMPORT_ALONE = """
 import importlib, os, sys, traceback
 for heavy in ("numpy", "jax", "jax.numpy", "flax.linen", "optax", "orbax.checkpoint", "ml_collections",
-              "absl.flags", "absl.app"):
+              "absl.flags", "absl.app", "jax.experimental.pallas.tpu", "grain", "tensorstore", "PIL.Image",
+              "imageio.v3", "tensorboardX"):
   importlib.import_module(heavy)
 assert not [m for m in sys.modules if m.split(".")[0] == "nerfpod"]
 for name in sys.argv[1:]:
