@@ -489,13 +489,17 @@ def test_no_storage_endpoint_no_bucket_or_no_credentials_is_one_sentence(monkeyp
       f"could not take the lock {PATH}: there are no credentials for Cloud Storage (File {missing} was not "
       f"found); run `gcloud auth application-default login`, point GOOGLE_APPLICATION_CREDENTIALS at a service "
       f"account's key file, run on a VM with a service account, or pass a local --workdir.")
-  monkeypatch.delenv("GOOGLE_APPLICATION_CREDENTIALS")  # and no gcloud login, no metadata server
+  monkeypatch.delenv("GOOGLE_APPLICATION_CREDENTIALS")  # and no gcloud login, no metadata server: google-auth
+  # told not to look for one (its NO_GCE_CHECK, as where no VM is), whose looks wait 3 s between them
+  from google.auth.compute_engine import _metadata
+  monkeypatch.setattr(_metadata, "_NO_GCE_CHECK", True)
   with pytest.raises(UserError) as refused:
     workdir_lock.WorkdirLock(WORKDIR).acquire()
   assert _one_sentence(str(refused.value)).startswith(
       f"could not take the lock {PATH}: there are no credentials for Cloud Storage (Your default credentials "
       f"were not found")
   assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []  # only the sentence
+  monkeypatch.setattr(_metadata, "_NO_GCE_CHECK", False)
   _metadata_server(monkeypatch, cloud.host)  # a VM's service account, on a workdir in a bucket that is not there
   with pytest.raises(UserError) as refused:
     workdir_lock.WorkdirLock("gs://no-such-bucket/runs/cup").acquire()
