@@ -121,15 +121,21 @@ def test_a_known_pose_perturbation_is_recovered_on_a_textured_plane(gate):
   corrections, opt_state = jax.jit(lambda: (jnp.zeros((4, 6)), optimizer.init(jnp.zeros((4, 6)))))()
   loss_of = jax.jit(loss)
 
-  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)  # (runs 600 or 1,500 times: faster kernels)
-  def update(corrections, opt_state):
+  def update(_, state):
+    corrections, opt_state = state
     grads = jax.grad(loss)(corrections)
     updates, opt_state = optimizer.update(grads, opt_state)
     return optax.apply_updates(corrections, updates), opt_state
 
+  # Every update in one program (a loop of 600 or 1,500 updates: one call, not one per update), its kernels
+  # optimised (they run that many times).
+  @functools.partial(jax.jit, static_argnums=2, compiler_options=procs.OPTIMIZED_KERNELS)
+  def updates(corrections, opt_state, count):
+    return jax.lax.fori_loop(0, count, update, (corrections, opt_state))
+
   start = float(loss_of(corrections))
-  for _ in range(600 if not gate else 1500):  # the gate's momentum (b1 = 0.99) is slower to settle
-    corrections, opt_state = update(corrections, opt_state)
+  # (the gate's momentum, b1 = 0.99, is slower to settle)
+  corrections, opt_state = updates(corrections, opt_state, 600 if not gate else 1500)
   assert float(loss_of(corrections)) < 1e-4 * start
   recovered = pose_correction.corrected_poses(given, np.asarray(corrections))
   np.testing.assert_allclose(recovered[:, :3, 3], truths[:, :3, 3], atol=2e-3)
