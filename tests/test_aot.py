@@ -192,11 +192,18 @@ def test_named_pods_have_the_chips_and_hosts_of_their_accelerator_type(name, num
 
 
 @needs_libtpu
-def test_two_slices_compile_as_one_program_with_the_cross_slice_reduction_over_dcn_as_its_own_collective():
-  """Multi-slice (the quick loop's small case): 2 slices of v5e-4 (8 chips on 2 hosts), the smoke step; the
-  gradient mean runs within each slice over ICI and across the slices over DCN, reported with its bytes and
-  costed at v5e's published DCN bandwidth."""
-  out = _aot("--config=configs/default.py:smoke", "--topology=v5e-4", "--slices=2", "--what=step", "--json=-")
+@pytest.mark.parametrize("model", [
+    # The quick loop's: the MLP field without proposals (4 s of TPU compile rather than 10; the step's collectives
+    # are the same kind, the gradient mean's, over fewer parameters).
+    ["--config.model.field=mlp", "--config.render.proposal_samples=()"],
+    # The smoke model itself, hash grid and proposals, in the gate.
+    pytest.param([], marks=pytest.mark.slow)], ids=["mlp", "smoke"])
+def test_two_slices_compile_as_one_program_with_the_cross_slice_reduction_over_dcn_as_its_own_collective(model):
+  """Multi-slice (the small case): 2 slices of v5e-4 (8 chips on 2 hosts), the smoke step; the gradient mean
+  runs within each slice over ICI and across the slices over DCN, reported with its bytes and costed at v5e's
+  published DCN bandwidth."""
+  out = _aot("--config=configs/default.py:smoke", *model, "--topology=v5e-4", "--slices=2", "--what=step",
+             "--json=-")
   assert out.returncode == 0, out.stderr
   report = json.loads(out.stdout)
   assert (report["slices"], report["chips"], report["hosts"]) == (2, 8, 2)
