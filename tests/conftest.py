@@ -252,8 +252,8 @@ EXTENDED = (
     "test_region_step.py::test_each_device_share_of_the_regions_composites_to_the_whole_model",
     "test_region_step.py::test_sharded_regions_step_matches_the_whole_model_on_one_device",  # (its 2 x 4 is quick)
     # (test_region_step's gradient clip over every region's gradients stays in the gate, 12 s.)
-    # pycolmap on the cup's photos and the horns' video (prepare's quick tests run it on synthetic photos and
-    # the horns' photos), the fox through the command line (test_real_configs trains the cup and the horns).
+    # pycolmap on the cup's photos, the horns' photos twice and the horns' video (prepare's quick tests run it on
+    # synthetic photos), the fox through the command line (test_real_configs trains the cup and the horns).
     "test_prepare.py",
     "test_captures.py::test_a_distorted_capture_trains_evaluates_and_renders_through_the_command_line",
     # The browser's other pages (the gate keeps the page's rendering and a drag, and the Ctrl-C exit).

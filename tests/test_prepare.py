@@ -914,49 +914,36 @@ def test_an_interrupted_run_resumes_and_overwrite_starts_again(textured, tmp_pat
 
 
 @needs_pycolmap
-def test_horns_photos_agree_with_the_published_poses(tmp_path, capsys):
-  """20 of the LLFF horns images (252x189): the poses agree with those LLFF published (COLMAP on the
-  full-size images)."""
+@pytest.mark.slow  # two prepares of 40 horns photos (the quick loop runs twice on the synthetic photos, whose
+# poses it checks against the renders' own: test_photos_to_a_capture_that_all_three_loaders_read)
+def test_the_horns_photos_agree_with_the_published_poses_and_give_the_same_capture_twice(tmp_path, capsys):
+  """40 of the LLFF horns images (252x189), prepared twice with the same (default) seed, once on 2 threads and
+  once on 1: a forward-facing capture whose poses agree with those LLFF published (COLMAP on the full-size
+  images); the same images registered, the same poses and points, bit for bit."""
   from nerfpod.scenes import colmap, llff
   folder = require(DATA / "llff_horns")
   names = sorted(os.listdir(folder / "images_8"))
   published, _, _ = llff.read_poses_bounds(str(folder / "poses_bounds.npy"))
   photos = tmp_path / "photos"
   photos.mkdir()
-  pick = np.round(np.linspace(0, len(names) - 1, 20)).astype(int)
+  pick = np.round(np.linspace(0, len(names) - 1, 40)).astype(int)
   for i in pick:
-    Image.open(folder / "images_8" / names[i]).convert("RGB").reduce(2).save(photos / names[i])
-  out = tmp_path / "capture"
-  start = time.monotonic()
-  code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={out}")
-  seconds = time.monotonic() - start
-  assert code == 0, err
-  assert "forward-facing" in stdout and f"--config=configs/llff.py --config.data.path={out}" in stdout
-  rotation, position = pose_errors(scene_poses(colmap.load(str(out), capture_config(out).data)),
-                                   {names[i]: published[i] for i in pick})
-  print(f"horns: {len(rotation)} of 20 registered in {seconds:.1f} s; rotation error median "
-        f"{np.median(rotation):.2f} max {rotation.max():.2f} degrees; camera centre error median "
-        f"{100 * np.median(position):.2f}% max {100 * position.max():.2f}%")
-  assert len(rotation) == 20 and np.median(rotation) < 0.5 and np.median(position) < 0.03
-
-
-@needs_pycolmap
-@pytest.mark.slow  # two prepares of 40 horns photos (the quick loop runs twice on the synthetic photos)
-def test_the_horns_photos_give_the_same_capture_twice(tmp_path, capsys):
-  """40 of the LLFF horns images (252x189), prepared twice with the same (default) seed, once on 2 threads and
-  once on 1: the same images registered, the same poses and points, bit for bit."""
-  folder = require(DATA / "llff_horns")
-  names = sorted(os.listdir(folder / "images_8"))
-  photos = tmp_path / "photos"
-  photos.mkdir()
-  for i in np.round(np.linspace(0, len(names) - 1, 40)).astype(int):
     Image.open(folder / "images_8" / names[i]).convert("RGB").reduce(2).save(photos / names[i])
   runs = []
   for i, threads in enumerate((2, 1)):
     out = tmp_path / f"capture{i}"
-    code, _, err = run_prepare(capsys, f"--input={photos}", f"--out={out}", f"--threads={threads}")
+    start = time.monotonic()
+    code, stdout, err = run_prepare(capsys, f"--input={photos}", f"--out={out}", f"--threads={threads}")
+    seconds = time.monotonic() - start
     assert code == 0, err
     runs.append(_written(out))
+  assert "forward-facing" in stdout and f"--config=configs/llff.py --config.data.path={out}" in stdout
+  rotation, position = pose_errors(scene_poses(colmap.load(str(out), capture_config(out).data)),
+                                   {names[i]: published[i] for i in pick})
+  print(f"horns: {len(rotation)} of 40 registered in {seconds:.1f} s; rotation error median "
+        f"{np.median(rotation):.2f} max {rotation.max():.2f} degrees; camera centre error median "
+        f"{100 * np.median(position):.2f}% max {100 * position.max():.2f}%")
+  assert np.median(rotation) < 0.5 and np.median(position) < 0.03
   first, again = runs
   assert len(first["poses"]) >= 36 and sorted(again["poses"]) == sorted(first["poses"])
   assert all(np.array_equal(again["poses"][k], first["poses"][k]) for k in first["poses"])
