@@ -5,6 +5,9 @@ a box, a cylinder and a thin round plate, Lambertian shading under one direction
 composited on white. Cameras sit on the upper hemisphere at radius 4 looking at the origin, with the
 Blender synthetic scenes' field of view, so what works here works there.
 """
+import dataclasses
+import functools
+
 import numpy as np
 
 from nerfpod.nerf.cameras import Intrinsics, image_rays, look_at
@@ -129,8 +132,26 @@ def hemisphere_poses(n: int, seed: int, min_elevation=10.0, max_elevation=75.0) 
 
 
 def load(path: str, data_config, shards=None) -> Scene:
-  """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file."""
-  return make(data_config.image_size, pixel_center=data_config.pixel_center)
+  """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file. Traced once
+  per process for each (size, pixel centre): the same scene object again after, its arrays read-only."""
+  return _loaded(int(data_config.image_size), float(data_config.pixel_center))
+
+
+@functools.lru_cache(maxsize=4)
+def _loaded(image_size: int, pixel_center: float) -> Scene:
+  return read_only(make(image_size, pixel_center=pixel_center))
+
+
+def read_only(scene: Scene) -> Scene:
+  """`scene` with every array it holds read-only: a built-in scene is made once per process and handed to each
+  caller, none of which may write into another's."""
+  for split in scene.splits.values():
+    for array in (split.pixels, split.poses, split.alphas, split.bounds, split.held,
+                  *(getattr(split.cameras, field.name) for field in dataclasses.fields(split.cameras))):
+      if isinstance(array, np.ndarray):
+        array.flags.writeable = False
+  scene.transform.flags.writeable = False
+  return scene
 
 
 def cameras(path: str, data_config) -> Scene:

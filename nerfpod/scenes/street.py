@@ -15,6 +15,8 @@ down the street a few units away; the training, validation and test cameras are 
 distribution with different seeds, so every held-out view is a new view of a part of the street the training
 views saw. Everything comes from fixed seeds: the same arguments always give the same pixels.
 """
+import functools
+
 import numpy as np
 
 from nerfpod.errors import UserError
@@ -123,8 +125,14 @@ def blocks_of(path: str) -> int:
 
 def load(path: str, data_config, shards=None) -> Scene:
   """The loader's signature (nerfpod.scenes.LOADERS): data.image_size and data.pixel_center; no file;
-  data.path '' or 'blocks=B' (blocks_of)."""
-  return make(data_config.image_size, pixel_center=data_config.pixel_center, blocks=blocks_of(path))
+  data.path '' or 'blocks=B' (blocks_of). Traced once per process for each (size, pixel centre, blocks): the
+  same scene object again after, its arrays read-only (procedural.read_only)."""
+  return _loaded(int(data_config.image_size), float(data_config.pixel_center), blocks_of(path))
+
+
+@functools.lru_cache(maxsize=4)
+def _loaded(image_size: int, pixel_center: float, blocks: int) -> Scene:
+  return procedural.read_only(make(image_size, pixel_center=pixel_center, blocks=blocks))
 
 
 def cameras(path: str, data_config) -> Scene:
