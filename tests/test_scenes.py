@@ -12,6 +12,24 @@ from nerfpod.nerf import cameras
 from nerfpod.scenes import blender, procedural, street, tiny
 
 
+@pytest.mark.parametrize("name", ["default", "street"])
+def test_a_built_in_scene_is_traced_once_per_process_and_handed_out_read_only(name):
+  """scenes.load of the same built-in scene gives the object it traced first, whose arrays no caller can write
+  into (another caller holds them too); another size is another scene, traced from the same cameras."""
+  from conftest import load_config
+  data = load_config(name, "smoke").data
+  first = scenes.load(data)
+  assert scenes.load(data) is first
+  train = first.split("train")
+  for array in (train.pixels, train.poses, train.cameras.fx, first.transform):
+    with pytest.raises(ValueError, match="read-only"):
+      array[0] = 0
+  data.image_size += 8
+  bigger = scenes.load(data)
+  assert bigger is not first and bigger.split("train").images.shape[1] == train.images.shape[1] + 8
+  np.testing.assert_array_equal(bigger.split("train").poses, train.poses)
+
+
 def test_procedural_scene_is_deterministic_and_shaped_like_blender_data():
   a, b = procedural.make(image_size=24), procedural.make(image_size=24)
   for name, n in (("train", 100), ("val", 8), ("test", 8)):
