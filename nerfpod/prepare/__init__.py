@@ -116,7 +116,7 @@ flags.DEFINE_integer("max_image_size", 1600, "SIFT runs on images shrunk to this
                      lower_bound=1, flag_values=FLAGS)
 flags.DEFINE_float("min_registered", 0.5, "Fail unless at least this share of the images is registered.",
                    lower_bound=0.0, upper_bound=1.0, flag_values=FLAGS)
-flags.DEFINE_integer("threads", _threads(), "CPU threads for SIFT and matching (default: this machine's cores); "
+flags.DEFINE_integer("threads", _threads(), "CPU threads for SIFT (default: this machine's cores); matching and "
                      "the mappers run on one thread, for the same capture every run.", lower_bound=1,
                      flag_values=FLAGS)
 flags.DEFINE_integer("seed", sfm.DEFAULT_SEED, "Every random choice (RANSAC, the mappers) derives from it: the same "
@@ -350,7 +350,7 @@ def _matching(job: Job, label: str) -> None:
     if begun:
       sfm.clear_matches(job.db_path)
     job.begin("matching", {"key": key})
-  job.counts.update(sfm.stage_matching(job.db_path, job.work, job.names, job.pairs, args.threads, args.seed))
+  job.counts.update(sfm.stage_matching(job.db_path, job.work, job.names, job.pairs, args.seed))
 
 
 def _mapping(job: Job, label: str) -> None:

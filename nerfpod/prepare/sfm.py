@@ -4,8 +4,8 @@ most images, unless two models disagree on the poses of the images both placed: 
 again from other seeds, to confirm the global model or to place more itself).
 
 Every random choice derives from one seed (--seed): pycolmap's own generator, each RANSAC of the geometric
-verification, and the mappers' options; the mappers run on one thread (see seeded_options), so that the same
-input and options give the same capture, whatever the thread timing."""
+verification, and the mappers' options; the matching and the mappers run on one thread (see seeded_options), so
+that the same input and options give the same capture, whatever the thread timing."""
 import math
 import os
 import shutil
@@ -280,9 +280,12 @@ def seeded_options(kind: str, seed: int, threads: int = 1):
   """pycolmap's options for one step, seeded from `seed`, with the threads that keep the step's result
   independent of thread timing (COLMAP 4.2's sources; docs/prepare.md has what it costs):
   - "extraction" (SIFT, --threads): each image's features are computed alone, by one thread; no randomness.
-  - "matching" (--threads) and its "verification": each pair is matched alone; the RANSAC of its geometric
-    verification draws from COLMAP's generator, one per thread, which an unseeded RANSAC (-1) leaves going from
-    one pair to the next, so which pairs a thread took before changed the draws; a seed reseeds it at the start
+  - "matching": one thread, whatever --threads. The CPU matcher's nearest neighbours come from FLANN's
+    randomised k-d trees, whose draws several threads share: on 2 threads, 44 phone photos matched four times
+    gave four different match tables (docs/prepare.md); on one, the same every time. (COLMAP's exact
+    brute-force matcher is deterministic on any threads, but took 10 times as long there.)
+  - its "verification": the RANSAC of each pair's geometric verification draws from COLMAP's generator, one per
+    thread, which an unseeded RANSAC (-1) leaves going from one pair to the next; a seed reseeds it at the start
     of every RANSAC, the same for a pair whichever thread takes it. (The RANSAC itself runs on one thread.)
   - "incremental" and "global" mappers: one thread. With several, the incremental mapper looks for its initial
     pair in parallel and keeps the first that a thread finds, runs the RANSAC of structure-less registration on
@@ -295,7 +298,7 @@ def seeded_options(kind: str, seed: int, threads: int = 1):
     options.num_threads = threads
   elif kind == "matching":
     options = pycolmap.FeatureMatchingOptions()
-    options.num_threads = threads
+    options.num_threads = 1
   elif kind == "verification":
     options = pycolmap.TwoViewGeometryOptions()
     options.ransac.random_seed = seed
@@ -343,14 +346,14 @@ def stage_features(db_path: str, image_dir: str, names: list[str], cameras: str,
   return {"features": keypoints}
 
 
-def stage_matching(db_path: str, work: str, names: list[str], pairs: list[tuple[int, int]], threads: int,
+def stage_matching(db_path: str, work: str, names: list[str], pairs: list[tuple[int, int]],
                    seed: int = DEFAULT_SEED):
   import pycolmap
   ids = _count(db_path, lambda db: {im.name: im.image_id for im in db.read_all_images()})
   todo = _count(db_path, lambda db: [(i, j) for i, j in pairs
                                      if not db.exists_two_view_geometry(ids[names[i]], ids[names[j]])])
-  options = seeded_options("matching", seed, threads)
-  verification = seeded_options("verification", seed, threads)
+  options = seeded_options("matching", seed)  # (one thread: seeded_options says why)
+  verification = seeded_options("verification", seed)
   done = len(pairs) - len(todo)
   progress = Progress("matching", len(pairs), "pairs", already=done)
   if done:
