@@ -745,9 +745,10 @@ def _written(out) -> dict:
 
 
 # The incremental mapper's case failed 2 of its 12 runs on 2026-12-06 (a later run's poses not the first's bit for
-# bit): COLMAP's CPU matcher, on several threads, shares the draws of FLANN's randomised k-d trees between them,
-# so which pairs a thread took changed the matches (44 phone photos matched 4 times on 2 threads: 4 different
-# match tables). Matching runs on one thread since (sfm.seeded_options), and the case fails as any test.
+# bit). The likely cause, found on 2026-12-07: COLMAP's CPU matcher shares the draws of FLANN's randomised k-d trees
+# between its threads, so which pairs a thread took changed the matches (44 phone photos matched 4 times on 2
+# threads: 4 different match tables). Matching runs on one thread since (sfm.seeded_options), and the case fails
+# as any test (its message says from which stage on two runs parted).
 
 
 @needs_pycolmap
