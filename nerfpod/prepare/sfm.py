@@ -281,7 +281,7 @@ def seeded_options(kind: str, seed: int, threads: int = 1):
   independent of thread timing (COLMAP 4.2's sources; docs/prepare.md has what it costs):
   - "extraction" (SIFT, --threads): each image's features are computed alone, by one thread; no randomness.
   - "matching": one thread, whatever --threads. The CPU matcher's nearest neighbours come from FLANN's
-    randomised k-d trees, whose draws several threads share: on 2 threads, 44 phone photos matched four times
+    randomised k-d trees, whose draws several threads evidently share: on 2 threads, 44 phone photos matched four times
     gave four different match tables (docs/prepare.md); on one, the same every time. (COLMAP's exact
     brute-force matcher is deterministic on any threads, but took 10 times as long there.)
   - its "verification": the RANSAC of each pair's geometric verification draws from COLMAP's generator, one per
