@@ -168,6 +168,12 @@ def numbers(low: float = 0.0) -> Field:
                f"a tuple of numbers >= {low:g}", (0.03,), ((low - 1.0,),))
 
 
+def fractions() -> Field:
+  """A tuple of fractions in (0, 1] (or ())."""
+  return Field(lambda v: isinstance(v, (tuple, list)) and all(_is_number(i) and 0.0 < i <= 1.0 for i in v),
+               "a tuple of fractions, each > 0 and <= 1", (0.5, 0.4), ((0.0,), (1.5,)))
+
+
 def step_range() -> Field:
   """() (off) or (first, last): steps counted from 1, first <= last."""
   return Field(lambda v: isinstance(v, (tuple, list)) and (len(v) == 0 or (
@@ -279,6 +285,15 @@ FIELDS: dict[str, Field] = _declare({
         "the fullest region's share of the training rays, measured before the first step, plus a margin for a "
         "batch's spread (the fraction is recorded in the workdir's config.json, which a resume with 'auto' "
         "keeps); 0: every ray through every region (dense). Evaluation and renders are always dense", RESUMABLE),
+    "model.region_split": (0, integer(0, 8, example=3),
+        "model.regions > 1 with a capacity: a ray's samples split across its segments (a flat cost per ray, "
+        "docs/scale.md#a-flat-cost-per-ray): each segment renders 2^-j of every sampling round's count, j the "
+        "class of its share of the ray (the smallest 2^-j at least the share, j < this), each class with its own "
+        "rows; 0 or 1: every segment with every sample"),
+    "model.region_split_capacity": ((), fractions(),
+        "model.region_split=J: the capacity of each of the J sample classes, a fraction of a chip's rays "
+        "(as model.region_capacity); (): model.region_capacity for every class. model.region_capacity=auto "
+        "measures them (and config.json records them)", RESUMABLE),
     # model.mlp: NeRF's MLP: the Tiny NeRF tutorial's by default
     "model.mlp.num_frequencies": (6, integer(0, 30, example=10),
         "positional-encoding frequencies L of points; 0 switches it off"),
@@ -633,6 +648,15 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.region_capacity={_show(c['model.region_capacity'])} shares each region's rows out among the "
                f"rays that meet it, and model.regions=1 has one region that every ray meets; leave it at 0 "
                f"(--config.model.region_capacity=0) or give more regions.")
+  split, split_capacity = c["model.region_split"], c["model.region_split_capacity"]
+  if split > 1 and (c["model.regions"] == 1 or not c["model.region_capacity"]):
+    out.append(f"model.region_split={split} splits a ray's samples across its segments in the regions' "
+               f"compacted step, which needs model.regions > 1 and a capacity; add "
+               f"--config.model.region_capacity=auto (or --config.model.region_split=0).")
+  if split_capacity and len(split_capacity) != max(split, 1):
+    out.append(f"model.region_split_capacity={_show(split_capacity)} gives {len(split_capacity)} capacities for "
+               f"model.region_split={split}'s {max(split, 1)} sample class(es); give one fraction per class "
+               f"(or --config.model.region_split_capacity='()': model.region_capacity for every class).")
   if c["model.regions"] > 1 and c["render.num_importance"]:
     out.append(f"model.regions={c['model.regions']} renders each region's segment with proposal or stratified "
                f"samples, not hierarchical ones; use --config.render.num_importance=0 (or "

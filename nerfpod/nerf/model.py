@@ -1,4 +1,5 @@
 """The NeRF model: sample along rays, query the field(s), composite; coarse-to-fine or proposal sampling."""
+import functools
 from typing import Any
 
 import flax.linen as nn
@@ -247,28 +248,40 @@ is the model above, unchanged.
                     grid_lookup=self.grid_lookup, near_gradient_distance=self.near_gradient_distance, name=REGIONS)
     if not capacity:  # dense: every ray through every region
       renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                         in_axes=(0, 0, None, None, None, None, None, None, None, 0), out_axes=0)(**settings)
-      partials, local = renderer(boxes, tuple(uniforms), origins_Rx3, directions_Rx3, viewdirs, codes, near, far,
-                                 anneal, (t_in, t_out))
+                         in_axes=(0, (dict(_SHARED_ROWS, uniforms=0, segment=0),), None), out_axes=0)(**settings)
+      rows = dict(uniforms=tuple(uniforms), origins=origins_Rx3, directions=directions_Rx3, viewdirs=viewdirs,
+                  codes=codes, near=near, far=far, segment=(t_in, t_out))
+      (partials, local), = renderer(boxes, (rows,), anneal)
       local["present"] = t_out > t_in
       return partials, local
     # Compacted: each region's C rows (its rays with a segment there, in ray order), the rays' inputs and
-    # numbers gathered by row; a row left over renders an empty segment ([far, far]: weights 0).
-    d = nerf_regions.dispatch(t_in, t_out, capacity)
-    rows = lambda x: None if x is None else nerf_regions.gather_rows(x, d)  # noqa: E731
-    far_rows = rows(far)  # (L, C, 1)
-    used = d.rows_LxC < t_in.shape[1]
-    own_rows = lambda x: None if x is None else nerf_regions.gather_rows(x, d, per_region=True)  # noqa: E731
-    segment = (jnp.where(used, own_rows(t_in), far_rows[..., 0]),
-               jnp.where(used, own_rows(t_out), far_rows[..., 0]))
+    # numbers gathered by row; a row left over renders an empty segment ([far, far]: weights 0). With
+    # model.region_split, a row set per sample class (its rays' segments of that class, C_j rows each).
+    present = t_out > t_in
+    classes = max(self.model_config.region_split, 1)
+    capacities = (capacity,) * classes if isinstance(capacity, int) else tuple(capacity)
+    if len(capacities) != classes:
+      raise ValueError(f"{len(capacities)} capacities for model.region_split's {classes} sample classes")
+    if classes > 1:
+      klass = nerf_regions.sample_classes(nerf_regions.segment_shares(t_in, t_out, near, far, self.spacing), classes)
+      dispatches = [nerf_regions.dispatch_present(present & (klass == j), c) for j, c in enumerate(capacities)]
+    else:
+      dispatches = [nerf_regions.dispatch(t_in, t_out, capacities[0])]
+    class_rows = [_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
+                  for d in dispatches]
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                       in_axes=(0, 0, 0, 0, 0, 0, 0, 0, None, 0), out_axes=0)(**settings)
-    partials, local = renderer(boxes, tuple(own_rows(u) for u in uniforms), rows(origins_Rx3),
-                               rows(directions_Rx3), rows(viewdirs), rows(codes), rows(near), far_rows, anneal,
-                               segment)
+                       in_axes=(0, 0, None), out_axes=0)(fractions=nerf_regions.class_fractions(classes), **settings)
+    rendered = renderer(boxes, tuple(class_rows), anneal)
     far_R = far[..., 0]
-    partials = {k: nerf_regions.scatter_rows(v, d, nerf_regions.empty_sums(far_R, k)) for k, v in partials.items()}
-    local.update(present=d.present_LxR, dispatch=d)
+    partials = {k: nerf_regions.scatter_classes([p[k] for p, _ in rendered], dispatches,
+                                                nerf_regions.empty_sums(far_R, k)) for k in rendered[0][0]}
+    if classes == 1:
+      local = rendered[0][1]
+      local.update(present=present, dispatch=dispatches[0], dropped=dispatches[0].dropped_LxR)
+      return partials, local
+    dropped = functools.reduce(jnp.logical_or, [d.dropped_LxR for d in dispatches])
+    local = {"present": present, "dropped": dropped, "proposals": bool(self.proposal_samples),
+             "classes": [dict(class_local, dispatch=d) for (_, class_local), d in zip(rendered, dispatches)]}
     return partials, local
 
   def _footprints(self, origins, directions, t_RxS) -> dict:
@@ -351,45 +364,57 @@ class RegionRenderer(nn.Module):
   grid_layout: str = "rows"
   grid_lookup: str = "gather"
 
+  fractions: tuple = (1.0,)  # model.region_split: each sample class's share of the samples (regions.class_fractions)
+
   @nn.compact
-  def __call__(self, box, uniforms, origins, directions, viewdirs, codes, near, far, anneal, segment):
-    """`segment`: each ray's (t_in, t_out) (R,) in the region (nerf_regions.segments_one_by_one's cut)."""
+  def __call__(self, box, rows, anneal):
+    """`rows`: per sample class (of `fractions`), a dict of the rays it renders: uniforms (a tuple, per
+    sampling round (R, n) or None), origins, directions, viewdirs, codes (or None), near, far (R, 1) and
+    segment, each ray's (t_in, t_out) (R,) in the region (nerf_regions.segments_one_by_one's cut). Class j
+    renders with every round's count at fractions[j] (nerf_regions.class_counts). Returns per class
+    (partials, local)."""
     bound = self.model_config.hashgrid.bound
     local = lambda points: nerf_regions.to_box(points, *box, bound)  # noqa: E731  (the region's own box)
+    made = dict(matmul_max_rows=self.grid_matmul_max_rows, materialize=self.grid_materialize,
+                layout=self.grid_layout, lookup=self.grid_lookup)
+    proposal_fields = [fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}", **made)
+                       for i in range(len(self.proposal_samples))]
+    field = fields.make_field(self.model_config, self.dtype, name="coarse", **made)
+    return tuple(self._segment(local, proposal_fields, field, anneal, fraction, **class_rows)
+                 for fraction, class_rows in zip(self.fractions, rows))
+
+  def _segment(self, local, proposal_fields, field, anneal, fraction, uniforms, origins, directions, viewdirs,
+               codes, near, far, segment):
+    counts = nerf_regions.class_counts(tuple(self.proposal_samples) + (self.num_samples,), fraction)
     t_in, t_out = (t[:, None] for t in segment)
     to_s = lambda t: jnp.clip(coord.t_to_s(t, near, far, self.spacing), 0.0, 1.0)  # noqa: E731
     warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731
     s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))
     rays = origins.shape[:-1]
     points_of = lambda t: origins[..., None, :] + t[..., None] * directions[..., None, :]  # noqa: E731
+    take = lambda u, n: u if u is None or u.shape[-1] == n else u[..., :n]  # noqa: E731  (a class's first n)
     out_local = {"proposals": []}
     if self.proposal_samples:
       s_edges, weights = jnp.concatenate([s_in, s_out], axis=-1), jnp.ones(rays + (1,))
-      for i, count in enumerate(self.proposal_samples):
+      for i, (count, proposal_field) in enumerate(zip(counts[:-1], proposal_fields)):
         s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, i, self.proposal_padding, anneal), count,
-                                           uniforms[i], domain=(s_in, s_out))
+                                           take(uniforms[i], count), domain=(s_in, s_out))
         t_edges = warp(s_edges)
         t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
-        field = fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}",
-                                           matmul_max_rows=self.grid_matmul_max_rows,
-                                           materialize=self.grid_materialize, layout=self.grid_layout,
-                                         lookup=self.grid_lookup)
-        sigma = field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
+        sigma = proposal_field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
         weights = compositing.interval_weights(sigma, t_edges, directions)
         out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
       s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, -1, self.proposal_padding, anneal),
-                                         self.num_samples, uniforms[-1], domain=(s_in, s_out))
+                                         counts[-1], take(uniforms[-1], counts[-1]), domain=(s_in, s_out))
       t_edges = warp(s_edges)
       t_points = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     else:
-      s_edges = s_in + (s_out - s_in) * jnp.linspace(0.0, 1.0, self.num_samples + 1)
-      u = 0.5 if uniforms[0] is None else uniforms[0]
+      s_edges = s_in + (s_out - s_in) * jnp.linspace(0.0, 1.0, counts[-1] + 1)
+      u = 0.5 if uniforms[0] is None else take(uniforms[0], counts[-1])
       t_edges = warp(s_edges)
       t_points = warp(s_edges[..., :-1] + u * jnp.diff(s_edges, axis=-1))
     points = points_of(t_points)
     dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
-    field = fields.make_field(self.model_config, self.dtype, name="coarse", matmul_max_rows=self.grid_matmul_max_rows,
-                              materialize=self.grid_materialize, layout=self.grid_layout, lookup=self.grid_lookup)
     rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
     rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
                                 self.near_gradient_distance)
@@ -398,6 +423,23 @@ class RegionRenderer(nn.Module):
     partials["t_in"] = t_in[..., 0]
     out_local.update(s_edges=s_edges, weights=sums["weights"])
     return partials, out_local
+
+
+def _class_rows(d, uniforms, origins, directions, viewdirs, codes, near, far, t_in_LxR, t_out_LxR) -> dict:
+  """RegionRenderer's rows of one Dispatch `d`: the rays' inputs and each region's own numbers and segments
+  gathered by row; a row left over renders an empty segment ([far, far]: weights 0)."""
+  rows = lambda x: None if x is None else nerf_regions.gather_rows(x, d)  # noqa: E731
+  own_rows = lambda x: None if x is None else nerf_regions.gather_rows(x, d, per_region=True)  # noqa: E731
+  far_rows = rows(far)  # (L, C, 1)
+  used = d.rows_LxC < t_in_LxR.shape[1]
+  segment = (jnp.where(used, own_rows(t_in_LxR), far_rows[..., 0]),
+             jnp.where(used, own_rows(t_out_LxR), far_rows[..., 0]))
+  return dict(uniforms=tuple(own_rows(u) for u in uniforms), origins=rows(origins), directions=rows(directions),
+              viewdirs=rows(viewdirs), codes=rows(codes), near=rows(near), far=far_rows, segment=segment)
+
+
+# The dense renderer's inputs that every region shares (its rays), against its own (uniforms, segment).
+_SHARED_ROWS = dict(origins=None, directions=None, viewdirs=None, codes=None, near=None, far=None)
 
 
 def _drawn_from(weights, round_index: int, padding: float, anneal):

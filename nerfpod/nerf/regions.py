@@ -26,6 +26,8 @@ segment)); tests/test_regions.py checks it, values and gradients, against that s
     partial_sums      a region's per-ray sums from its samples (colour, optical depth, depth, acc, distortion's)
     capacity_rows, dispatch, gather_rows, scatter_rows   a chip's rows per region within a static capacity C:
                       the rays whose segment is not empty, up to C in ray order, and their sums put back
+    sample_classes, class_fractions, class_counts, scatter_classes   model.region_split: a segment's samples
+                      by its share of the ray (a class of 2^-j of them), each class its own rows
     pixel_rays, segment_counts, auto_fraction   model.region_capacity=auto: rays drawn as the training batches
                       draw them, how many meet each region, and the capacity's fraction from the fullest share
     composite_regions the regions' partial sums of a ray composited in the ray's order
@@ -41,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from nerfpod.nerf import cameras as nerf_cameras
-from nerfpod.nerf import sampling, stepfun
+from nerfpod.nerf import coord, sampling, stepfun
 
 # |n . d| below this: the ray runs parallel to the plane (it is then inside or outside along its whole length).
 _PARALLEL = 1e-12
@@ -359,12 +361,15 @@ def pixel_rays(poses_Fx4x4, cams, num_rays: int, seed, pixel_center: float = 0.5
 
 
 def segment_counts(origins_Rx3, directions_Rx3, near: float, far: float, partition: Partition,
-                   bound: float | None = None, chunk: int = 8192) -> np.ndarray:
+                   bound: float | None = None, chunk: int = 8192, classes: int = 0,
+                   spacing: str = "linear") -> np.ndarray:
   """(K,) int64: how many of the rays have a segment in each region that is not empty, cut as the region step
   cuts them (NeRF's region rendering; `dispatch`'s present): each ray's [near, far] clipped to the hash grid's
   box [-bound, bound]^3 (sampling.clip_to_box; `bound` None: a field without a box, not clipped), then each
   region's `segments`, region by region as the step's vmap cuts them. The rays go through one compiled
-  program in chunks of `chunk` (the last one padded, the padding not counted)."""
+  program in chunks of `chunk` (the last one padded, the padding not counted). With `classes` J > 1
+  (model.region_split), (K, J): the counts per sample class (`sample_classes` of `segment_shares` under the
+  model's `spacing`)."""
   total = len(origins_Rx3)
   padded = -(-max(total, 1) // chunk) * chunk
   pad = lambda x: np.concatenate([np.asarray(x, np.float32), np.ones((padded - total, 3), np.float32)])  # noqa: E731
@@ -378,7 +383,11 @@ def segment_counts(origins_Rx3, directions_Rx3, near: float, far: float, partiti
     lo = jnp.broadcast_to(jnp.asarray(lo, jnp.float32), (o.shape[0], 1))
     hi = jnp.broadcast_to(jnp.asarray(hi, jnp.float32), (o.shape[0], 1))
     t_in, t_out = segments_one_by_one(o, d, lo, hi, planes)
-    return jnp.sum((t_out > t_in) & keep, axis=1, dtype=jnp.int32)
+    present = (t_out > t_in) & keep
+    if classes <= 1:
+      return jnp.sum(present, axis=1, dtype=jnp.int32)
+    klass = sample_classes(segment_shares(t_in, t_out, lo, hi, spacing), classes)
+    return jnp.stack([jnp.sum(present & (klass == j), axis=1, dtype=jnp.int32) for j in range(classes)], axis=1)
 
   counts = [np.asarray(count(origins[i:i + chunk], directions[i:i + chunk], valid[i:i + chunk]))
             for i in range(0, padded, chunk)]
@@ -424,7 +433,12 @@ def dispatch(t_in_LxR, t_out_LxR, capacity: int) -> Dispatch:
   """The rows of L regions' segments (t_in, t_out), each (L, R) as `segments` gives them, within `capacity`
   rows per region: a static-shape compaction (each present segment's row is the count of present segments
   before it in ray order, from a cumulative sum; the rows are scattered from it)."""
-  present = t_out_LxR > t_in_LxR
+  return dispatch_present(t_out_LxR > t_in_LxR, capacity)
+
+
+def dispatch_present(present_LxR, capacity: int) -> Dispatch:
+  """`dispatch` of the segments `present_LxR` marks (e.g. one sample class's: `sample_classes`)."""
+  present = present_LxR
   count, rays = present.shape
   slots = jnp.cumsum(present, axis=1, dtype=jnp.int32) - 1
   fits = present & (slots < capacity)
@@ -452,6 +466,50 @@ def scatter_rows(x_LxC, d: Dispatch, absent):
   picked = jnp.take_along_axis(x_LxC, slots.reshape(slots.shape + (1,) * (x_LxC.ndim - 2)), axis=1)
   has_row = (d.slots_LxR < d.capacity).reshape(slots.shape + (1,) * (x_LxC.ndim - 2))
   return jnp.where(has_row, picked, jnp.asarray(absent, x_LxC.dtype))
+
+
+def scatter_classes(x_per_class, dispatches, absent):
+  """`scatter_rows` of several sample classes' rows (each (L, C_j, ...) with its Dispatch) into one (L, R, ...):
+  each segment takes its own class's row (a segment is of one class only), else `absent`."""
+  out = None
+  for x, d in zip(x_per_class, dispatches):
+    slots = jnp.minimum(d.slots_LxR, d.capacity - 1)
+    picked = jnp.take_along_axis(x, slots.reshape(slots.shape + (1,) * (x.ndim - 2)), axis=1)
+    has_row = (d.slots_LxR < d.capacity).reshape(slots.shape + (1,) * (x.ndim - 2))
+    out = jnp.where(has_row, picked, jnp.asarray(absent, x.dtype) if out is None else out)
+  return out
+
+
+# model.region_split=J: sample class j renders a segment with 2^-j of the configured samples (every round's, at
+# least 1), and a segment takes the class of its share of the ray: the smallest 2^-j at least its share.
+def class_fractions(classes: int) -> tuple:
+  """The sample fractions (1, 1/2, ..., 2^-(J-1)) of `classes` J (0 or 1: one class, every sample)."""
+  return tuple(2.0**-j for j in range(max(classes, 1)))
+
+
+def class_counts(counts: tuple, fraction: float) -> tuple:
+  """Each sampling round's count of `counts` at a class's `fraction`: ceil(count x fraction), at least 1."""
+  return tuple(max(1, int(np.ceil(n * fraction))) for n in counts)
+
+
+def segment_shares(t_in_LxR, t_out_LxR, near_R1, far_R1, spacing: str):
+  """Each segment's share of its ray (L, R): its length in the normalised distance s of the ray's [near, far]
+  (coord.t_to_s under the model's `spacing`), as the region's renderer maps it (0 for an empty segment)."""
+  to_s = lambda t: jnp.clip(coord.t_to_s(t, near_R1[..., 0], far_R1[..., 0], spacing), 0.0, 1.0)  # noqa: E731
+  return jnp.maximum(to_s(t_out_LxR) - to_s(t_in_LxR), 0.0)
+
+
+# A share within this factor above 2^-j counts as at most 2^-j: a symmetric scene's shares fall on 1/2 exactly,
+# where float rounding (another compiled program: another mesh) would otherwise pick either class.
+CLASS_EDGE = 1.0 + 2.0**-10
+
+
+def sample_classes(share_LxR, classes: int):
+  """Each segment's sample class (L, R) int32 from its `share` of the ray (its length in the normalised distance
+  s, where the first proposal round draws evenly): the largest j < `classes` with 2^-j >= share (to within
+  CLASS_EDGE), so a segment gets at least about its share of the ray's samples (a segment shorter than
+  2^-(J-1) takes the last class)."""
+  return sum((share_LxR <= 2.0**-j * CLASS_EDGE).astype(jnp.int32) for j in range(1, classes))
 
 
 def empty_sums(far_R, key: str):

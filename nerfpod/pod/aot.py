@@ -285,7 +285,8 @@ def region_traffic(step: dict) -> dict:
 
 
 def region_figures(batch: int, batch_devices: int, regions: int, region_axis: int, field_samples: int,
-                   microbatches: int, capacity: float = 0.0) -> dict:
+                   microbatches: int, capacity: float = 0.0, split_capacity: tuple = (),
+                   class_samples: tuple = ()) -> dict:
   """A region model's rays and field evaluations per chip and step (docs/scale.md, "Dispatch and capacity"),
   from its shapes: a chip holds its region group's rays, `batch` / `batch_devices` (the chips of the batch's
   axes: data, and slice), and renders L = `regions` / `region_axis` regions; each micro-batch (of
@@ -294,7 +295,9 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
   `field_samples` field evaluations (sum of NeRF.sample_counts(): the proposal rounds' and the NeRF's). The
   same figures as the step's regions/field_evals_per_chip (dense: L x R x field_samples x microbatches).
   `field_evals_per_chip` is the step's as configured (compacted where a capacity is set, dense otherwise);
-  `field_evals_per_chip_dense` the dense step's beside it."""
+  `field_evals_per_chip_dense` the dense step's beside it. With model.region_split, `split_capacity` and
+  `class_samples` are each sample class's fraction and field samples per row: `class_rows` its C_j, and a chip's
+  evaluations sum C_j x samples over the classes (`capacity_rows` their sum)."""
   from nerfpod.nerf import regions as regions_lib
   microbatches = max(1, microbatches)
   rays_per_chip = batch // batch_devices
@@ -302,12 +305,18 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
   local = regions // region_axis
   dense = local * rows * field_samples * microbatches
   capacity_rows = regions_lib.capacity_rows(capacity, rows) if capacity else None
-  return {"regions": regions, "region_axis": region_axis, "regions_per_chip": local,
-          "batch_devices": batch_devices, "rays_per_chip": rays_per_chip, "microbatches": microbatches,
-          "rows_per_region": rows, "field_samples_per_ray": field_samples, "capacity": capacity or 0.0,
-          "capacity_rows": capacity_rows, "field_evals_per_chip_dense": dense,
-          "field_evals_per_chip": (local * capacity_rows * field_samples * microbatches if capacity_rows
-                                   else dense)}
+  out = {"regions": regions, "region_axis": region_axis, "regions_per_chip": local,
+         "batch_devices": batch_devices, "rays_per_chip": rays_per_chip, "microbatches": microbatches,
+         "rows_per_region": rows, "field_samples_per_ray": field_samples, "capacity": capacity or 0.0,
+         "capacity_rows": capacity_rows, "field_evals_per_chip_dense": dense,
+         "field_evals_per_chip": (local * capacity_rows * field_samples * microbatches if capacity_rows
+                                  else dense)}
+  if capacity and split_capacity:
+    class_rows = [regions_lib.capacity_rows(f, rows) for f in split_capacity]
+    out.update(split_capacity=list(split_capacity), class_rows=class_rows, class_samples=list(class_samples),
+               capacity_rows=sum(class_rows),
+               field_evals_per_chip=local * sum(c * n for c, n in zip(class_rows, class_samples)) * microbatches)
+  return out
 
 
 def check_collectives(step: dict, state_bytes: int, slices: int = 1, regions: bool = False) -> list[str]:
@@ -385,8 +394,21 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   if config.model.regions > 1:  # with the step's micro-batches where it was compiled (fitted)
     report["regions"] = region_figures(tc.batch_size, distributed.batch_devices(mesh), config.model.regions,
                                        distributed.num_regions(mesh), sum(program.model.sample_counts()),
-                                       report["microbatches"], float(config.model.region_capacity))
+                                       report["microbatches"], float(config.model.region_capacity),
+                                       *_split_figures(config, program.model))
   return report
+
+
+def _split_figures(config, model) -> tuple:
+  """(split_capacity, class_samples) of region_figures for model.region_split > 1 (each class's fraction and
+  field samples per row), else ((), ())."""
+  from nerfpod.nerf import regions as regions_lib
+  classes = int(config.model.region_split)
+  if classes <= 1 or not config.model.region_capacity:
+    return (), ()
+  fractions = (tuple(config.model.region_split_capacity) or (float(config.model.region_capacity),) * classes)
+  return fractions, tuple(sum(regions_lib.class_counts(model.sample_counts(), f))
+                          for f in regions_lib.class_fractions(classes))
 
 
 def _compile_programs(report: dict, config, program, pod: chips.Pod, what, key, num_chips: int, hosts: list,
@@ -467,7 +489,13 @@ def format_report(report: dict) -> str:
     evals = (f"{g['regions_per_chip']} region(s) x {{}} rows x {g['field_samples_per_ray']} samples x "
              f"{g['microbatches']} micro-batch(es)")
     dense = f"{evals.format(g['rows_per_region'])} = {g['field_evals_per_chip_dense']:,} dense"
-    if g["capacity_rows"]:
+    if g.get("class_rows"):
+      classes = " + ".join(f"{c} rows x {n} samples" for c, n in zip(g["class_rows"], g["class_samples"]))
+      share = g["field_evals_per_chip"] / g["field_evals_per_chip_dense"]
+      lines.append(f"  field evaluations per chip and step: {g['regions_per_chip']} region(s) x ({classes}) x "
+                   f"{g['microbatches']} micro-batch(es) = {g['field_evals_per_chip']:,} with model.region_split's "
+                   f"{len(g['class_rows'])} sample classes ({share:.3g} of dense: {dense})")
+    elif g["capacity_rows"]:
       lines.append(f"  field evaluations per chip and step: {evals.format(g['capacity_rows'])} = "
                    f"{g['field_evals_per_chip']:,} at model.region_capacity={g['capacity']:g} "
                    f"({g['field_evals_per_chip'] / g['field_evals_per_chip_dense']:.3g} of dense: {dense})")

@@ -75,6 +75,20 @@ class Options:
   # rays) rows, the rays whose segment meets it (a ray over capacity dropped whole); 0: every ray (dense). 'auto'
   # is resolved to a number before (with_capacity; Options.of measures it where the config still says 'auto')
   region_capacity: float = 0.0
+  # model.region_split: J sample classes (regions.sample_classes), each with C_j rows from its fraction
+  # (model.region_split_capacity, or region_capacity for every class); 0 or 1: one class, every sample
+  region_split: int = 0
+  region_split_capacity: tuple = ()
+
+  def capacity_rows(self, rays: int):
+    """The compacted step's rows per region for `rays` rays: C (an int), or with region_split a tuple of C_j, one
+    per sample class; 0 dense."""
+    if not self.region_capacity:
+      return 0
+    if self.region_split <= 1:
+      return regions.capacity_rows(self.region_capacity, rays)
+    fractions = self.region_split_capacity or (self.region_capacity,) * self.region_split
+    return tuple(regions.capacity_rows(f, rays) for f in fractions)
 
   @classmethod
   def of(cls, comps: Components, microbatches: int, backend: str | None = None) -> "Options":
@@ -83,18 +97,20 @@ class Options:
     config = comps.config
     tc = config.train
     capacity = config.model.region_capacity if config.model.regions > 1 else 0.0
+    split_capacity = tuple(float(f) for f in config.model.region_split_capacity)
     if capacity == "auto":  # (a run resolves it first, and says so: nerfpod.run.train; so does nerfpod aot)
       if comps.scene is None:
         raise UserError(AUTO_WITHOUT_SCENE.format(kind=config.data.kind))
-      capacity = measure_capacity(config, comps.scene, comps.mesh, comps.model.partition, comps.near,
-                                  comps.far).fraction
+      measured = measure_capacity(config, comps.scene, comps.mesh, comps.model.partition, comps.near, comps.far)
+      capacity, split_capacity = measured.fraction, measured.split_fractions
     return cls(tc.random_background, microbatches, tc.interlevel_weight, tc.distortion_weight,
                compilation.gradient_mean_is_ordered(config, backend), compilation.update_under_cond(backend),
                comps.compiler_options, grad_clip=tc.grad_clip if config.model.regions > 1 else 0.0,
                coarse_to_fine=tuple(round(f * tc.num_steps) for f in tc.coarse_to_fine),
                interlevel_blur=tuple(float(r) for r in tc.interlevel_blur),
                proposal_anneal_steps=int(tc.proposal_anneal_steps), single_jitter=bool(tc.single_jitter),
-               region_capacity=float(capacity))
+               region_capacity=float(capacity), region_split=int(config.model.region_split),
+               region_split_capacity=split_capacity if int(config.model.region_split) > 1 else ())
 
 
 # model.region_capacity=auto is measured on AUTO_RAYS training rays drawn with AUTO_SEED (regions.pixel_rays, as the
@@ -115,11 +131,15 @@ def region_rows(config, mesh) -> int:
 @dataclasses.dataclass(frozen=True)
 class MeasuredCapacity:
   """model.region_capacity=auto measured (measure_capacity): `counts` (K,) of the `rays` training rays drawn
-  that meet each region, a chip's `rows` R, and the fraction F (regions.auto_fraction of the fullest share)."""
+  that meet each region, a chip's `rows` R, and the fraction F (regions.auto_fraction of the fullest share). With
+  model.region_split=J, `class_counts` (K, J), the rays whose segment in each region is of each sample class,
+  and `split_fractions`, F_j of each class's fullest share (F is then their largest)."""
   counts: tuple
   rays: int
   rows: int
   fraction: float
+  class_counts: tuple = ()
+  split_fractions: tuple = ()
 
   @property
   def capacity(self) -> int:
@@ -128,6 +148,14 @@ class MeasuredCapacity:
   def line(self) -> str:
     shares = np.asarray(self.counts) / self.rays
     fullest = int(np.argmax(shares))
+    if self.split_fractions:
+      classes = np.asarray(self.class_counts) / self.rays  # (K, J)
+      parts = [f"class {j} (1/{2**j} of the samples): fullest share {classes[:, j].max():.3f}, F = {f:g}, "
+               f"C = {regions.capacity_rows(f, self.rows)}" for j, f in enumerate(self.split_fractions)]
+      return (f"model.region_capacity=auto: of {self.rays:,} training rays, the shares that meet regions 0 to "
+              f"{len(shares) - 1} are {', '.join(f'{s:.3f}' for s in shares)}; split by their segments' sample "
+              f"classes, each with a margin for a batch's spread over a chip's {self.rows} rays: "
+              + "; ".join(parts) + " rows per region")
     margin = self.fraction - shares[fullest]
     return (f"model.region_capacity=auto: of {self.rays:,} training rays, the shares that meet regions 0 to "
             f"{len(shares) - 1} are {', '.join(f'{s:.3f}' for s in shares)}; the fullest (region {fullest}, "
@@ -139,21 +167,32 @@ def measure_capacity(config, scene, mesh, partition: regions.Partition, near: fl
   """model.region_capacity=auto on `scene`: AUTO_RAYS of its training rays (regions.pixel_rays: every host's frames,
   whatever data.shards holds), the share whose segment in each region of `partition` is not empty, cut as the step
   cuts them (regions.segment_counts: [near, far] clipped to the hash grid's box where the field is one), and F from
-  the fullest share for a chip's R rays of `mesh` (region_rows, regions.auto_fraction)."""
+  the fullest share for a chip's R rays of `mesh` (region_rows, regions.auto_fraction); with model.region_split,
+  per sample class."""
   split = scene.split("train")
   origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, AUTO_RAYS, AUTO_SEED,
                                            config.data.pixel_center)
   bound = config.model.hashgrid.bound if config.model.field == "hashgrid" else None
-  counts = regions.segment_counts(origins, directions, near, far, partition, bound)
+  classes = int(config.model.region_split)
   rows = region_rows(config, mesh)
-  return MeasuredCapacity(tuple(int(c) for c in counts), AUTO_RAYS, rows,
-                          regions.auto_fraction(float(np.max(counts)) / AUTO_RAYS, rows))
+  if classes <= 1:
+    counts = regions.segment_counts(origins, directions, near, far, partition, bound)
+    return MeasuredCapacity(tuple(int(c) for c in counts), AUTO_RAYS, rows,
+                            regions.auto_fraction(float(np.max(counts)) / AUTO_RAYS, rows))
+  by_class = regions.segment_counts(origins, directions, near, far, partition, bound, classes=classes,
+                                    spacing=config.render.spacing)
+  fractions = tuple(regions.auto_fraction(float(np.max(by_class[:, j])) / AUTO_RAYS, rows) for j in range(classes))
+  return MeasuredCapacity(tuple(int(c) for c in by_class.sum(axis=1)), AUTO_RAYS, rows, max(fractions),
+                          tuple(tuple(int(c) for c in row) for row in by_class), fractions)
 
 
-def with_capacity(config, fraction: float):
-  """A copy of `config` whose model.region_capacity is `fraction` (config.json then records it)."""
+def with_capacity(config, fraction: float, split_fractions: tuple = ()):
+  """A copy of `config` whose model.region_capacity is `fraction` (and model.region_split_capacity
+  `split_fractions`, where given): config.json then records them."""
   out = copy.deepcopy(config)
   out.model.region_capacity = float(fraction)
+  if split_fractions:
+    out.model.region_split_capacity = tuple(float(f) for f in split_fractions)
   return out
 
 
@@ -170,7 +209,7 @@ def resolve_capacity(config, mesh):
   near, far = components.ray_bounds(config, scene)
   measured = measure_capacity(config, scene, mesh, components.region_cut(config, scene), near, far)
   print(f"nerfpod: {measured.line()} (on data.kind={config.data.kind})", file=sys.stderr, flush=True)
-  return with_capacity(config, measured.fraction)
+  return with_capacity(config, measured.fraction, measured.split_fractions)
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -417,6 +456,9 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   # whole step is reported as (count of these rays) x (how many such shares make the step).
   shares = options.microbatches * distributed.batch_devices(mesh)
   field_samples = sum(model.sample_counts())  # a ray's field evaluations in one region: proposals' and NeRF's
+  if options.region_split > 1 and options.region_capacity:  # per sample class
+    field_samples = tuple(sum(regions.class_counts(model.sample_counts(), f))
+                          for f in regions.class_fractions(options.region_split))
 
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
     return x if axis_size == 1 else distributed.gather_regions(x)
@@ -432,21 +474,28 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     uniforms = [region_uniforms(i if i < 2 else i + 1, n) for i, n in enumerate(model.sample_counts())]
     target, ray_background = _targets(batch, key, background, options)
     rays = batch["origins"].shape[0]
-    capacity = regions.capacity_rows(options.region_capacity, rays) if options.region_capacity else 0
+    capacity = options.capacity_rows(rays)  # C, or per sample class (model.region_split); 0 dense
     partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
                                 frames=batch.get("frame"), anneal=_anneal(options, step), capacity=capacity,
                                 method="render_partials")
     # (Compacted) whether each ray's segment in each region found no row: riding the partial sums' gather, so
     # every device of the region axis knows every region's, and drops the ray whole.
-    flags = {"dropped": jax.lax.stop_gradient(own["dispatch"].dropped_LxR.astype(jnp.float32))} if capacity else {}
+    flags = {"dropped": jax.lax.stop_gradient(own["dropped"].astype(jnp.float32))} if capacity else {}
     gathered = gather(partials | flags)
     out = regions.composite_regions(gathered, ray_background)
     # Each region's rays with a segment in it (K,): the devices' own, summed over the region axis (K numbers,
     # apart from the gather, whose traffic stays the dense step's).
     counts = jax.lax.stop_gradient(jnp.sum(own["present"], axis=1, dtype=jnp.float32))
+    # (Split) the same per sample class (K, J)
+    class_counts = (jnp.stack([jnp.sum(c["dispatch"].present_LxR, axis=1, dtype=jnp.float32) for c in own["classes"]],
+                              axis=1) if "classes" in own else None)
     if axis_size > 1:
       counts = jax.lax.psum(jax.lax.dynamic_update_slice_in_dim(jnp.zeros(count), counts, first, axis=0),
                             distributed.REGION_AXIS)
+      if class_counts is not None:
+        class_counts = jax.lax.psum(jax.lax.dynamic_update_slice_in_dim(
+            jnp.zeros((count,) + class_counts.shape[1:]), class_counts, first, axis=0), distributed.REGION_AXIS)
+    class_counts = None if class_counts is None else jax.lax.stop_gradient(class_counts)
     mean = jnp.mean
     if capacity:  # a dropped ray adds 0 to the means over the batch (where none is dropped: the dense means' bits)
       kept = jnp.max(gathered["dropped"], axis=0) == 0.0
@@ -454,18 +503,25 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     mse = mean((out["rgb"] - target)**2)
     mses, loss = mse[None], mse
     extra = region_metrics(counts, rays, gathered.get("dropped"), capacity, local, field_samples,
-                           options.microbatches, shares)
+                           options.microbatches, shares, class_counts)
     if own["proposals"]:
       prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
-      if capacity:  # each row's own ray's
-        prefix = regions.gather_rows(prefix, own["dispatch"], per_region=True)
-      weights = jax.lax.stop_gradient(own["weights"])
-      radii = options.interlevel_blur or (None,) * len(own["proposals"])  # None: mip-NeRF 360's loss
-      per_ray = sum(jax.vmap(functools.partial(regions.interlevel_loss, radius=radius))(
-                        own["s_edges"], weights, p["s_edges"], p["weights"], prefix)
-                    for radius, p in zip(radii, own["proposals"]))  # (L, R), or (L, C) rows
-      if capacity:  # back into the rays: an empty segment's term is 0
-        per_ray = regions.scatter_rows(per_ray, own["dispatch"], 0.0)
+      radii = options.interlevel_blur or (None,) * len(model.proposal_samples)  # None: mip-NeRF 360's loss
+
+      def segment_loss(rendered, prefix):  # (L, R), or (L, C) rows
+        weights = jax.lax.stop_gradient(rendered["weights"])
+        return sum(jax.vmap(functools.partial(regions.interlevel_loss, radius=radius))(
+                       rendered["s_edges"], weights, p["s_edges"], p["weights"], prefix)
+                   for radius, p in zip(radii, rendered["proposals"]))
+
+      if not capacity:
+        per_ray = segment_loss(own, prefix)
+      else:  # per row (each row's own ray's prefix), back into the rays: an empty segment's term is 0
+        rendered = own["classes"] if "classes" in own else [own]
+        dispatches = [r["dispatch"] for r in rendered]
+        per_ray = regions.scatter_classes(
+            [segment_loss(r, regions.gather_rows(prefix, d, per_region=True)) for r, d in zip(rendered, dispatches)],
+            dispatches, 0.0)
       extra["interlevel"] = mean(jnp.sum(gather(per_ray), axis=0))
       extra["distortion"] = mean(out["distortion"])
       loss = loss + options.interlevel_weight * extra["interlevel"] + options.distortion_weight * extra["distortion"]
@@ -474,8 +530,8 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   return loss_fn
 
 
-def region_metrics(counts_K, rays: int, dropped_KxR, capacity: int, local: int, field_samples: int,
-                   microbatches: int, shares: int) -> dict:
+def region_metrics(counts_K, rays: int, dropped_KxR, capacity, local: int, field_samples,
+                   microbatches: int, shares: int, class_counts_KxJ=None) -> dict:
   """A region step's visibility (docs/scale.md, "Dispatch and capacity") of these `rays` rays (one device's,
   one micro-batch's): `counts` (K,), how many of them have a segment in each region; `dropped` (K, R) or None
   (dense), whether each ray's segment in each region found no row within `capacity` C (0: dense). The step's
@@ -484,13 +540,22 @@ def region_metrics(counts_K, rays: int, dropped_KxR, capacity: int, local: int, 
   regions/fill                  the fullest region's rays with a segment in it / C (/ R when dense); over 1: overflow
   regions/dropped               the rays dropped in the step (each reported x shares, so the mean is the sum)
   regions/field_evals_per_chip  the rows a chip renders in the step x field samples per ray (`field_samples`)
-  regions/capacity              C, rows per region (compacted only)"""
-  rows = capacity or rays
+  regions/capacity              C, rows per region (compacted only)
+  With model.region_split, `capacity` and `field_samples` are per sample class (C_j, and a class's samples per
+  row), and `class_counts_KxJ` each region's rays per class: fill is the fullest (region, class)'s count over its
+  C_j, field evaluations sum C_j x samples over the classes, and capacity is the rows of every class."""
+  if isinstance(capacity, tuple):  # model.region_split: per sample class, its rows C_j and samples per row
+    fill = jnp.max(class_counts_KxJ / jnp.asarray(capacity, jnp.float32))
+    evals = sum(c * n for c, n in zip(capacity, field_samples))
+    capacity = sum(capacity)
+  else:
+    rows = capacity or rays
+    fill, evals = jnp.max(counts_K) / rows, rows * field_samples
   out = {"regions/segments_per_ray": jnp.sum(counts_K) / rays,
-         "regions/fill": jnp.max(counts_K) / rows,
+         "regions/fill": fill,
          "regions/dropped": (jnp.zeros(()) if dropped_KxR is None else
                              jnp.sum(jnp.max(dropped_KxR, axis=0)) * float(shares)),
-         "regions/field_evals_per_chip": jnp.float32(local * rows * field_samples * microbatches)}
+         "regions/field_evals_per_chip": jnp.float32(local * evals * microbatches)}
   if capacity:
     out["regions/capacity"] = jnp.float32(capacity)
   return out

@@ -143,8 +143,9 @@ class DropWatch:
   is model.region_capacity=auto's (the sentence says so)."""
   LIMIT = 1e-3
 
-  def __init__(self, fraction: float, batch_size: int, auto: bool = False):
+  def __init__(self, fraction: float, batch_size: int, auto: bool = False, split_fractions: tuple = ()):
     self.fraction, self.batch_size, self.auto = fraction, batch_size, auto
+    self.split_fractions = tuple(split_fractions)  # model.region_split's classes' (region_split_capacity)
     self.window = []  # (step, dropped, fill, capacity) of each step of the window, on the device
 
   def dispatched(self, step: int, metrics) -> None:
@@ -162,6 +163,15 @@ class DropWatch:
     fill = max(float(f) for _, _, f, _ in window)
     capacity = int(window[-1][3])
     shown = f"auto (F = {self.fraction:g})" if self.auto else f"{self.fraction:g}"
+    if self.split_fractions:
+      larger = tuple(min(1.0, _round_up(f * fill * 1.1, 0.05)) for f in self.split_fractions)
+      raise UserError(f"training dropped {dropped:,.0f} of the {rays:,} rays of steps {window[0][0]} to "
+                      f"{window[-1][0]} ({dropped / rays:.2%}, over the {self.LIMIT:.1%} a run may drop): "
+                      f"model.region_split_capacity=({', '.join(f'{f:g}' for f in self.split_fractions)}) gives "
+                      f"the regions' sample classes {capacity} rows in all of each device's rays and the fullest "
+                      f"class of a region filled {fill:.2f} x its rows, so rays over capacity were dropped whole; "
+                      f"resume with --config.model.region_split_capacity='({','.join(f'{f:g}' for f in larger)})' "
+                      f"(or --config.model.region_capacity=0: every ray through every region).")
     raise UserError(f"training dropped {dropped:,.0f} of the {rays:,} rays of steps {window[0][0]} to "
                     f"{window[-1][0]} ({dropped / rays:.2%}, over the {self.LIMIT:.1%} a run may drop): "
                     f"model.region_capacity={shown} gives each region C = {capacity} rows of each "
@@ -169,6 +179,15 @@ class DropWatch:
                     f"rays over capacity were dropped whole; resume with --config.model.region_capacity="
                     f"{min(1.0, _round_up(self.fraction * fill * 1.1, 0.05)):g} (or 0: every ray through every "
                     f"region).")
+
+
+def _split_fractions(model_config) -> tuple:
+  """model.region_split's classes' capacity fractions (model.region_split_capacity, or model.region_capacity for
+  every class); () without a split."""
+  if model_config.region_split <= 1:
+    return ()
+  return (tuple(model_config.region_split_capacity)
+          or (float(model_config.region_capacity),) * model_config.region_split)
 
 
 def _round_up(value: float, step: float) -> float:
@@ -217,19 +236,28 @@ def resolve_capacity(comps: components.Components, workdir: str, resuming: bool)
   config = comps.config
   if config.model.regions == 1 or config.model.region_capacity != "auto":
     return comps
-  recorded = ((saved_config(workdir) or {}).get("model") or {}).get("region_capacity") if resuming else None
-  if isinstance(recorded, (int, float)) and not isinstance(recorded, bool) and 0.0 < recorded <= 1.0:
-    fraction = float(recorded)
+  saved = ((saved_config(workdir) or {}).get("model") or {}) if resuming else {}
+  recorded, recorded_split = saved.get("region_capacity"), tuple(saved.get("region_split_capacity") or ())
+  classes = int(config.model.region_split)
+  is_fraction = lambda f: isinstance(f, (int, float)) and not isinstance(f, bool) and 0.0 < f <= 1.0  # noqa: E731
+  if is_fraction(recorded) and (classes <= 1 or (len(recorded_split) == classes
+                                                 and all(is_fraction(f) for f in recorded_split))):
+    fraction, split_fractions = float(recorded), tuple(float(f) for f in recorded_split) if classes > 1 else ()
     rows = train_step.region_rows(config, comps.mesh)
-    line = (f"model.region_capacity=auto: F = {fraction:g}, as the workdir's config.json records (the fraction its "
-            f"run trained with): C = {regions.capacity_rows(fraction, rows)} of {rows} rows per region")
+    if split_fractions:
+      line = (f"model.region_capacity=auto: F = {', '.join(f'{f:g}' for f in split_fractions)} for the sample "
+              f"classes, as the workdir's config.json records (the fractions its run trained with): C = "
+              f"{', '.join(str(regions.capacity_rows(f, rows)) for f in split_fractions)} of {rows} rows per region")
+    else:
+      line = (f"model.region_capacity=auto: F = {fraction:g}, as the workdir's config.json records (the fraction "
+              f"its run trained with): C = {regions.capacity_rows(fraction, rows)} of {rows} rows per region")
   else:
     measured = train_step.measure_capacity(config, comps.scene, comps.mesh, comps.model.partition, comps.near,
                                            comps.far)
-    fraction, line = measured.fraction, measured.line()
+    fraction, split_fractions, line = measured.fraction, measured.split_fractions, measured.line()
   if jax.process_index() == 0:
     print(f"nerfpod: {line}", flush=True)
-  return dataclasses.replace(comps, config=train_step.with_capacity(config, fraction))
+  return dataclasses.replace(comps, config=train_step.with_capacity(config, fraction, split_fractions))
 
 
 def _restore_or_init(comps: components.Components, ckpt) -> tuple[TrainState, int, dict | None]:
@@ -298,7 +326,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
         distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
     _announce(comps, workdir, start_step)
     skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
-    drops = (DropWatch(config.model.region_capacity, tc.batch_size, auto=auto_capacity)
+    drops = (DropWatch(config.model.region_capacity, tc.batch_size, auto=auto_capacity,
+                       split_fractions=_split_fractions(config.model))
              if config.model.regions > 1 and config.model.region_capacity else None)
     log = StepLog(monitor, tc, start_step, skips, drops)
     key = train_state.rays_key(tc.seed, comps.mesh)

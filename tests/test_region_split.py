@@ -1,0 +1,286 @@
+"""model.region_split: a ray's samples split across its segments, a flat cost per ray (docs/scale.md, "A flat
+cost per ray"): each segment of the compacted region step renders 2^-j of every sampling round's count, j the
+class of its share of the ray, each class within rows of its own. Against independent references: a segment's
+class from its share, computed on the host; the split rendering against the dense rendering of every region at
+each class's counts, picked per segment; the split step on a region mesh against one device; drops and the
+per-class counts of model.region_capacity=auto against brute-force counts; the resume's record; the refusals."""
+import dataclasses
+import functools
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+from jax.sharding import Mesh
+
+import procs
+from test_region_step import _batches, _region_mesh
+from test_region_step import _config as _region_step_config
+from nerfpod import distributed, schema
+from nerfpod.errors import UserError
+from nerfpod.nerf import regions, sampling
+from nerfpod.pod import aot
+from nerfpod.run import components, step, train, train_state
+
+BATCH = 128
+CLASSES = 3  # sample fractions 1, 1/2, 1/4: (8, 6), (4, 3) and (2, 2) samples of the tiny config's (8,) then 6
+CLASS_COUNTS = [(8, 6), (4, 3), (2, 2)]
+
+
+def _config(**overrides):
+  """tests/test_region_step.py's tiny 4-region config (a 2 x 2 grid, 8 proposal intervals then 6 samples) with
+  BATCH rays a step and CLASSES sample classes."""
+  return _region_step_config(**({"train.batch_size": BATCH, "model.region_split": CLASSES,
+                                 "model.region_capacity": 1.0} | overrides))
+
+
+def _one():
+  return Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
+
+
+def _host_classes(t_in, t_out, near, far):
+  """Each segment's class on the host, in float64: its share of the ray's [near, far] (linear spacing: the tiny
+  config's), and the largest j < CLASSES with 2^-j at least that share, within regions.CLASS_EDGE (this
+  symmetric scene's shares fall on 1/2 exactly, often: float rounding must not pick the class there)."""
+  near, far = (np.asarray(x, np.float64)[:, 0] for x in (near, far))
+  share = (np.asarray(t_out, np.float64) - np.asarray(t_in, np.float64)) / (far - near)
+  klass = np.zeros(share.shape, int)
+  for j in range(1, CLASSES):
+    klass += share <= 2.0**-j * regions.CLASS_EDGE
+  return share, klass
+
+
+def test_a_segment_takes_the_class_of_its_share():
+  share = jnp.array([1.0, 0.75, 0.5, 0.4, 0.25, 0.2, 0.125, 0.01, 0.0])  # (and 0.5 x (1 + 1e-4): still 1/2's)
+  assert int(jax.jit(regions.sample_classes, static_argnums=1)(jnp.float32(0.5 * (1 + 1e-4)), 3)) == 1
+  np.testing.assert_array_equal(jax.jit(regions.sample_classes, static_argnums=1)(share, 3),
+                                [0, 0, 1, 1, 2, 2, 2, 2, 2])
+  np.testing.assert_array_equal(jax.jit(regions.sample_classes, static_argnums=1)(share, 4),
+                                [0, 0, 1, 1, 2, 2, 3, 3, 3])
+  assert regions.class_fractions(3) == (1.0, 0.5, 0.25) and regions.class_fractions(0) == (1.0,)
+  assert regions.class_counts((64, 32), 0.25) == (16, 8) and regions.class_counts((8, 6), 0.25) == (2, 2)
+  assert regions.class_counts((3, 1), 0.125) == (1, 1)  # never fewer than one sample
+  # Every class gets at least its share of the samples: fraction >= share for every share above the last class's.
+  for s, j in zip(np.asarray(share), [0, 0, 1, 1, 2, 2, 2, 2, 2]):
+    assert regions.class_fractions(3)[j] >= s or j == 2
+
+
+@pytest.fixture(scope="module")
+def batch_and_params():
+  config = _config()
+  model = components.make_model(config)
+  _, (batch,) = _batches(config, 1)
+  o, d = batch["origins"], batch["directions"]  # (NumPy: sliced without a program)
+  params = jax.jit(model.init)(jax.random.key(0), o[:2], d[:2], 2.0, 6.0, np.zeros(3, np.float32))
+  return batch, params
+
+
+def test_the_split_rendering_is_each_segment_rendered_dense_at_its_class_counts(batch_and_params):
+  """Compacted with a class's rows for every ray (C_j = R: nothing dropped), each segment's partial sums are the
+  dense rendering's of a model sampling every round at the segment's class's counts (the same parameters, the
+  first n_j of the segment's random numbers), picked per segment by its class computed on the host; absent
+  segments empty."""
+  batch, params = batch_and_params
+  o, d = batch["origins"], batch["directions"]
+  split = components.make_model(_config())
+  counts = split.sample_counts()
+  assert counts == CLASS_COUNTS[0]
+  dense = [components.make_model(_config(**{"model.region_split": 0, "model.region_capacity": 0.0,
+                                            "render.proposal_samples": c[:-1], "render.num_samples": c[-1]}))
+           for c in CLASS_COUNTS]
+
+  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)  # one program
+  def run(params, o, d):
+    uniforms = tuple(jax.random.uniform(jax.random.key(i), (4, BATCH, n)) for i, n in enumerate(counts))
+    got, own = split.apply(params, o, d, 2.0, 6.0, jnp.arange(4), uniforms, capacity=(BATCH,) * CLASSES,
+                           method="render_partials")
+    want = []
+    for model, class_counts in zip(dense, CLASS_COUNTS):
+      class_uniforms = tuple(u[..., :n] for u, n in zip(uniforms, class_counts))
+      want.append(model.apply(params, o, d, 2.0, 6.0, jnp.arange(4), class_uniforms, method="render_partials")[0])
+    near, far = sampling.clip_to_box(o, d, 2.0, 6.0, 1.5)
+    t_in, t_out = regions.segments(o, d, near, far, split.partition)
+    return got, own["present"], own["dropped"], want, (t_in, t_out, near, far)
+
+  got, present, dropped, want, (t_in, t_out, near, far) = jax.device_get(run(params, o, d))
+  share, klass = _host_classes(t_in, t_out, near, far)
+  present = np.asarray(present)
+  np.testing.assert_array_equal(present, np.asarray(t_out) > np.asarray(t_in))
+  assert not np.asarray(dropped).any()
+  # The batch holds segments of every class (and absent ones), so each class's path is checked.
+  assert all((present & (klass == j)).sum() >= 5 for j in range(CLASSES)) and (~present).sum() >= 5, (
+      [(present & (klass == j)).sum() for j in range(CLASSES)])
+  for key, value in got.items():
+    expected = np.where(present.reshape(present.shape + (1,) * (value.ndim - 2)) if value.ndim > 2 else present,
+                        np.choose(klass[..., None] if value.ndim > 2 else klass, [w[key] for w in want]),
+                        np.broadcast_to(np.asarray(regions.empty_sums(np.asarray(far)[:, 0], key), np.float32),
+                                        value.shape))
+    np.testing.assert_allclose(value, expected, rtol=2e-5, atol=2e-6, err_msg=key)
+
+
+def _run(mesh, steps=2, **overrides):
+  """(state, metrics of each step) of `steps` SGD steps of the split step (procs.OPTIMIZED_KERNELS)."""
+  config = _config(**overrides)
+  model = components.make_model(config)
+  scene, batches = _batches(config, steps)
+  optimizer = optax.sgd(1.0)
+  state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
+  options = step.Options(random_background=True, distortion_weight=0.01, region_capacity=1.0,
+                         region_split=CLASSES, region_split_capacity=tuple(config.model.region_split_capacity),
+                         compiler_options=procs.OPTIMIZED_KERNELS)
+  step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, options)
+  metrics = []
+  for batch in batches:
+    state, m = step_fn(state, jax.device_put(batch, distributed.batch_sharding(mesh)), jax.random.key(7))
+    metrics.append(jax.device_get(m))
+  return jax.device_get(state), metrics, batches
+
+
+@pytest.fixture(scope="module")
+def on_one_device():
+  return _run(_one())
+
+
+@pytest.fixture(scope="module")
+def segments(on_one_device):
+  """Each region's segment (K, R) of the two batches' rays and their classes, as the model cuts them."""
+  model = components.make_model(_config())
+
+  @jax.jit  # one program
+  def cut(o, d):
+    near, far = sampling.clip_to_box(o, d, 2.0, 6.0, 1.5)
+    return regions.segments(o, d, near, far, model.partition) + (near, far)
+  out = []
+  for batch in on_one_device[2]:
+    t_in, t_out, near, far = jax.device_get(cut(batch["origins"], batch["directions"]))
+    out.append((np.asarray(t_out) > np.asarray(t_in), _host_classes(t_in, t_out, near, far)[1]))
+  return out
+
+
+def test_the_split_step_on_a_region_mesh_is_the_one_devices(on_one_device, segments):
+  """(2 data x 4 regions), each device its region's rows per class, the class counts summed over the region
+  axis: the loss, metrics and the parameters after two SGD steps are the one-device split step's; the scalars
+  are the classes' (field evaluations: L x sum of C_j x the class's samples; fill: the fullest (region, class)'s
+  rays over its C_j, the mean over the data axis)."""
+  state, metrics, _ = _run(_region_mesh((2, 4)))
+  state_one, metrics_one, _ = on_one_device
+  samples = [sum(regions.class_counts((8, 6), f)) for f in regions.class_fractions(CLASSES)]  # 14, 7, 4
+  assert samples == [14, 7, 4]
+  for m, m_one, (present, klass) in zip(metrics, metrics_one, segments):
+    for key in ("loss", "mse", "interlevel", "distortion", "grad_norm", "regions/segments_per_ray"):
+      np.testing.assert_allclose(m[key], m_one[key], rtol=2e-5, err_msg=key)
+    assert m["regions/dropped"] == m_one["regions/dropped"] == 0
+    assert m_one["regions/field_evals_per_chip"] == 4 * BATCH * sum(samples)
+    assert m["regions/field_evals_per_chip"] == 1 * 64 * sum(samples)
+    assert m_one["regions/capacity"] == 3 * BATCH and m["regions/capacity"] == 3 * 64
+    fills = [max((present[:, i:i + 64] & (klass[:, i:i + 64] == j)).sum(axis=1).max() for j in range(CLASSES)) / 64
+             for i in (0, 64)]
+    assert m["regions/fill"] == pytest.approx(np.mean(fills), rel=1e-6)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), state.params, state_one.params)
+
+
+def test_an_overflowing_class_drops_whole_rays_and_counts_them(segments):
+  """Class 2's C = 8 rows of 128 rays (the others roomy): a ray is dropped where any of its segments is of a
+  class over its capacity in its region (counted per class, in ray order, by brute force)."""
+  capacities = (1.0, 1.0, 0.0625)
+  _, (metrics,), _ = _run(_one(), steps=1, **{"model.region_split_capacity": capacities})
+  present, klass = segments[0]
+  dropped = np.zeros(BATCH, bool)
+  for j, f in enumerate(capacities):
+    mine = present & (klass == j)
+    dropped |= np.any(mine & (np.cumsum(mine, axis=1) - 1 >= regions.capacity_rows(f, BATCH)), axis=0)
+  assert 0 < dropped.sum() < BATCH // 2
+  assert metrics["regions/dropped"] == dropped.sum()
+  assert metrics["regions/capacity"] == 128 + 128 + 8
+  assert metrics["regions/fill"] == pytest.approx((present & (klass == 2)).sum(axis=1).max() / 8, rel=1e-6)
+
+
+def test_auto_measures_each_class_as_a_host_count_and_a_resume_keeps_the_record(tmp_path, monkeypatch):
+  """step.measure_capacity with model.region_split: the rays per region and class counted on the host (each
+  ray's segments and their shares), F_j per class, F their largest; train.resolve_capacity records both in the
+  config (config.json), and a resume with auto takes the record and measures nothing."""
+  config = _config(**{"model.region_capacity": "auto"})
+  scene, _ = _batches(config, 0)
+  comps = components.build_program(config, _one(), scene=scene)
+  measured = step.measure_capacity(config, scene, _one(), comps.model.partition, 2.0, 6.0)
+  split = scene.split("train")
+  origins, directions = regions.pixel_rays(np.asarray(split.poses), split.cameras, step.AUTO_RAYS, step.AUTO_SEED)
+
+  @jax.jit  # one program
+  def cut(o, d):
+    near, far = sampling.clip_to_box(o, d, 2.0, 6.0, 1.5)
+    return regions.segments(o, d, near, far, comps.model.partition) + (near, far)
+  t_in, t_out, near, far = jax.device_get(cut(origins, directions))
+  present = np.asarray(t_out) > np.asarray(t_in)
+  klass = _host_classes(t_in, t_out, near, far)[1]
+  want = np.stack([(present & (klass == j)).sum(axis=1) for j in range(CLASSES)], axis=1)
+  np.testing.assert_array_equal(np.asarray(measured.class_counts), want)
+  assert measured.counts == tuple(int(c) for c in present.sum(axis=1))
+  assert measured.split_fractions == tuple(regions.auto_fraction(max(c[j] for c in measured.class_counts) / 65536,
+                                                                 BATCH) for j in range(CLASSES))
+  assert measured.fraction == max(measured.split_fractions)
+  assert measured.line().startswith("model.region_capacity=auto: of 65,536 training rays, the shares that meet "
+                                    "regions 0 to 3 are ")
+  assert "; class 2 (1/4 of the samples): fullest share " in measured.line()
+  fresh = train.resolve_capacity(comps, str(tmp_path), resuming=False)
+  assert fresh.config.model.region_split_capacity == measured.split_fractions
+  assert fresh.config.model.region_capacity == measured.fraction
+  options = step.Options.of(fresh, 1)
+  assert options.capacity_rows(BATCH) == tuple(regions.capacity_rows(f, BATCH) for f in measured.split_fractions)
+  (tmp_path / "config.json").write_text(json.dumps({"model": {"region_capacity": 0.5,
+                                                              "region_split_capacity": [0.3, 0.4, 0.5]}}))
+  monkeypatch.setattr(step, "measure_capacity", lambda *args: pytest.fail("measured again on a resume"))
+  resumed = train.resolve_capacity(comps, str(tmp_path), resuming=True)
+  assert resumed.config.model.region_split_capacity == (0.3, 0.4, 0.5)
+  assert resumed.config.model.region_capacity == 0.5
+  monkeypatch.undo()
+  # A record without the classes (a run of before, or of another split) is measured again.
+  (tmp_path / "config.json").write_text(json.dumps({"model": {"region_capacity": 0.5}}))
+  again = train.resolve_capacity(comps, str(tmp_path), resuming=True)
+  assert again.config.model.region_split_capacity == measured.split_fractions
+
+
+def test_the_refusal_of_a_split_names_its_classes_capacities():
+  watch = train.DropWatch(0.5, 1024, split_fractions=(0.2, 0.25, 0.3))
+  watch.dispatched(7, {"regions/dropped": np.float32(5.0), "regions/fill": np.float32(1.2),
+                       "regions/capacity": np.float32(768)})
+  with pytest.raises(UserError) as refused:
+    watch.check()
+  assert str(refused.value) == (
+      "training dropped 5 of the 1,024 rays of steps 7 to 7 (0.49%, over the 0.1% a run may drop): "
+      "model.region_split_capacity=(0.2, 0.25, 0.3) gives the regions' sample classes 768 rows in all of each "
+      "device's rays and the fullest class of a region filled 1.20 x its rows, so rays over capacity were dropped "
+      "whole; resume with --config.model.region_split_capacity='(0.3,0.35,0.4)' (or --config.model."
+      "region_capacity=0: every ray through every region).")
+  assert train._split_fractions(_config().model) == (1.0, 1.0, 1.0)  # model.region_capacity for every class
+  assert train._split_fractions(_config(**{"model.region_split": 0}).model) == ()
+
+
+def test_the_config_refuses_a_split_without_a_capacity_or_with_another_count_of_classes():
+  with pytest.raises(schema.ConfigError) as refused:
+    schema.validate(_config(**{"model.region_capacity": 0.0}))
+  assert [m.split("=")[0] for m in refused.value.messages] == ["model.region_split"]
+  assert "needs model.regions > 1 and a capacity" in refused.value.messages[0]
+  with pytest.raises(schema.ConfigError) as refused:
+    schema.validate(_config(**{"model.region_split_capacity": (0.5, 0.5)}))
+  assert refused.value.messages == [
+      "model.region_split_capacity='(0.5,0.5)' gives 2 capacities for model.region_split=3's 3 sample class(es); "
+      "give one fraction per class (or --config.model.region_split_capacity='()': model.region_capacity for "
+      "every class)."]
+  schema.validate(_config(**{"model.region_capacity": "auto"}))  # (measured: no capacities needed)
+
+
+def test_the_pod_tools_figures_count_each_class_at_its_samples():
+  """aot.region_figures with the classes: rows C_j of each class's fraction, evaluations sum C_j x its samples."""
+  figures = aot.region_figures(1024, 1, 8, 8, 48, 1, 0.5, split_capacity=(0.2, 0.25, 0.3),
+                               class_samples=(48, 24, 12))
+  rows = [regions.capacity_rows(f, 1024) for f in (0.2, 0.25, 0.3)]
+  assert figures["class_rows"] == rows == [208, 256, 312]
+  assert figures["capacity_rows"] == sum(rows)
+  assert figures["field_evals_per_chip"] == 208 * 48 + 256 * 24 + 312 * 12
+  assert figures["field_evals_per_chip_dense"] == 1024 * 48
+  config = _config()
+  assert aot._split_figures(config, components.make_model(config)) == ((1.0, 1.0, 1.0), (14, 7, 4))
+  assert aot._split_figures(_config(**{"model.region_split": 0}), None) == ((), ())
