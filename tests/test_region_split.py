@@ -4,8 +4,6 @@ class of its share of the ray, each class within rows of its own. Against indepe
 class from its share, computed on the host; the split rendering against the dense rendering of every region at
 each class's counts, picked per segment; the split step on a region mesh against one device; drops and the
 per-class counts of model.region_capacity=auto against brute-force counts; the resume's record; the refusals."""
-import dataclasses
-import functools
 import json
 
 import jax
@@ -15,7 +13,6 @@ import optax
 import pytest
 from jax.sharding import Mesh
 
-import procs
 from test_region_step import _batches, _region_mesh
 from test_region_step import _config as _region_step_config
 from nerfpod import distributed, schema
@@ -91,7 +88,7 @@ def test_the_split_rendering_is_each_segment_rendered_dense_at_its_class_counts(
                                             "render.proposal_samples": c[:-1], "render.num_samples": c[-1]}))
            for c in CLASS_COUNTS]
 
-  @functools.partial(jax.jit, compiler_options=procs.OPTIMIZED_KERNELS)  # one program
+  @jax.jit  # one program
   def run(params, o, d):
     uniforms = tuple(jax.random.uniform(jax.random.key(i), (4, BATCH, n)) for i, n in enumerate(counts))
     got, own = split.apply(params, o, d, 2.0, 6.0, jnp.arange(4), uniforms, capacity=(BATCH,) * CLASSES,
@@ -121,15 +118,14 @@ def test_the_split_rendering_is_each_segment_rendered_dense_at_its_class_counts(
 
 
 def _run(mesh, steps=2, **overrides):
-  """(state, metrics of each step) of `steps` SGD steps of the split step (procs.OPTIMIZED_KERNELS)."""
+  """(state, metrics of each step) of `steps` SGD steps of the split step."""
   config = _config(**overrides)
   model = components.make_model(config)
   scene, batches = _batches(config, steps)
   optimizer = optax.sgd(1.0)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   options = step.Options(random_background=True, distortion_weight=0.01, region_capacity=1.0,
-                         region_split=CLASSES, region_split_capacity=tuple(config.model.region_split_capacity),
-                         compiler_options=procs.OPTIMIZED_KERNELS)
+                         region_split=CLASSES, region_split_capacity=tuple(config.model.region_split_capacity))
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background, options)
   metrics = []
   for batch in batches:

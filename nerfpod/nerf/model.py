@@ -56,7 +56,8 @@ segment of each ray with the configured samples (proposal rounds, or stratified 
 intervals), from transmittance 1, into per-ray partial sums (`render_partials`, for any subset of the
 regions: a device's own); nerf_regions.composite_regions composites them in ray order. With a capacity (the training
 step's, model.region_capacity) each region renders only the rays whose segment meets it, within a static number of
-rows. Called directly, the model renders every region and composites: one device holding the whole model. K = 1
+rows; with model.region_split, a segment renders 2^-j of the samples, j the class of its share of the ray, each
+class within rows of its own (a flat cost per ray). Called directly, the model renders every region and composites: one device holding the whole model. K = 1
 is the model above, unchanged.
   Randomness comes in as arrays of uniform numbers, one (R, n) array per round of `sample_counts()` (none:
   deterministic evaluation), so the module is a pure function of its inputs. Every attribute comes from
@@ -222,7 +223,13 @@ is the model above, unchanged.
     same `uniforms`; `partials` are put back into their rays (L, R, ...), a ray without a row taking what an
     empty segment gives (nerf_regions.empty_sums), and `local`'s histograms stay per row (L, C, ...), with
     `dispatch` (nerf_regions.Dispatch) saying which ray each row is and which segments found no row
-    (dropped). 0: every ray in every region (dense)."""
+    (dropped), `dropped` (L, R) its flags. 0: every ray in every region (dense).
+
+    With model.region_split = J > 1, `capacity` is a tuple (C_0, ..., C_J-1): each segment is of the sample
+    class of its share of the ray (nerf_regions.sample_classes), and class j renders its C_j rows with every
+    round's count at 2^-j (nerf_regions.class_counts; their first n_j of the `uniforms`); `partials` are put
+    back into their rays as before, and `local` holds `present`, `dropped` (a segment of any class without a
+    row) and `classes`, per class its histograms per row and its `dispatch`."""
     return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L,
                 anneal=anneal, capacity=capacity)
 
