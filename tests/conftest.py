@@ -195,7 +195,8 @@ LONGEST_FILES = {"test_multiprocess": 265, "test_step": 105, "test_export": 75, 
                  # one worker still ran test_region_capacity while the other had finished; their slow tests
                  # make the gate's figures larger, so in the gate these still sort no later than before)
                  "test_region_capacity": 40, "test_region_export": 16, "test_components": 14,
-                 "test_workdir_lock_gcs": 13, "test_hashgrid_layout": 10, "test_layout": 10}
+                 "test_workdir_lock_gcs": 13, "test_hashgrid_layout": 10, "test_layout": 10,
+                 "test_region_split": 19}  # (added 2026-12-07: its worker-seconds in the quick loop)
 
 
 # The files that read the session's smoke run (smoke_run above) or its default job (default_run: test_golden,
