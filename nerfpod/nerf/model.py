@@ -387,49 +387,94 @@ class RegionRenderer(nn.Module):
     proposal_fields = [fields.make_proposal_field(self.model_config, self.dtype, name=f"proposal_{i}", **made)
                        for i in range(len(self.proposal_samples))]
     field = fields.make_field(self.model_config, self.dtype, name="coarse", **made)
-    return tuple(self._segment(local, proposal_fields, field, anneal, fraction, **class_rows)
-                 for fraction, class_rows in zip(self.fractions, rows))
+    # Round by round, every class's samples through one call of the round's field (one set of lookups and
+    # matmuls for the region, whatever the classes), then each class's own compositing.
+    states = [self._start(fraction, **class_rows) for fraction, class_rows in zip(self.fractions, rows)]
+    for i, proposal_field in enumerate(proposal_fields):
+      points = [self._propose(state, i, anneal) for state in states]
+      for state, (sigma,) in zip(states, _fused(lambda p: (proposal_field(p),), [(local(p),) for p in points])):
+        sigma = sigma.reshape(state["t_mids"].shape)
+        state["weights"] = compositing.interval_weights(sigma, state["t_edges"], state["directions"])
+        state["proposals"].append({"s_edges": state["s_edges"], "weights": state["weights"]})
+    inputs = [self._place(state, anneal) for state in states]
+    outputs = _fused(field, [(local(points), dirs, *codes) for points, dirs, codes in inputs])
+    return tuple(self._finish(state, rgb, sigma) for state, (rgb, sigma) in zip(states, outputs))
 
-  def _segment(self, local, proposal_fields, field, anneal, fraction, uniforms, origins, directions, viewdirs,
-               codes, near, far, segment):
-    counts = nerf_regions.class_counts(tuple(self.proposal_samples) + (self.num_samples,), fraction)
+  def _start(self, fraction, uniforms, origins, directions, viewdirs, codes, near, far, segment) -> dict:
+    """A sample class's rows before their first round: its counts (at `fraction`), the segments in s."""
     t_in, t_out = (t[:, None] for t in segment)
     to_s = lambda t: jnp.clip(coord.t_to_s(t, near, far, self.spacing), 0.0, 1.0)  # noqa: E731
-    warp = lambda s: coord.s_to_t(s, near, far, self.spacing)  # noqa: E731
     s_in, s_out = to_s(t_in), jnp.maximum(to_s(t_out), to_s(t_in))
     rays = origins.shape[:-1]
-    points_of = lambda t: origins[..., None, :] + t[..., None] * directions[..., None, :]  # noqa: E731
-    take = lambda u, n: u if u is None or u.shape[-1] == n else u[..., :n]  # noqa: E731  (a class's first n)
-    out_local = {"proposals": []}
+    return dict(counts=nerf_regions.class_counts(tuple(self.proposal_samples) + (self.num_samples,), fraction),
+                uniforms=uniforms, origins=origins, directions=directions, viewdirs=viewdirs, codes=codes, near=near,
+                far=far, t_in=t_in, s_in=s_in, s_out=s_out, s_edges=jnp.concatenate([s_in, s_out], axis=-1),
+                weights=jnp.ones(rays + (1,)), proposals=[])
+
+  def _warp(self, state, s):
+    return coord.s_to_t(s, state["near"], state["far"], self.spacing)
+
+  @staticmethod
+  def _points_at(state, t):
+    return state["origins"][..., None, :] + t[..., None] * state["directions"][..., None, :]
+
+  @staticmethod
+  def _uniforms(state, i: int, count: int):
+    u = state["uniforms"][i]
+    return u if u is None or u.shape[-1] == count else u[..., :count]  # (a class's first `count`)
+
+  def _propose(self, state, i: int, anneal):
+    """Proposal round i's intervals of a class's rows (drawn from the last round's weights): its points (N, 3)."""
+    count = state["counts"][i]
+    state["s_edges"] = stepfun.sample_intervals(state["s_edges"], _drawn_from(state["weights"], i,
+                                                                              self.proposal_padding, anneal),
+                                                count, self._uniforms(state, i, count),
+                                                domain=(state["s_in"], state["s_out"]))
+    state["t_edges"] = self._warp(state, state["s_edges"])
+    state["t_mids"] = 0.5 * (state["t_edges"][..., 1:] + state["t_edges"][..., :-1])
+    return self._points_at(state, state["t_mids"]).reshape(-1, 3)
+
+  def _place(self, state, anneal):
+    """The NeRF field's samples of a class's rows: (points (N, 3), directions (N, 3), per-point codes)."""
+    count = state["counts"][-1]
     if self.proposal_samples:
-      s_edges, weights = jnp.concatenate([s_in, s_out], axis=-1), jnp.ones(rays + (1,))
-      for i, (count, proposal_field) in enumerate(zip(counts[:-1], proposal_fields)):
-        s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, i, self.proposal_padding, anneal), count,
-                                           take(uniforms[i], count), domain=(s_in, s_out))
-        t_edges = warp(s_edges)
-        t_mids = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
-        sigma = proposal_field(local(points_of(t_mids).reshape(-1, 3))).reshape(t_mids.shape)
-        weights = compositing.interval_weights(sigma, t_edges, directions)
-        out_local["proposals"].append({"s_edges": s_edges, "weights": weights})
-      s_edges = stepfun.sample_intervals(s_edges, _drawn_from(weights, -1, self.proposal_padding, anneal),
-                                         counts[-1], take(uniforms[-1], counts[-1]), domain=(s_in, s_out))
-      t_edges = warp(s_edges)
-      t_points = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
+      state["s_edges"] = stepfun.sample_intervals(state["s_edges"], _drawn_from(state["weights"], -1,
+                                                                                self.proposal_padding, anneal),
+                                                  count, self._uniforms(state, -1, count),
+                                                  domain=(state["s_in"], state["s_out"]))
+      state["t_edges"] = self._warp(state, state["s_edges"])
+      state["t_points"] = 0.5 * (state["t_edges"][..., 1:] + state["t_edges"][..., :-1])
     else:
-      s_edges = s_in + (s_out - s_in) * jnp.linspace(0.0, 1.0, counts[-1] + 1)
-      u = 0.5 if uniforms[0] is None else take(uniforms[0], counts[-1])
-      t_edges = warp(s_edges)
-      t_points = warp(s_edges[..., :-1] + u * jnp.diff(s_edges, axis=-1))
-    points = points_of(t_points)
-    dirs = jnp.broadcast_to(viewdirs[..., None, :], points.shape)
-    rgb, sigma = field(local(points.reshape(-1, 3)), dirs.reshape(-1, 3), *_per_point(codes, points.shape[:-1]))
-    rgb, sigma = near_gradients(rgb.reshape(points.shape), sigma.reshape(t_points.shape), t_points, directions,
-                                self.near_gradient_distance)
-    sums = nerf_regions.partial_sums(rgb, sigma, t_points, jnp.diff(t_edges, axis=-1), directions, s_edges)
+      s_in, s_out = state["s_in"], state["s_out"]
+      state["s_edges"] = s_in + (s_out - s_in) * jnp.linspace(0.0, 1.0, count + 1)
+      u = 0.5 if state["uniforms"][0] is None else self._uniforms(state, 0, count)
+      state["t_edges"] = self._warp(state, state["s_edges"])
+      state["t_points"] = self._warp(state, state["s_edges"][..., :-1] + u * jnp.diff(state["s_edges"], axis=-1))
+    points = self._points_at(state, state["t_points"])
+    dirs = jnp.broadcast_to(state["viewdirs"][..., None, :], points.shape)
+    return points.reshape(-1, 3), dirs.reshape(-1, 3), _per_point(state["codes"], points.shape[:-1])
+
+  def _finish(self, state, rgb, sigma):
+    """A class's (partials, local) from its NeRF samples' colours and densities."""
+    t_points, directions = state["t_points"], state["directions"]
+    rgb, sigma = near_gradients(rgb.reshape(t_points.shape + (3,)), sigma.reshape(t_points.shape), t_points,
+                                directions, self.near_gradient_distance)
+    sums = nerf_regions.partial_sums(rgb, sigma, t_points, jnp.diff(state["t_edges"], axis=-1), directions,
+                                     state["s_edges"])
     partials = {k: sums[k] for k in nerf_regions.GATHERED if k in sums}
-    partials["t_in"] = t_in[..., 0]
-    out_local.update(s_edges=s_edges, weights=sums["weights"])
-    return partials, out_local
+    partials["t_in"] = state["t_in"][..., 0]
+    return partials, {"proposals": state["proposals"], "s_edges": state["s_edges"], "weights": sums["weights"]}
+
+
+def _fused(fn, inputs: list) -> list:
+  """fn applied to each of `inputs` (tuples of (N_i, ...) arrays), as one call on their rows concatenated, its
+  outputs (a tuple of (sum N_i, ...) arrays) split back; one input: fn itself (the same program as a plain call)."""
+  if len(inputs) == 1:
+    return [fn(*inputs[0])]
+  sizes = np.cumsum([x[0].shape[0] for x in inputs])[:-1]
+  out = fn(*(jnp.concatenate(parts, axis=0) for parts in zip(*inputs)))
+  pieces = [jnp.split(o, sizes, axis=0) for o in out]
+  return [tuple(p[i] for p in pieces) for i in range(len(inputs))]
 
 
 def _class_rows(d, uniforms, origins, directions, viewdirs, codes, near, far, t_in_LxR, t_out_LxR) -> dict:
