@@ -279,15 +279,19 @@ def test_the_step_scalars_are_the_rays_segments(dense, segments):
     assert metrics["regions/dropped"] == 0
 
 
+def _step_scalars(dropped: float, fill: float, capacity: int) -> dict:
+  """The step's scalars that train.DropWatch reads, as a step's metrics come back from the device."""
+  return {"regions/dropped": np.float32(dropped), "regions/fill": np.float32(fill),
+          "regions/capacity": np.float32(capacity)}
+
+
 def test_the_loop_refuses_a_window_that_drops_over_a_thousandth_of_its_rays():
   watch = train.DropWatch(0.25, 1024)
   for s, dropped in ((1, 1.0), (2, 0.0)):  # 1 of 2,048: under 0.1%
-    watch.dispatched(s, {"regions/dropped": np.float32(dropped), "regions/fill": np.float32(0.9),
-                         "regions/capacity": np.float32(64)})
+    watch.dispatched(s, _step_scalars(dropped, 0.9, 64))
   watch.check()
   for s in (3, 4):
-    watch.dispatched(s, {"regions/dropped": np.float32(2.0), "regions/fill": np.float32(1.31 if s == 3 else 1.2),
-                         "regions/capacity": np.float32(64)})
+    watch.dispatched(s, _step_scalars(2.0, 1.31 if s == 3 else 1.2, 64))
   with pytest.raises(UserError) as refused:
     watch.check()
   assert str(refused.value) == (
@@ -299,8 +303,7 @@ def test_the_loop_refuses_a_window_that_drops_over_a_thousandth_of_its_rays():
 
 def test_the_refusal_of_a_measured_capacity_says_it_was_auto():
   watch = train.DropWatch(0.713, 128, auto=True)
-  watch.dispatched(5, {"regions/dropped": np.float32(3.0), "regions/fill": np.float32(1.05),
-                       "regions/capacity": np.float32(96)})
+  watch.dispatched(5, _step_scalars(3.0, 1.05, 96))
   with pytest.raises(UserError, match=r"model.region_capacity=auto \(F = 0.713\) gives each region C = 96 rows .*"
                                       r"resume with --config.model.region_capacity=0.85 "):
     watch.check()

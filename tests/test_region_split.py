@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from jax.sharding import Mesh
 
+from test_region_capacity import _one, _step_scalars
 from test_region_step import _batches, _region_mesh
 from test_region_step import _config as _region_step_config
 from nerfpod import distributed, schema
@@ -31,10 +31,6 @@ def _config(**overrides):
   BATCH rays a step and CLASSES sample classes."""
   return _region_step_config(**({"train.batch_size": BATCH, "model.region_split": CLASSES,
                                  "model.region_capacity": 1.0} | overrides))
-
-
-def _one():
-  return Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
 
 
 def _host_classes(t_in, t_out, near, far):
@@ -240,8 +236,7 @@ def test_auto_measures_each_class_as_a_host_count_and_a_resume_keeps_the_record(
 
 def test_the_refusal_of_a_split_names_its_classes_capacities():
   watch = train.DropWatch(0.5, 1024, split_fractions=(0.2, 0.25, 0.3))
-  watch.dispatched(7, {"regions/dropped": np.float32(5.0), "regions/fill": np.float32(1.2),
-                       "regions/capacity": np.float32(768)})
+  watch.dispatched(7, _step_scalars(5.0, 1.2, 768))
   with pytest.raises(UserError) as refused:
     watch.check()
   assert str(refused.value) == (
@@ -250,8 +245,10 @@ def test_the_refusal_of_a_split_names_its_classes_capacities():
       "device's rays and the fullest class of a region filled 1.20 x its rows, so rays over capacity were dropped "
       "whole; resume with --config.model.region_split_capacity='(0.3,0.35,0.4)' (or --config.model."
       "region_capacity=0: every ray through every region).")
-  assert train._split_fractions(_config().model) == (1.0, 1.0, 1.0)  # model.region_capacity for every class
-  assert train._split_fractions(_config(**{"model.region_split": 0}).model) == ()
+  # The classes' fractions the loop's watch is given: model.region_capacity for every class where none are set.
+  assert regions.class_capacities(1.0, 3) == (1.0, 1.0, 1.0)
+  assert regions.class_capacities(0.5, 3, (0.2, 0.25, 0.3)) == (0.2, 0.25, 0.3)
+  assert regions.class_capacities(1.0, 0) == () and regions.class_capacities(0.0, 3) == ()
 
 
 def test_the_config_refuses_a_split_without_a_capacity_or_with_another_count_of_classes():

@@ -221,15 +221,15 @@ is the model above, unchanged.
     `capacity` C > 0 (model.region_capacity, training): each region renders only C rows, the rays whose
     segment in it is not empty, the first C in ray order (nerf_regions.dispatch), with their rows of the
     same `uniforms`; `partials` are put back into their rays (L, R, ...), a ray without a row taking what an
-    empty segment gives (nerf_regions.empty_sums), and `local`'s histograms stay per row (L, C, ...), with
-    `dispatch` (nerf_regions.Dispatch) saying which ray each row is and which segments found no row
-    (dropped), `dropped` (L, R) its flags. 0: every ray in every region (dense).
+    empty segment gives (nerf_regions.empty_sums), and `local` holds `present`, `dropped` (L, R) (a segment
+    that found no row) and `classes`, one entry here: the histograms per row (L, C, ...) with their `dispatch`
+    (nerf_regions.Dispatch: which ray each row is, which segments found no row). 0: every ray in every region
+    (dense).
 
     With model.region_split = J > 1, `capacity` is a tuple (C_0, ..., C_J-1): each segment is of the sample
     class of its share of the ray (nerf_regions.sample_classes), and class j renders its C_j rows with every
     round's count at 2^-j (nerf_regions.class_counts; their first n_j of the `uniforms`); `partials` are put
-    back into their rays as before, and `local` holds `present`, `dropped` (a segment of any class without a
-    row) and `classes`, per class its histograms per row and its `dispatch`."""
+    back into their rays as before, and `classes` has J entries."""
     return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L,
                 anneal=anneal, capacity=capacity)
 
@@ -271,9 +271,10 @@ is the model above, unchanged.
       raise ValueError(f"{len(capacities)} capacities for model.region_split's {classes} sample classes")
     if classes > 1:
       klass = nerf_regions.sample_classes(nerf_regions.segment_shares(t_in, t_out, near, far, self.spacing), classes)
-      dispatches = [nerf_regions.dispatch_present(present & (klass == j), c) for j, c in enumerate(capacities)]
+      masks = [present & (klass == j) for j in range(classes)]
     else:
-      dispatches = [nerf_regions.dispatch(t_in, t_out, capacities[0])]
+      masks = [present]
+    dispatches = [nerf_regions.dispatch_present(m, c) for m, c in zip(masks, capacities)]
     class_rows = [_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
                   for d in dispatches]
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
@@ -282,12 +283,8 @@ is the model above, unchanged.
     far_R = far[..., 0]
     partials = {k: nerf_regions.scatter_classes([p[k] for p, _ in rendered], dispatches,
                                                 nerf_regions.empty_sums(far_R, k)) for k in rendered[0][0]}
-    if classes == 1:
-      local = rendered[0][1]
-      local.update(present=present, dispatch=dispatches[0], dropped=dispatches[0].dropped_LxR)
-      return partials, local
     dropped = functools.reduce(jnp.logical_or, [d.dropped_LxR for d in dispatches])
-    local = {"present": present, "dropped": dropped, "proposals": bool(self.proposal_samples),
+    local = {"present": present, "dropped": dropped,
              "classes": [dict(class_local, dispatch=d) for (_, class_local), d in zip(rendered, dispatches)]}
     return partials, local
 

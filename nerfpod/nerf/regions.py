@@ -436,9 +436,8 @@ def dispatch(t_in_LxR, t_out_LxR, capacity: int) -> Dispatch:
   return dispatch_present(t_out_LxR > t_in_LxR, capacity)
 
 
-def dispatch_present(present_LxR, capacity: int) -> Dispatch:
-  """`dispatch` of the segments `present_LxR` marks (e.g. one sample class's: `sample_classes`)."""
-  present = present_LxR
+def dispatch_present(present, capacity: int) -> Dispatch:
+  """`dispatch` of the segments `present` (L, R) marks (e.g. one sample class's: `sample_classes`)."""
   count, rays = present.shape
   slots = jnp.cumsum(present, axis=1, dtype=jnp.int32) - 1
   fits = present & (slots < capacity)
@@ -471,12 +470,9 @@ def scatter_rows(x_LxC, d: Dispatch, absent):
 def scatter_classes(x_per_class, dispatches, absent):
   """`scatter_rows` of several sample classes' rows (each (L, C_j, ...) with its Dispatch) into one (L, R, ...):
   each segment takes its own class's row (a segment is of one class only), else `absent`."""
-  out = None
+  out = absent
   for x, d in zip(x_per_class, dispatches):
-    slots = jnp.minimum(d.slots_LxR, d.capacity - 1)
-    picked = jnp.take_along_axis(x, slots.reshape(slots.shape + (1,) * (x.ndim - 2)), axis=1)
-    has_row = (d.slots_LxR < d.capacity).reshape(slots.shape + (1,) * (x.ndim - 2))
-    out = jnp.where(has_row, picked, jnp.asarray(absent, x.dtype) if out is None else out)
+    out = scatter_rows(x, d, out)
   return out
 
 
@@ -490,6 +486,20 @@ def class_fractions(classes: int) -> tuple:
 def class_counts(counts: tuple, fraction: float) -> tuple:
   """Each sampling round's count of `counts` at a class's `fraction`: ceil(count x fraction), at least 1."""
   return tuple(max(1, int(np.ceil(n * fraction))) for n in counts)
+
+
+def class_samples(counts: tuple, classes: int) -> tuple:
+  """A row's field samples in each of `classes` sample classes (every round's class_counts, summed)."""
+  return tuple(sum(class_counts(counts, f)) for f in class_fractions(classes))
+
+
+def class_capacities(capacity: float, classes: int, split_capacity: tuple = ()) -> tuple:
+  """The capacity fractions of `classes` sample classes (model.region_split): `split_capacity`
+  (model.region_split_capacity), or `capacity` (model.region_capacity) for every class; () without a split or
+  without a capacity (dense)."""
+  if classes <= 1 or not capacity:
+    return ()
+  return tuple(float(f) for f in split_capacity) or (float(capacity),) * classes
 
 
 def segment_shares(t_in_LxR, t_out_LxR, near_R1, far_R1, spacing: str):

@@ -404,11 +404,11 @@ def _split_figures(config, model) -> tuple:
   field samples per row), else ((), ())."""
   from nerfpod.nerf import regions as regions_lib
   classes = int(config.model.region_split)
-  if classes <= 1 or not config.model.region_capacity:
+  fractions = regions_lib.class_capacities(config.model.region_capacity, classes,
+                                           tuple(config.model.region_split_capacity))
+  if not fractions:
     return (), ()
-  fractions = (tuple(config.model.region_split_capacity) or (float(config.model.region_capacity),) * classes)
-  return fractions, tuple(sum(regions_lib.class_counts(model.sample_counts(), f))
-                          for f in regions_lib.class_fractions(classes))
+  return fractions, regions_lib.class_samples(model.sample_counts(), classes)
 
 
 def _compile_programs(report: dict, config, program, pod: chips.Pod, what, key, num_chips: int, hosts: list,

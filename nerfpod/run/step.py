@@ -85,9 +85,9 @@ class Options:
     per sample class; 0 dense."""
     if not self.region_capacity:
       return 0
-    if self.region_split <= 1:
+    fractions = regions.class_capacities(self.region_capacity, self.region_split, self.region_split_capacity)
+    if not fractions:
       return regions.capacity_rows(self.region_capacity, rays)
-    fractions = self.region_split_capacity or (self.region_capacity,) * self.region_split
     return tuple(regions.capacity_rows(f, rays) for f in fractions)
 
   @classmethod
@@ -457,8 +457,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   shares = options.microbatches * distributed.batch_devices(mesh)
   field_samples = sum(model.sample_counts())  # a ray's field evaluations in one region: proposals' and NeRF's
   if options.region_split > 1 and options.region_capacity:  # per sample class
-    field_samples = tuple(sum(regions.class_counts(model.sample_counts(), f))
-                          for f in regions.class_fractions(options.region_split))
+    field_samples = regions.class_samples(model.sample_counts(), options.region_split)
 
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
     return x if axis_size == 1 else distributed.gather_regions(x)
@@ -488,7 +487,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     counts = jax.lax.stop_gradient(jnp.sum(own["present"], axis=1, dtype=jnp.float32))
     # (Split) the same per sample class (K, J)
     class_counts = (jnp.stack([jnp.sum(c["dispatch"].present_LxR, axis=1, dtype=jnp.float32) for c in own["classes"]],
-                              axis=1) if "classes" in own else None)
+                              axis=1) if isinstance(capacity, tuple) else None)
     if axis_size > 1:
       counts = jax.lax.psum(jax.lax.dynamic_update_slice_in_dim(jnp.zeros(count), counts, first, axis=0),
                             distributed.REGION_AXIS)
@@ -504,7 +503,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     mses, loss = mse[None], mse
     extra = region_metrics(counts, rays, gathered.get("dropped"), capacity, local, field_samples,
                            options.microbatches, shares, class_counts)
-    if own["proposals"]:
+    if model.proposal_samples:
       prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
       radii = options.interlevel_blur or (None,) * len(model.proposal_samples)  # None: mip-NeRF 360's loss
 
@@ -517,10 +516,9 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
       if not capacity:
         per_ray = segment_loss(own, prefix)
       else:  # per row (each row's own ray's prefix), back into the rays: an empty segment's term is 0
-        rendered = own["classes"] if "classes" in own else [own]
-        dispatches = [r["dispatch"] for r in rendered]
+        dispatches = [r["dispatch"] for r in own["classes"]]
         per_ray = regions.scatter_classes(
-            [segment_loss(r, regions.gather_rows(prefix, d, per_region=True)) for r, d in zip(rendered, dispatches)],
+            [segment_loss(r, regions.gather_rows(prefix, r["dispatch"], per_region=True)) for r in own["classes"]],
             dispatches, 0.0)
       extra["interlevel"] = mean(jnp.sum(gather(per_ray), axis=0))
       extra["distortion"] = mean(out["distortion"])

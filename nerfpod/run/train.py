@@ -181,15 +181,6 @@ class DropWatch:
                     f"region).")
 
 
-def _split_fractions(model_config) -> tuple:
-  """model.region_split's classes' capacity fractions (model.region_split_capacity, or model.region_capacity for
-  every class); () without a split."""
-  if model_config.region_split <= 1:
-    return ()
-  return (tuple(model_config.region_split_capacity)
-          or (float(model_config.region_capacity),) * model_config.region_split)
-
-
 def _round_up(value: float, step: float) -> float:
   return round(-(-value // step) * step, 6)
 
@@ -327,7 +318,9 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     _announce(comps, workdir, start_step)
     skips = SkipCount(tc.max_nonfinite_steps, ckpt, position)
     drops = (DropWatch(config.model.region_capacity, tc.batch_size, auto=auto_capacity,
-                       split_fractions=_split_fractions(config.model))
+                       split_fractions=regions.class_capacities(config.model.region_capacity,
+                                                                config.model.region_split,
+                                                                tuple(config.model.region_split_capacity)))
              if config.model.regions > 1 and config.model.region_capacity else None)
     log = StepLog(monitor, tc, start_step, skips, drops)
     key = train_state.rays_key(tc.seed, comps.mesh)
