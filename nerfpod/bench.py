@@ -106,7 +106,7 @@ class _Trainer:
     self.comps = components.build(config)
     compiling = step.start_compiling(self.comps)  # as a run starts: the step compiles during the init
     self.state = self.comps.init_state()
-    self.step_fn = compiling.result()
+    self.step_fn, self.comps = compiling.result()
     # The same step without micro-batches, only ever lowered: XLA's cost analysis counts a loop body
     # once, so the FLOPs of a step with a micro-batch scan are read off this one.
     self.unlooped_step_fn = step.for_program(self.comps, microbatches=1)

@@ -512,3 +512,57 @@ def test_a_tool_without_a_run_measures_auto_on_a_built_in_scene_and_asks_for_a_n
       "scenes (data.kind procedural or street), not data.kind=blender; give a fraction instead, e.g. the one a "
       "training run with auto measured (its first lines print it, its workdir's config.json records it), or "
       "--config.model.region_capacity=0.75.")
+
+
+def test_a_fitted_micro_batch_gets_the_margin_of_its_own_rays(tmp_path, monkeypatch, capsys):
+  """train.microbatches=0 with a measured auto capacity: each count the fit tries compiles with F for that
+  count's micro-batch of R / M rays (a smaller draw spreads wider: MeasuredCapacity.at_rows), and the run goes on
+  with, records and says the fitted count's F; a fixed count, or a resumed record, compiles as resolved. (The
+  compiler stands in: the fit's choice of count is compilation.fewest_microbatches', tested with the step.)"""
+  import dataclasses
+  from nerfpod.run import compilation
+  config = _config(**{"model.region_capacity": "auto", "train.microbatches": 0})
+  scene, _ = _batches(config, 0)
+  comps = train.resolve_capacity(components.build_program(config, _one(), scene=scene), str(tmp_path), False)
+  measured = comps.capacity_measured
+  assert measured.rows == BATCH and comps.config.model.region_capacity == measured.fraction
+  share = max(measured.counts) / measured.rays
+  tried = []
+
+  class Program:  # the step's lowering and compiling, as the fit calls them
+    def __init__(self, fitted, count):
+      self.seen = (count, fitted.config.model.region_capacity)
+
+    def lower(self, *args):
+      return self
+
+    def compile(self):
+      tried.append(self.seen)
+      return self
+
+  monkeypatch.setattr(step, "for_program", lambda fitted, count, backend=None: Program(fitted, count))
+  monkeypatch.setattr(compilation, "step_memory_bytes", lambda compiled: 200 // compiled.seen[0])  # halves per count
+  monkeypatch.setattr(compilation, "memory_budget_bytes", lambda config: 150)
+  monkeypatch.setattr(compilation, "device_memory_bytes", lambda: 2**40)
+  capsys.readouterr()
+  fitted = step.compile_for_run(comps)
+  wide = regions.auto_fraction(share, BATCH // 2)
+  assert tried == [(1, measured.fraction), (2, wide)] and wide > measured.fraction
+  assert fitted.step.seen == (2, wide) and fitted.comps.config.model.region_capacity == wide
+  assert fitted.comps.capacity_measured == measured.at_rows(BATCH // 2)
+  assert capsys.readouterr().out.splitlines()[-1] == (
+      f"nerfpod: {measured.at_rows(BATCH // 2).line()} (its margin for one of the 2 micro-batches)")
+  assert f"over a chip's {BATCH // 2} rays gives F = {wide:g}: C = {regions.capacity_rows(wide, 64)} of 64" in (
+      measured.at_rows(64).line())
+  # A fixed count was measured for its own micro-batch (region_rows); a resume's record has no measurement.
+  for fixed in (dataclasses.replace(comps, config=_config(**{"model.region_capacity": 0.7, "train.microbatches": 2}),
+                                    capacity_measured=measured.at_rows(BATCH // 2)),
+                dataclasses.replace(comps, capacity_measured=None)):
+    tried.clear()
+    got = step.compile_for_run(fixed)
+    assert got.comps is fixed and [c for _, c in tried] == [fixed.config.model.region_capacity] * len(tried)
+  # Split classes: each F_j anew from its own fullest share, F their largest.
+  split = step.MeasuredCapacity((700, 600), 1000, 128, 0.0, ((500, 150, 50), (100, 400, 100)), (0.0, 0.0, 0.0))
+  wider = split.at_rows(32)
+  assert wider.split_fractions == tuple(regions.auto_fraction(p, 32) for p in (0.5, 0.4, 0.1))
+  assert wider.fraction == max(wider.split_fractions) and wider.rows == 32 and wider.counts == split.counts

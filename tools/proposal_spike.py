@@ -53,7 +53,7 @@ def main(argv):
   state, _ = reader.restore(comps.state_shapes, start)
   reader.close()
   state = state.replace(params=spiked(state.params, FLAGS.bias))
-  step_fn = train_step.compile_for_run(comps)
+  step_fn = train_step.compile_for_run(comps).step
   key = train_state.rays_key(config.train.seed, comps.mesh)
   batches = comps.batches(start)
   log = []

@@ -29,6 +29,7 @@ load, a bad flag, override or --json path, a config whose batch does not split o
 a program the TPU compiler refuses: one sentence naming the program, the pod and XLA's reason, exit 1.
 With --json=-, stdout holds the JSON report alone (the tables go to stderr).
 """
+import dataclasses
 import json
 import os
 import sys
@@ -361,8 +362,11 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
   schema.validate(config, num_chips, backend="tpu", tpu_generation=pod.generation, pod=pod.name)
   devices = topology_devices(pod, slices)
   mesh = distributed.make_mesh(devices, num_slices=config.mesh.slices or None, regions=config.model.regions)
-  config = step.resolve_capacity(config, mesh)  # model.region_capacity=auto: measured on a built-in scene, or refused
-  program = components.build_program(config, mesh, backend="tpu")
+  measured = step.measure_for_tool(config, mesh)  # model.region_capacity=auto: on a built-in scene, or refused
+  if measured is not None:
+    config = step.with_capacity(config, measured.fraction, measured.split_fractions)
+  # (a fitted train.microbatches=0 widens a measured capacity's margin for its micro-batch: step.fitted_capacity)
+  program = dataclasses.replace(components.build_program(config, mesh, backend="tpu"), capacity_measured=measured)
   tc = config.train
   hosts = sorted({d.process_index for d in devices})
   order = [d.process_index for d in mesh.devices.flat]
@@ -391,7 +395,8 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
     _compile_programs(report, config, program, pod, what, key, num_chips, hosts, slices, mesh)
   except CompileError as e:
     raise _explained(e, config, pod, slices) from None
-  if config.model.regions > 1:  # with the step's micro-batches where it was compiled (fitted)
+  if config.model.regions > 1:  # with the step's micro-batches where it was compiled (fitted), and its capacity
+    config = step.fitted_capacity(program, report["microbatches"]).config
     report["regions"] = region_figures(tc.batch_size, distributed.batch_devices(mesh), config.model.regions,
                                        distributed.num_regions(mesh), sum(program.model.sample_counts()),
                                        report["microbatches"], float(config.model.region_capacity),

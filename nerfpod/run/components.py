@@ -85,6 +85,9 @@ class Components:
   compiler_options: dict    # XLA options of the step and the renderer (compilation.compiler_options)
   scene: scenes.Scene | None = None  # None: the pod compile tool's, without a scene
   renderer: Any = None      # make_renderer() of the run's mesh, where there is a scene
+  # step.MeasuredCapacity where this run measured model.region_capacity=auto (train.resolve_capacity): a fitted
+  # train.microbatches=0 sizes the margin for its micro-batch's rays (step.fitted_capacity); None otherwise
+  capacity_measured: Any = None
 
   @property
   def render_model(self) -> nerf_model.NeRF:

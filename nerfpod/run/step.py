@@ -8,6 +8,7 @@
                        training rays (a run's, nerfpod train.train; a tool's, on a built-in scene)
     for_program        the step of a config's Components (runs and the pod tool)
     compile_fitted     compiled for Components' shapes, with train.microbatches=0 fitted to a memory budget
+                       (fitted_capacity: a measured auto capacity's margin for the fitted micro-batch)
     start_compiling    a run's step compiled in a background thread while its state initialises
 """
 import concurrent.futures
@@ -145,6 +146,14 @@ class MeasuredCapacity:
   def capacity(self) -> int:
     return regions.capacity_rows(self.fraction, self.rows)
 
+  def at_rows(self, rows: int) -> "MeasuredCapacity":
+    """The same shares with the margin for a chip's `rows` rays (a fitted micro-batch's): F (and F_j) anew."""
+    fractions = tuple(regions.auto_fraction(float(np.max(np.asarray(self.class_counts)[:, j])) / self.rays, rows)
+                      for j in range(len(self.split_fractions)))
+    fraction = (max(fractions) if fractions else
+                regions.auto_fraction(float(np.max(self.counts)) / self.rays, rows))
+    return dataclasses.replace(self, rows=rows, fraction=fraction, split_fractions=fractions)
+
   def line(self) -> str:
     shares = np.asarray(self.counts) / self.rays
     fullest = int(np.argmax(shares))
@@ -197,11 +206,18 @@ def with_capacity(config, fraction: float, split_fractions: tuple = ()):
 
 
 def resolve_capacity(config, mesh):
-  """`config` with model.region_capacity=auto measured (measure_capacity, its line on stderr), for a tool that
-  has no run's scene (nerfpod aot): a built-in scene (no download) is made here; another is refused in one
-  sentence asking for a fraction. Any other config comes back as it is."""
+  """`config` with model.region_capacity=auto measured (measure_for_tool), for a tool that has no run's scene.
+  Any other config comes back as it is."""
+  measured = measure_for_tool(config, mesh)
+  return config if measured is None else with_capacity(config, measured.fraction, measured.split_fractions)
+
+
+def measure_for_tool(config, mesh) -> MeasuredCapacity | None:
+  """model.region_capacity=auto measured (measure_capacity, its line on stderr) for a tool that has no run's
+  scene (nerfpod aot): a built-in scene (no download) is made here; another is refused in one sentence asking
+  for a fraction. None for any other config."""
   if config.model.regions == 1 or config.model.region_capacity != "auto":
-    return config
+    return None
   loader = scenes.LOADERS.get(config.data.kind)
   if loader is None or loader.needs_path:
     raise UserError(AUTO_WITHOUT_SCENE.format(kind=config.data.kind))
@@ -209,7 +225,7 @@ def resolve_capacity(config, mesh):
   near, far = components.ray_bounds(config, scene)
   measured = measure_capacity(config, scene, mesh, components.region_cut(config, scene), near, far)
   print(f"nerfpod: {measured.line()} (on data.kind={config.data.kind})", file=sys.stderr, flush=True)
-  return with_capacity(config, measured.fraction, measured.split_fractions)
+  return measured
 
 
 def make_train_step(model, optimizer, mesh, near: float, far: float, background, options: Options = Options()):
@@ -616,17 +632,33 @@ def for_program(comps: Components, microbatches: int, backend: str | None = None
                          Options.of(comps, microbatches, backend))
 
 
+def fitted_capacity(comps: Components, microbatches: int) -> Components:
+  """`comps` for a step of `microbatches` micro-batches: where the run measured model.region_capacity=auto
+  (comps.capacity_measured) for a chip's whole share of rays (train.microbatches=0), F (and F_j) with the margin
+  for one micro-batch's rays (MeasuredCapacity.at_rows), which a smaller draw needs wider; else `comps` itself."""
+  measured = comps.capacity_measured
+  if measured is None or microbatches <= 1:
+    return comps
+  rows = comps.config.train.batch_size // distributed.batch_devices(comps.mesh) // microbatches
+  if rows == measured.rows:
+    return comps
+  refit = measured.at_rows(rows)
+  return dataclasses.replace(comps, config=with_capacity(comps.config, refit.fraction, refit.split_fractions),
+                             capacity_measured=refit)
+
+
 def compile_fitted(program: Components, key, budget_bytes: int, backend: str | None = None):
   """(micro-batches, compiled step, its bytes per device by XLA's analysis) for `program`'s state and batch
   shapes and `key` (a key, or its ShapeDtypeStruct). With train.microbatches=0: the fewest micro-batches
   whose step fits `budget_bytes` per device (compilation.fewest_microbatches), the compiled step being the
-  very one compiled while fitting; a count XLA refuses to compile for lack of device memory counts as over
-  the budget. Called with arguments of other shapes or placements, the compiled step raises instead of
-  recompiling."""
+  very one compiled while fitting (for a measured auto capacity, with its margin for that count's micro-batch:
+  fitted_capacity); a count XLA refuses to compile for lack of device memory counts as over the budget. Called
+  with arguments of other shapes or placements, the compiled step raises instead of recompiling."""
   compiled, refused = {}, {}
 
   def compile_with(count):
-    lowered = for_program(program, count, backend).lower(program.state_shapes, program.batch_shapes, key)
+    fitted = fitted_capacity(program, count)
+    lowered = for_program(fitted, count, backend).lower(fitted.state_shapes, fitted.batch_shapes, key)
     try:
       compiled[count] = lowered.compile()
     except jax.errors.JaxRuntimeError as e:
@@ -647,9 +679,17 @@ def compile_fitted(program: Components, key, budget_bytes: int, backend: str | N
   return count, compiled[count], need
 
 
-def compile_for_run(comps: Components):
+class ForRun(typing.NamedTuple):
+  """compile_for_run's: the compiled step, and the components it was compiled for (a measured auto capacity
+  fitted to its micro-batches: fitted_capacity; the config that config.json records and the drop watch reads)."""
+  step: typing.Any
+  comps: Components
+
+
+def compile_for_run(comps: Components) -> ForRun:
   """A run's train step compiled ahead of time for its shapes, micro-batches fitted to this process's memory
-  budget (compilation.memory_budget_bytes) where train.microbatches=0, which process 0 reports."""
+  budget (compilation.memory_budget_bytes) where train.microbatches=0, which process 0 reports (and, where that
+  changed a measured auto capacity, its fractions)."""
   budget = compilation.memory_budget_bytes(comps.config)
   count, compiled, need = compile_fitted(comps, train_state.rays_key(comps.config.train.seed, comps.mesh), budget)
   capacity = compilation.device_memory_bytes()
@@ -669,7 +709,11 @@ def compile_for_run(comps: Components):
     print(f"nerfpod: train.microbatches=0: {count} micro-batch(es) of {per_device // count} rays per device "
           f"({shown} per device by XLA's analysis) {fits} the budget of {budget / 2**20:,.1f} MiB per device",
           flush=True)
-  return compiled
+  fitted = fitted_capacity(comps, count)
+  if fitted is not comps and jax.process_index() == 0:
+    print(f"nerfpod: {fitted.capacity_measured.line()} (its margin for one of the {count} micro-batches)",
+          flush=True)
+  return ForRun(compiled, fitted)
 
 
 def start_compiling(comps: Components) -> concurrent.futures.Future:

@@ -246,6 +246,7 @@ def resolve_capacity(comps: components.Components, workdir: str, resuming: bool)
     measured = train_step.measure_capacity(config, comps.scene, comps.mesh, comps.model.partition, comps.near,
                                            comps.far)
     fraction, split_fractions, line = measured.fraction, measured.split_fractions, measured.line()
+    comps = dataclasses.replace(comps, capacity_measured=measured)  # (train.microbatches=0: fitted_capacity)
   if jax.process_index() == 0:
     print(f"nerfpod: {line}", flush=True)
   return dataclasses.replace(comps, config=train_step.with_capacity(config, fraction, split_fractions))
@@ -311,7 +312,8 @@ def train(comps: components.Components, workdir: str, monitor) -> tuple[TrainSta
     state, start_step, position = _restore_or_init(comps, ckpt)
     if start_step < tc.num_steps:  # (a damaged newest checkpoint may have put start_step back)
       # A step the devices cannot hold is refused here, before the workdir holds anything of this run.
-      step_fn = (compiling or train_step.start_compiling(comps)).result()
+      step_fn, comps = (compiling or train_step.start_compiling(comps)).result()
+      config = comps.config  # (a measured auto capacity's margin for the fitted micro-batches: config.json's)
       if jax.process_count() > 1:
         # Every process has compiled before the first step: wait for all of them (see wait_for_all).
         distributed.wait_for_all(f"nerfpod_train_step_compiled_{start_step}")
