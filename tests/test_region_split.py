@@ -263,6 +263,12 @@ def test_the_config_refuses_a_split_without_a_capacity_or_with_another_count_of_
       "give one fraction per class (or --config.model.region_split_capacity='()': model.region_capacity for "
       "every class)."]
   schema.validate(_config(**{"model.region_capacity": "auto"}))  # (measured: no capacities needed)
+  for bad in ({"model.region_split": 0}, {"render.proposal_samples": ()}):
+    with pytest.raises(schema.ConfigError) as refused:
+      schema.validate(_config(**{"model.region_split_by": "weights", "model.region_capacity": 0.5} | bad))
+    assert refused.value.messages[-1].startswith(
+        "model.region_split_by=weights splits the NeRF field's samples by the proposal rounds' weights, which needs "
+        "model.region_split > 1 and proposal sampling")
 
 
 def test_the_pod_tools_figures_count_each_class_at_its_samples():
@@ -275,5 +281,130 @@ def test_the_pod_tools_figures_count_each_class_at_its_samples():
   assert figures["field_evals_per_chip"] == 208 * 48 + 256 * 24 + 312 * 12
   assert figures["field_evals_per_chip_dense"] == 1024 * 48
   config = _config()
-  assert aot._split_figures(config, components.make_model(config)) == ((1.0, 1.0, 1.0), (14, 7, 4))
-  assert aot._split_figures(_config(**{"model.region_split": 0}), None) == ((), ())
+  assert aot._split_figures(config, components.make_model(config)) == dict(
+      split_capacity=(1.0, 1.0, 1.0), class_samples=(14, 7, 4), split_by="length", sample_counts=(8, 6))
+  assert aot._split_figures(_config(**{"model.region_split": 0}), None) == {}
+  # By weights: the proposal rounds over the length classes' rows, the NeRF round over final_capacities'.
+  weighted = aot.region_figures(1024, 1, 8, 8, 48, 1, 0.5, split_capacity=(0.2, 0.25, 0.3),
+                                class_samples=(48, 24, 12), split_by="weights", sample_counts=(32, 16))
+  assert weighted["final_rows"] == [208, 256, 208 + 256 + 312]
+  assert weighted["field_evals_per_chip"] == (208 * 32 + 256 * 16 + 312 * 8) + (208 * 16 + 256 * 8 + 776 * 4)
+
+
+def test_a_segments_weight_share_and_the_nerf_rounds_rows_with_classes_handed_down():
+  """regions.weight_shares against a host product in ray order (unsorted regions, an empty segment, an opaque
+  one hiding what lies behind it), and regions.downgrade_dispatch against a host walk: class j takes its own
+  segments and those class j - 1 had no row for, the first C_j in ray order; the last class holds the rest."""
+  opacity = np.array([[0.5, 0.0, 0.2, 0.9], [0.25, 0.3, 0.0, 1.0], [0.0, 0.6, 0.7, 0.5]], np.float32)  # (K, R)
+  t_in = np.array([[3.0, 6.0, 2.0, 4.0], [2.0, 3.0, 6.0, 2.0], [6.0, 2.5, 3.0, 5.0]], np.float32)
+  want = np.zeros((3, 4))
+  for r in range(4):
+    light = 1.0
+    for k in np.argsort(t_in[:, r], kind="stable"):
+      want[k, r], light = light * opacity[k, r], light * (1.0 - opacity[k, r])
+  np.testing.assert_allclose(jax.jit(regions.weight_shares)(opacity, t_in), want, rtol=1e-6)
+  assert want[0, 3] == 0.0 and want[2, 3] == 0.0  # behind region 1's opaque segment: nothing reaches them
+  rng = np.random.default_rng(3)
+  klass = rng.integers(0, 3, (2, 40))
+  kept = rng.random((2, 40)) < 0.8
+  capacities = regions.final_capacities((6, 9, 30))
+  assert capacities == (6, 9, 45)
+  got = jax.jit(lambda k, p: regions.downgrade_dispatch(k, p, capacities))(klass, kept)
+  for region in range(2):
+    handed, seen = [], set()
+    for j, capacity in enumerate(capacities):
+      wants = [r for r in range(40) if kept[region, r] and (klass[region, r] == j or r in handed)]
+      rows, handed = wants[:capacity], wants[capacity:]
+      np.testing.assert_array_equal(np.asarray(got[j].rows_LxC[region]), rows + [40] * (capacity - len(rows)))
+      assert not seen & set(rows)
+      seen |= set(rows)
+    assert seen == {r for r in range(40) if kept[region, r]} and not handed  # every kept segment, once
+  assert np.asarray(got[0].dropped_LxR).sum() > 0  # (class 0 overflowed: its segments went on to class 1)
+
+
+def test_the_weighted_split_renders_each_segment_as_a_dense_model_of_its_two_classes(batch_and_params):
+  """model.region_split_by=weights with roomy rows: each segment's partial sums and histograms are those of a
+  dense model whose proposal rounds sample at the counts of the segment's length class and whose NeRF round
+  samples at the class of its share of the ray's proposal weight (the same parameters and random numbers), that
+  share computed on the host from those proposal weights (every region's, in ray order). Two classes: (8, 6)
+  and (4, 3). (The same step on a 2 x 4 mesh against one device: the extended set.)"""
+  batch, params = batch_and_params
+  o, d = batch["origins"], batch["directions"]
+  split = components.make_model(_config(**{"model.region_split": 2, "model.region_split_by": "weights"}))
+  counts = split.sample_counts()
+  pairs = [(a, b) for a in range(2) for b in range(2)]  # (length class, weight class)
+  dense = [components.make_model(_config(**{"model.region_split": 0, "model.region_capacity": 0.0,
+                                            "render.proposal_samples": CLASS_COUNTS[a][:-1],
+                                            "render.num_samples": CLASS_COUNTS[b][-1]})) for a, b in pairs]
+
+  @jax.jit  # one program
+  def run(params, o, d):
+    uniforms = tuple(jax.random.uniform(jax.random.key(i), (4, BATCH, n)) for i, n in enumerate(counts))
+    got, own = split.apply(params, o, d, 2.0, 6.0, jnp.arange(4), uniforms, capacity=(BATCH,) * 2,
+                           method="render_partials")
+    want = []
+    for model, (a, b) in zip(dense, pairs):
+      class_uniforms = (uniforms[0][..., :CLASS_COUNTS[a][0]], uniforms[1][..., :CLASS_COUNTS[b][1]])
+      want.append(model.apply(params, o, d, 2.0, 6.0, jnp.arange(4), class_uniforms, method="render_partials"))
+    near, far = sampling.clip_to_box(o, d, 2.0, 6.0, 1.5)
+    t_in, t_out = regions.segments(o, d, near, far, split.partition)
+    return got, own, want, (t_in, t_out, near, far)
+
+  got, own, want, (t_in, t_out, near, far) = jax.device_get(run(params, o, d))
+  present = np.asarray(own["present"])
+  assert not np.asarray(own["dropped"]).any() and not np.asarray(own["downgraded"]).any()
+  length = _host_classes(t_in, t_out, near, far)[1].clip(0, 1)  # (two classes: share above 1/2 or not)
+  opacity = np.where(length == 0, want[0][1]["proposals"][-1]["weights"].sum(-1),
+                     want[2][1]["proposals"][-1]["weights"].sum(-1)).astype(np.float64) * present
+  share = np.zeros(opacity.shape)
+  for r in range(BATCH):  # the host's product in ray order
+    light = 1.0
+    for k in np.argsort(np.where(present[:, r], t_in[:, r], np.inf), kind="stable"):
+      share[k, r], light = light * opacity[k, r], light * (1.0 - opacity[k, r])
+  weight = (share <= 0.5).astype(int)
+  clear = present & (np.abs(share - 0.5) > 1e-4)  # (a share within float rounding of 1/2: either class)
+  assert [(clear & (length == a) & (weight == b)).sum() >= 3 for a, b in pairs] == [True] * 4
+  pick = np.asarray([[pairs.index((a, b)) for a, b in zip(la, wa)] for la, wa in zip(length, weight)])
+  for key, value in got.items():
+    expected = np.choose(pick[..., None] if value.ndim > 2 else pick, [w[0][key] for w in want])
+    mask = clear.reshape(clear.shape + (1,) * (value.ndim - 2))
+    np.testing.assert_allclose(np.where(mask, value, 0.0), np.where(mask, expected, 0.0), rtol=2e-5, atol=2e-6,
+                               err_msg=key)
+  # The rows' NeRF histograms are the reference's, their proposal histograms the length class's (padded).
+  for j, klass in enumerate(own["classes"]):
+    rows = np.asarray(klass["dispatch"].rows_LxC)
+    for region in range(4):
+      for c, ray in enumerate(rows[region]):
+        if ray == BATCH or not clear[region, ray]:
+          continue
+        ref = want[pick[region, ray]][1]
+        assert weight[region, ray] == j
+        np.testing.assert_allclose(klass["weights"][region, c], ref["weights"][region, ray], rtol=2e-5, atol=2e-6)
+        bins = ref["proposals"][0]["weights"].shape[-1]
+        np.testing.assert_allclose(klass["proposals"][0]["weights"][region, c, :bins],
+                                   ref["proposals"][0]["weights"][region, ray], rtol=2e-5, atol=2e-6)
+        assert not klass["proposals"][0]["weights"][region, c, bins:].any()
+
+
+@pytest.mark.slow  # (two split steps, ~12 s; the quick loop checks the weighted rendering against dense models
+# and the length split's step on this mesh)
+def test_the_weighted_split_step_on_a_region_mesh_is_the_one_devices():
+  """model.region_split_by=weights on 2 data x 4 regions, the opacities gathered over the region axis: the loss,
+  metrics and the parameters after two SGD steps are the one-device step's; field evaluations count the proposal
+  rounds at the length classes' rows and the NeRF round at the weight classes' (regions.split_evals); with a
+  class 0 of 8 rows the NeRF round hands segments down (regions/downgraded)."""
+  weights = {"model.region_split_by": "weights"}
+  state, metrics, _ = _run(_region_mesh((2, 4)), **weights)
+  state_one, metrics_one, _ = _run(_one(), **weights)
+  for m, m_one in zip(metrics, metrics_one):
+    for key in ("loss", "mse", "interlevel", "distortion", "grad_norm", "regions/segments_per_ray",
+                "regions/downgraded"):
+      np.testing.assert_allclose(m[key], m_one[key], rtol=2e-5, err_msg=key)
+    assert m_one["regions/downgraded"] == 0 and m_one["regions/dropped"] == 0
+    assert m_one["regions/field_evals_per_chip"] == 4 * regions.split_evals((8, 6), (BATCH,) * 3, "weights")
+    assert m["regions/field_evals_per_chip"] == 1 * regions.split_evals((8, 6), (64,) * 3, "weights")
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), state.params, state_one.params)
+  assert regions.split_evals((8, 6), (10, 20, 30), "weights") == 10 * 8 + 20 * 4 + 30 * 2 + 10 * 6 + 20 * 3 + 60 * 2
+  assert regions.split_evals((8, 6), (10, 20, 30)) == 10 * 14 + 20 * 7 + 30 * 4
+  _, (tight,), _ = _run(_one(), steps=1, **weights, **{"model.region_split_capacity": (0.0625, 1.0, 1.0)})
+  assert tight["regions/downgraded"] > 0

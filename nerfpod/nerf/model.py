@@ -136,7 +136,7 @@ is the model above, unchanged.
 
   @nn.compact
   def __call__(self, origins_Rx3, directions_Rx3, near, far, background, *uniforms, frames=None,
-               region_ids=None, opened=None, anneal=None, capacity=0):
+               region_ids=None, opened=None, anneal=None, capacity=0, gather=None):
     """A list of renderings (dicts of rgb, depth, acc, disparity, weights, t), coarse first.
 
     near, far: floats or (R, 1); background: (3,) or (R, 3) (nerf.compositing.composite); uniforms: one
@@ -150,7 +150,7 @@ is the model above, unchanged.
       # render_partials' (with `region_ids`), or every region here, composited: uniforms (K, R, n) per round.
       partials, local = self._region_partials(origins_Rx3, directions_Rx3, near, far,
                                               jnp.arange(self.regions) if region_ids is None else region_ids,
-                                              uniforms or None, frames, anneal, capacity)
+                                              uniforms or None, frames, anneal, capacity, gather)
       if region_ids is not None:
         return partials, local
       out = nerf_regions.composite_regions(partials, background)
@@ -209,7 +209,7 @@ is the model above, unchanged.
     return np.zeros((count, 3), np.float32), np.full((count, 3), bound, np.float32)
 
   def render_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms=(), frames=None,
-                      anneal=None, capacity=0):
+                      anneal=None, capacity=0, gather=None):
     """(partials, local) of the L regions `region_ids_L` (L,) int32 (with parameters for those L only, the
     first axis of params['regions'], e.g. one device's share): `partials`, what crosses devices, a dict of
     (L, R, ...) arrays (nerf_regions.GATHERED: each ray's segment start and partial sums); `local`, what stays
@@ -229,12 +229,20 @@ is the model above, unchanged.
     With model.region_split = J > 1, `capacity` is a tuple (C_0, ..., C_J-1): each segment is of the sample
     class of its share of the ray (nerf_regions.sample_classes), and class j renders its C_j rows with every
     round's count at 2^-j (nerf_regions.class_counts; their first n_j of the `uniforms`); `partials` are put
-    back into their rays as before, and `classes` has J entries."""
+    back into their rays as before, and `classes` has J entries; `dispatches` are the rows' Dispatches (those of
+    `classes` but with model.region_split_by=weights).
+
+    With model.region_split_by=weights the classes of the proposal rounds are the length's, and the NeRF round's
+    are those of each segment's share of its ray's proposal weight (nerf_regions.weight_shares), which needs every
+    region's segments: `gather` maps a dict of the L regions' (L, R) arrays to the K regions' (the step's gather
+    over the region axis; None where L = K). `classes` are then the NeRF round's (their rows' proposal histograms
+    carried over), `dispatches` the proposal rounds' (where rays drop), and `downgraded` (L, R) marks the
+    segments a full class handed down to fewer samples (nerf_regions.downgrade_dispatch)."""
     return self(origins_Rx3, directions_Rx3, near, far, None, *uniforms, frames=frames, region_ids=region_ids_L,
-                anneal=anneal, capacity=capacity)
+                anneal=anneal, capacity=capacity, gather=gather)
 
   def _region_partials(self, origins_Rx3, directions_Rx3, near, far, region_ids_L, uniforms, frames, anneal,
-                       capacity=0):
+                       capacity=0, gather=None):
     origins_Rx3, directions_Rx3, codes = self._per_frame(origins_Rx3, directions_Rx3, frames)
     viewdirs = directions_Rx3 / jnp.linalg.norm(directions_Rx3, axis=-1, keepdims=True)
     if self.model_config.field == "hashgrid":  # bounded (space is euclidean with regions: schema rule)
@@ -277,15 +285,33 @@ is the model above, unchanged.
     dispatches = [nerf_regions.dispatch_present(m, c) for m, c in zip(masks, capacities)]
     class_rows = [_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
                   for d in dispatches]
+    split_by = self.model_config.region_split_by if classes > 1 else "length"
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
-                       in_axes=(0, 0, None), out_axes=0)(fractions=nerf_regions.class_fractions(classes), **settings)
-    rendered = renderer(boxes, tuple(class_rows), anneal)
-    far_R = far[..., 0]
-    partials = {k: nerf_regions.scatter_classes([p[k] for p, _ in rendered], dispatches,
-                                                nerf_regions.empty_sums(far_R, k)) for k in rendered[0][0]}
+                       in_axes=(0, 0, None, 0), out_axes=0)(fractions=nerf_regions.class_fractions(classes),
+                                                            split_by=split_by, **settings)
+    rendered = renderer(boxes, tuple(class_rows), anneal, None)
     dropped = functools.reduce(jnp.logical_or, [d.dropped_LxR for d in dispatches])
-    local = {"present": present, "dropped": dropped,
-             "classes": [dict(class_local, dispatch=d) for (_, class_local), d in zip(rendered, dispatches)]}
+    local = {"present": present, "dropped": dropped, "dispatches": dispatches}
+    finals = dispatches
+    if split_by == "weights":
+      # The NeRF round by each segment's share of its ray's proposal weight: the opacities of every region's
+      # segments gathered over the regions (`gather`), the classes of the shares, rows anew (a class over its
+      # rows hands segments down), each row with its segment's histograms from the proposal rounds' rows.
+      opacity = jax.lax.stop_gradient(nerf_regions.scatter_classes([p["opacity"] for p in rendered], dispatches, 0.0))
+      everyone = (gather or (lambda x: x))({"opacity": opacity, "t_in": t_in})
+      shares = nerf_regions.weight_shares(everyone["opacity"], everyone["t_in"])[region_ids_L]
+      kept = functools.reduce(jnp.logical_or, [d.present_LxR & ~d.dropped_LxR for d in dispatches])
+      finals = nerf_regions.downgrade_dispatch(nerf_regions.sample_classes(shares, classes), kept,
+                                               nerf_regions.final_capacities(capacities))
+      carried = _carried(rendered, dispatches, finals)
+      rows = [_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
+              for d in finals]
+      rendered = renderer(boxes, tuple(rows), anneal, tuple(carried))
+      local["downgraded"] = functools.reduce(jnp.logical_or, [d.dropped_LxR for d in finals[:-1]])
+    far_R = far[..., 0]
+    partials = {k: nerf_regions.scatter_classes([p[k] for p, _ in rendered], finals,
+                                                nerf_regions.empty_sums(far_R, k)) for k in rendered[0][0]}
+    local["classes"] = [dict(class_local, dispatch=d) for (_, class_local), d in zip(rendered, finals)]
     return partials, local
 
   def _footprints(self, origins, directions, t_RxS) -> dict:
@@ -369,14 +395,20 @@ class RegionRenderer(nn.Module):
   grid_lookup: str = "gather"
 
   fractions: tuple = (1.0,)  # model.region_split: each sample class's share of the samples (regions.class_fractions)
+  split_by: str = "length"   # model.region_split_by
 
   @nn.compact
-  def __call__(self, box, rows, anneal):
+  def __call__(self, box, rows, anneal, carried=None):
     """`rows`: per sample class (of `fractions`), a dict of the rays it renders: uniforms (a tuple, per
     sampling round (R, n) or None), origins, directions, viewdirs, codes (or None), near, far (R, 1) and
     segment, each ray's (t_in, t_out) (R,) in the region (nerf_regions.segments_one_by_one's cut). Class j
     renders with every round's count at fractions[j] (nerf_regions.class_counts). Returns per class
-    (partials, local)."""
+    (partials, local).
+
+    With `split_by` 'weights' the rendering is two calls: without `carried`, the proposal rounds only,
+    returning per class what the NeRF round needs (_proposed: the histogram it draws from, the rounds'
+    histograms, the segment's opacity); with `carried` (per class of the NeRF round, those of its rows), the NeRF
+    round only, at its own class's count."""
     bound = self.model_config.hashgrid.bound
     local = lambda points: nerf_regions.to_box(points, *box, bound)  # noqa: E731  (the region's own box)
     made = dict(matmul_max_rows=self.grid_matmul_max_rows, materialize=self.grid_materialize,
@@ -387,12 +419,18 @@ class RegionRenderer(nn.Module):
     # Round by round, every class's samples through one call of the round's field (one set of lookups and
     # matmuls for the region, whatever the classes), then each class's own compositing.
     states = [self._start(fraction, **class_rows) for fraction, class_rows in zip(self.fractions, rows)]
-    for i, proposal_field in enumerate(proposal_fields):
-      points = [self._propose(state, i, anneal) for state in states]
-      for state, (sigma,) in zip(states, _fused(lambda p: (proposal_field(p),), [(local(p),) for p in points])):
-        sigma = sigma.reshape(state["t_mids"].shape)
-        state["weights"] = compositing.interval_weights(sigma, state["t_edges"], state["directions"])
-        state["proposals"].append({"s_edges": state["s_edges"], "weights": state["weights"]})
+    if carried is not None:  # (split_by 'weights', the NeRF round) the proposal rounds' histograms of its rows
+      for state, c in zip(states, carried):
+        state.update(s_edges=c["s_edges"], drawn=c["drawn"], proposals=c["proposals"])
+    else:
+      for i, proposal_field in enumerate(proposal_fields):
+        points = [self._propose(state, i, anneal) for state in states]
+        for state, (sigma,) in zip(states, _fused(lambda p: (proposal_field(p),), [(local(p),) for p in points])):
+          sigma = sigma.reshape(state["t_mids"].shape)
+          state["weights"] = compositing.interval_weights(sigma, state["t_edges"], state["directions"])
+          state["proposals"].append({"s_edges": state["s_edges"], "weights": state["weights"]})
+      if self.split_by == "weights":
+        return tuple(self._proposed(state, anneal) for state in states)
     inputs = [self._place(state, anneal) for state in states]
     outputs = _fused(field, [(local(points), dirs, *codes) for points, dirs, codes in inputs])
     return tuple(self._finish(state, rgb, sigma) for state, (rgb, sigma) in zip(states, outputs))
@@ -431,13 +469,20 @@ class RegionRenderer(nn.Module):
     state["t_mids"] = 0.5 * (state["t_edges"][..., 1:] + state["t_edges"][..., :-1])
     return self._points_at(state, state["t_mids"]).reshape(-1, 3)
 
+  def _proposed(self, state, anneal) -> dict:
+    """(split_by 'weights') A class's rows after the proposal rounds: the histogram the NeRF round draws from
+    (s_edges, drawn), every round's (proposals), and the segment's opacity (the last proposal's weights summed)."""
+    return dict(s_edges=state["s_edges"], drawn=_drawn_from(state["weights"], -1, self.proposal_padding, anneal),
+                proposals=state["proposals"], opacity=jnp.sum(state["weights"], axis=-1))
+
   def _place(self, state, anneal):
     """The NeRF field's samples of a class's rows: (points (N, 3), directions (N, 3), per-point codes)."""
     count = state["counts"][-1]
     if self.proposal_samples:
-      state["s_edges"] = stepfun.sample_intervals(state["s_edges"], _drawn_from(state["weights"], -1,
-                                                                                self.proposal_padding, anneal),
-                                                  count, self._uniforms(state, -1, count),
+      drawn = state.get("drawn")
+      if drawn is None:
+        drawn = _drawn_from(state["weights"], -1, self.proposal_padding, anneal)
+      state["s_edges"] = stepfun.sample_intervals(state["s_edges"], drawn, count, self._uniforms(state, -1, count),
                                                   domain=(state["s_in"], state["s_out"]))
       state["t_edges"] = self._warp(state, state["s_edges"])
       state["t_points"] = 0.5 * (state["t_edges"][..., 1:] + state["t_edges"][..., :-1])
@@ -485,6 +530,35 @@ def _class_rows(d, uniforms, origins, directions, viewdirs, codes, near, far, t_
              jnp.where(used, own_rows(t_out_LxR), far_rows[..., 0]))
   return dict(uniforms=tuple(own_rows(u) for u in uniforms), origins=rows(origins), directions=rows(directions),
               viewdirs=rows(viewdirs), codes=rows(codes), near=rows(near), far=far_rows, segment=segment)
+
+
+def _carried(proposed, dispatches, finals) -> list:
+  """(model.region_split_by=weights) Per class of the NeRF round (`finals`, Dispatches), its rows' histograms
+  from the proposal rounds (`proposed`, RegionRenderer._proposed's per length class, on the rows of
+  `dispatches`): the classes' rows one after the other, every histogram padded to the longest (its last edge
+  repeated, weight 0: never drawn from, adding nothing to a loss), gathered by each row's ray."""
+  rays = dispatches[0].slots_LxR.shape[1]
+  source = jnp.zeros_like(dispatches[0].slots_LxR)  # each segment's row among all the proposal rounds' rows
+  for d, offset in zip(dispatches, np.cumsum([0] + [d.capacity for d in dispatches])[:-1]):
+    source = jnp.where(d.slots_LxR < d.capacity, int(offset) + d.slots_LxR, source)
+
+  def stacked(edges, weights):  # per class (L, C_j, B_j + 1), (L, C_j, B_j) -> (L, sum C_j, ...) padded
+    bins = max(w.shape[-1] for w in weights)
+    pad = lambda x, n, value: jnp.concatenate(  # noqa: E731
+        [x, jnp.broadcast_to(value, x.shape[:-1] + (n,))], axis=-1) if n else x
+    return (jnp.concatenate([pad(e, bins - e.shape[-1] + 1, e[..., -1:]) for e in edges], axis=1),
+            jnp.concatenate([pad(w, bins - w.shape[-1], jnp.zeros((), w.dtype)) for w in weights], axis=1))
+
+  drawn = stacked([p["s_edges"] for p in proposed], [p["drawn"] for p in proposed])
+  rounds = [stacked([p["proposals"][i]["s_edges"] for p in proposed], [p["proposals"][i]["weights"] for p in proposed])
+            for i in range(len(proposed[0]["proposals"]))]
+  out = []
+  for d in finals:
+    picked = jnp.take_along_axis(source, jnp.minimum(d.rows_LxC, rays - 1), axis=1)[..., None]  # (L, C, 1)
+    take = lambda x: jnp.take_along_axis(x, picked, axis=1)  # noqa: E731
+    out.append(dict(s_edges=take(drawn[0]), drawn=take(drawn[1]),
+                    proposals=[{"s_edges": take(e), "weights": take(w)} for e, w in rounds]))
+  return out
 
 
 # The dense renderer's inputs that every region shares (its rays), against its own (uniforms, segment).

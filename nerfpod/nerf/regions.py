@@ -502,6 +502,49 @@ def class_capacities(capacity: float, classes: int, split_capacity: tuple = ()) 
   return tuple(float(f) for f in split_capacity) or (float(capacity),) * classes
 
 
+def final_capacities(capacities: tuple) -> tuple:
+  """model.region_split_by=weights: the rows of the NeRF field's sample classes from the length classes' C_j
+  (the proposal rounds'): C_j for every class but the last, which has every row of the proposal rounds (their
+  sum), so that a class over its rows hands its segments down (downgrade_dispatch) and the last holds them all."""
+  return tuple(capacities[:-1]) + (sum(capacities),)
+
+
+def split_evals(counts: tuple, capacities: tuple, by: str = "length") -> int:
+  """The field evaluations of a region's rows in the split step: `capacities` C_j rows of each length class at
+  every round's class_counts (`by` 'length'), or (`by` 'weights') the proposal rounds so and the NeRF round over
+  final_capacities' rows at each class's count."""
+  per_class = [class_counts(counts, f) for f in class_fractions(len(capacities))]
+  if by == "length":
+    return sum(c * sum(n) for c, n in zip(capacities, per_class))
+  return (sum(c * sum(n[:-1]) for c, n in zip(capacities, per_class))
+          + sum(c * n[-1] for c, n in zip(final_capacities(capacities), per_class)))
+
+
+def weight_shares(opacity_KxR, t_in_KxR):
+  """Each segment's share of its ray's weight (K, R): its opacity alpha_k (the proposal's weights of the
+  segment summed, from transmittance 1) times the transmittance of the segments before it in ray order
+  (prod (1 - alpha_j), sorted by t_in): the part of the ray's light the segment stops. An empty segment (alpha 0,
+  t_in at the far bound) takes 0 and changes no other's."""
+  order = jnp.argsort(t_in_KxR, axis=0)
+  alpha = jnp.take_along_axis(opacity_KxR, order, axis=0)
+  through = jnp.cumprod(1.0 - alpha, axis=0)
+  before = jnp.concatenate([jnp.ones_like(through[:1]), through[:-1]], axis=0)
+  return jnp.take_along_axis(before * alpha, jnp.argsort(order, axis=0), axis=0)
+
+
+def downgrade_dispatch(klass_LxR, rendered_LxR, capacities: tuple) -> list:
+  """The NeRF round's Dispatch of each sample class (model.region_split_by=weights): class j takes the segments
+  `rendered` of its class `klass` and those class j - 1 had no row for, the first C_j in ray order; the rest go
+  on to class j + 1 (fewer samples, never a dropped ray). The last class's capacity must hold every rendered
+  segment (final_capacities). A Dispatch's `dropped` are its segments handed down."""
+  out, handed = [], jnp.zeros_like(rendered_LxR)
+  for j, capacity in enumerate(capacities):
+    d = dispatch_present(rendered_LxR & ((klass_LxR == j) | handed), capacity)
+    out.append(d)
+    handed = d.dropped_LxR
+  return out
+
+
 def segment_shares(t_in_LxR, t_out_LxR, near_R1, far_R1, spacing: str):
   """Each segment's share of its ray (L, R): its length in the normalised distance s of the ray's [near, far]
   (coord.t_to_s under the model's `spacing`), as the region's renderer maps it (0 for an empty segment)."""

@@ -287,7 +287,7 @@ def region_traffic(step: dict) -> dict:
 
 def region_figures(batch: int, batch_devices: int, regions: int, region_axis: int, field_samples: int,
                    microbatches: int, capacity: float = 0.0, split_capacity: tuple = (),
-                   class_samples: tuple = ()) -> dict:
+                   class_samples: tuple = (), split_by: str = "length", sample_counts: tuple = ()) -> dict:
   """A region model's rays and field evaluations per chip and step (docs/scale.md, "Dispatch and capacity"),
   from its shapes: a chip holds its region group's rays, `batch` / `batch_devices` (the chips of the batch's
   axes: data, and slice), and renders L = `regions` / `region_axis` regions; each micro-batch (of
@@ -298,7 +298,9 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
   `field_evals_per_chip` is the step's as configured (compacted where a capacity is set, dense otherwise);
   `field_evals_per_chip_dense` the dense step's beside it. With model.region_split, `split_capacity` and
   `class_samples` are each sample class's fraction and field samples per row: `class_rows` its C_j, and a chip's
-  evaluations sum C_j x samples over the classes (`capacity_rows` their sum)."""
+  evaluations sum C_j x samples over the classes (`capacity_rows` their sum). With `split_by` 'weights' the NeRF
+  round's rows are the weight classes' (`final_rows`: regions.final_capacities) and the evaluations
+  regions.split_evals of the model's `sample_counts`."""
   from nerfpod.nerf import regions as regions_lib
   microbatches = max(1, microbatches)
   rays_per_chip = batch // batch_devices
@@ -317,6 +319,10 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
     out.update(split_capacity=list(split_capacity), class_rows=class_rows, class_samples=list(class_samples),
                capacity_rows=sum(class_rows),
                field_evals_per_chip=local * sum(c * n for c, n in zip(class_rows, class_samples)) * microbatches)
+    if split_by == "weights":
+      out.update(split_by=split_by, final_rows=list(regions_lib.final_capacities(tuple(class_rows))),
+                 field_evals_per_chip=local * regions_lib.split_evals(tuple(sample_counts), tuple(class_rows),
+                                                                      split_by) * microbatches)
   return out
 
 
@@ -400,20 +406,21 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
     report["regions"] = region_figures(tc.batch_size, distributed.batch_devices(mesh), config.model.regions,
                                        distributed.num_regions(mesh), sum(program.model.sample_counts()),
                                        report["microbatches"], float(config.model.region_capacity),
-                                       *_split_figures(config, program.model))
+                                       **_split_figures(config, program.model))
   return report
 
 
-def _split_figures(config, model) -> tuple:
-  """(split_capacity, class_samples) of region_figures for model.region_split > 1 (each class's fraction and
-  field samples per row), else ((), ())."""
+def _split_figures(config, model) -> dict:
+  """region_figures' keywords for model.region_split > 1 (each class's fraction and field samples per row, what
+  picks the NeRF round's classes, the model's sample counts), else none."""
   from nerfpod.nerf import regions as regions_lib
   classes = int(config.model.region_split)
   fractions = regions_lib.class_capacities(config.model.region_capacity, classes,
                                            tuple(config.model.region_split_capacity))
   if not fractions:
-    return (), ()
-  return fractions, regions_lib.class_samples(model.sample_counts(), classes)
+    return {}
+  return dict(split_capacity=fractions, class_samples=regions_lib.class_samples(model.sample_counts(), classes),
+              split_by=config.model.region_split_by, sample_counts=tuple(model.sample_counts()))
 
 
 def _compile_programs(report: dict, config, program, pod: chips.Pod, what, key, num_chips: int, hosts: list,
@@ -494,7 +501,14 @@ def format_report(report: dict) -> str:
     evals = (f"{g['regions_per_chip']} region(s) x {{}} rows x {g['field_samples_per_ray']} samples x "
              f"{g['microbatches']} micro-batch(es)")
     dense = f"{evals.format(g['rows_per_region'])} = {g['field_evals_per_chip_dense']:,} dense"
-    if g.get("class_rows"):
+    if g.get("final_rows"):  # (by weights: the proposal rounds' rows, then the NeRF round's)
+      share = g["field_evals_per_chip"] / g["field_evals_per_chip_dense"]
+      lines.append(f"  field evaluations per chip and step: {g['regions_per_chip']} region(s) x the proposal "
+                   f"rounds on {' + '.join(str(c) for c in g['class_rows'])} rows of the length classes and the "
+                   f"NeRF round on {' + '.join(str(c) for c in g['final_rows'])} rows of the weight classes x "
+                   f"{g['microbatches']} micro-batch(es) = {g['field_evals_per_chip']:,} ({share:.3g} of dense: "
+                   f"{dense})")
+    elif g.get("class_rows"):
       classes = " + ".join(f"{c} rows x {n} samples" for c, n in zip(g["class_rows"], g["class_samples"]))
       share = g["field_evals_per_chip"] / g["field_evals_per_chip_dense"]
       lines.append(f"  field evaluations per chip and step: {g['regions_per_chip']} region(s) x ({classes}) x "

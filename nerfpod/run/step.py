@@ -472,6 +472,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   # whole step is reported as (count of these rays) x (how many such shares make the step).
   shares = options.microbatches * distributed.batch_devices(mesh)
   field_samples = sum(model.sample_counts())  # a ray's field evaluations in one region: proposals' and NeRF's
+  split_by = model.model_config.region_split_by
   if options.region_split > 1 and options.region_capacity:  # per sample class
     field_samples = regions.class_samples(model.sample_counts(), options.region_split)
 
@@ -492,7 +493,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     capacity = options.capacity_rows(rays)  # C, or per sample class (model.region_split); 0 dense
     partials, own = model.apply(params, batch["origins"], batch["directions"], near, far, ids, tuple(uniforms),
                                 frames=batch.get("frame"), anneal=_anneal(options, step), capacity=capacity,
-                                method="render_partials")
+                                gather=gather, method="render_partials")
     # (Compacted) whether each ray's segment in each region found no row: riding the partial sums' gather, so
     # every device of the region axis knows every region's, and drops the ray whole.
     flags = {"dropped": jax.lax.stop_gradient(own["dropped"].astype(jnp.float32))} if capacity else {}
@@ -502,11 +503,15 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     # apart from the gather, whose traffic stays the dense step's).
     counts = jax.lax.stop_gradient(jnp.sum(own["present"], axis=1, dtype=jnp.float32))
     # (Split) the same per sample class (K, J)
-    class_counts = (jnp.stack([jnp.sum(c["dispatch"].present_LxR, axis=1, dtype=jnp.float32) for c in own["classes"]],
+    class_counts = (jnp.stack([jnp.sum(d.present_LxR, axis=1, dtype=jnp.float32) for d in own["dispatches"]],
                               axis=1) if isinstance(capacity, tuple) else None)
+    # (Split by weights) the segments a full class of the NeRF round handed down to fewer samples, all regions'
+    downgraded = (jnp.sum(own["downgraded"], dtype=jnp.float32) if "downgraded" in own else None)
     if axis_size > 1:
       counts = jax.lax.psum(jax.lax.dynamic_update_slice_in_dim(jnp.zeros(count), counts, first, axis=0),
                             distributed.REGION_AXIS)
+      if downgraded is not None:
+        downgraded = jax.lax.psum(downgraded, distributed.REGION_AXIS)
       if class_counts is not None:
         class_counts = jax.lax.psum(jax.lax.dynamic_update_slice_in_dim(
             jnp.zeros((count,) + class_counts.shape[1:]), class_counts, first, axis=0), distributed.REGION_AXIS)
@@ -518,7 +523,11 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
     mse = mean((out["rgb"] - target)**2)
     mses, loss = mse[None], mse
     extra = region_metrics(counts, rays, gathered.get("dropped"), capacity, local, field_samples,
-                           options.microbatches, shares, class_counts)
+                           options.microbatches, shares, class_counts,
+                           regions.split_evals(model.sample_counts(), capacity, split_by)
+                           if isinstance(capacity, tuple) else None)
+    if downgraded is not None:  # (a share of the step's segments: the mean over the shares is the step's)
+      extra["regions/downgraded"] = jax.lax.stop_gradient(downgraded) / jnp.maximum(jnp.sum(counts), 1.0)
     if model.proposal_samples:
       prefix = jax.lax.stop_gradient(jax.lax.dynamic_slice_in_dim(out["prefix"], first, local, axis=0))
       radii = options.interlevel_blur or (None,) * len(model.proposal_samples)  # None: mip-NeRF 360's loss
@@ -545,7 +554,7 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
 
 
 def region_metrics(counts_K, rays: int, dropped_KxR, capacity, local: int, field_samples,
-                   microbatches: int, shares: int, class_counts_KxJ=None) -> dict:
+                   microbatches: int, shares: int, class_counts_KxJ=None, evals: int | None = None) -> dict:
   """A region step's visibility (docs/scale.md, "Dispatch and capacity") of these `rays` rays (one device's,
   one micro-batch's): `counts` (K,), how many of them have a segment in each region; `dropped` (K, R) or None
   (dense), whether each ray's segment in each region found no row within `capacity` C (0: dense). The step's
@@ -557,10 +566,13 @@ def region_metrics(counts_K, rays: int, dropped_KxR, capacity, local: int, field
   regions/capacity              C, rows per region (compacted only)
   With model.region_split, `capacity` and `field_samples` are per sample class (C_j, and a class's samples per
   row), and `class_counts_KxJ` each region's rays per class: fill is the fullest (region, class)'s count over its
-  C_j, field evaluations sum C_j x samples over the classes, and capacity is the rows of every class."""
+  C_j, field evaluations sum C_j x samples over the classes (or `evals`, a region's rows' evaluations:
+  regions.split_evals), and capacity is the rows of every class.
+  regions/downgraded (model.region_split_by=weights, added by the step) the share of the segments that a full
+  class of the NeRF round handed down to fewer samples"""
   if isinstance(capacity, tuple):  # model.region_split: per sample class, its rows C_j and samples per row
     fill = jnp.max(class_counts_KxJ / jnp.asarray(capacity, jnp.float32))
-    evals = sum(c * n for c, n in zip(capacity, field_samples))
+    evals = sum(c * n for c, n in zip(capacity, field_samples)) if evals is None else evals
     capacity = sum(capacity)
   else:
     rows = capacity or rays
