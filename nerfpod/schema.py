@@ -290,12 +290,12 @@ FIELDS: dict[str, Field] = _declare({
         "docs/scale.md#a-flat-cost-per-ray): each segment renders 2^-j of every sampling round's count, j the "
         "class of its share of the ray (the smallest 2^-j at least the share, j < this), each class with its own "
         "rows; 0 or 1: every segment with every sample"),
-    "model.region_split_by": ("length", choice("length", "weights"),
-        "model.region_split=J: what picks a segment's class for the NeRF field's samples: 'length' (its share of "
-        "the ray, before any sampling: every round at that class) or 'weights' (the proposal rounds at the "
-        "length's class, then the NeRF's samples by the segment's share of the ray's proposal weight, gathered "
-        "over the regions: where the surface is; a class over its rows gives its segments the next class's "
-        "samples rather than dropping them, docs/scale.md#a-flat-cost-per-ray)"),
+    "model.region_split_by": ("weights", choice("length", "weights"),
+        "model.region_split=J: what picks a segment's class for the NeRF field's samples: 'weights' (the "
+        "proposal rounds at the class of the segment's length, then the NeRF's samples by the segment's share of "
+        "the ray's proposal weight, gathered over the regions: where the surface is; a class over its rows gives "
+        "its segments the next class's samples rather than dropping them; needs proposal sampling) or 'length' "
+        "(its share of the ray, before any sampling: every round at that class; docs/scale.md#a-flat-cost-per-ray)"),
     "model.region_split_capacity": ((), fractions(),
         "model.region_split=J: the capacity of each of the J sample classes, a fraction of a chip's rays "
         "(as model.region_capacity); (): model.region_capacity for every class. model.region_capacity=auto "
@@ -659,11 +659,11 @@ def _rules(c: dict) -> list[str]:
     out.append(f"model.region_split={split} splits a ray's samples across its segments in the regions' "
                f"compacted step, which needs model.regions > 1 and a capacity; add "
                f"--config.model.region_capacity=auto (or --config.model.region_split=0).")
-  if c["model.region_split_by"] == "weights" and (split <= 1 or not c["render.proposal_samples"]):
-    out.append(f"model.region_split_by=weights splits the NeRF field's samples by the proposal rounds' weights, "
-               f"which needs model.region_split > 1 and proposal sampling (render.proposal_samples="
-               f"{_show(c['render.proposal_samples'])}, model.region_split={split}); set both (e.g. "
-               f"--config.model.region_split=3), or --config.model.region_split_by=length.")
+  if split > 1 and c["model.region_split_by"] == "weights" and not c["render.proposal_samples"]:
+    out.append(f"model.region_split={split} splits the NeRF field's samples by the proposal rounds' weights "
+               f"(model.region_split_by=weights), and render.proposal_samples=() has no proposal rounds; use "
+               f"--config.model.region_split_by=length (or give proposal rounds, e.g. "
+               f"--config.render.proposal_samples='(32,)').")
   if split_capacity and len(split_capacity) != max(split, 1):
     out.append(f"model.region_split_capacity={_show(split_capacity)} gives {len(split_capacity)} capacities for "
                f"model.region_split={split}'s {max(split, 1)} sample class(es); give one fraction per class "

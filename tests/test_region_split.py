@@ -28,9 +28,10 @@ CLASS_COUNTS = [(8, 6), (4, 3), (2, 2)]
 
 def _config(**overrides):
   """tests/test_region_step.py's tiny 4-region config (a 2 x 2 grid, 8 proposal intervals then 6 samples) with
-  BATCH rays a step and CLASSES sample classes."""
+  BATCH rays a step and CLASSES sample classes, split by the segments' lengths (the tests of the weights' split
+say so)."""
   return _region_step_config(**({"train.batch_size": BATCH, "model.region_split": CLASSES,
-                                 "model.region_capacity": 1.0} | overrides))
+                                 "model.region_capacity": 1.0, "model.region_split_by": "length"} | overrides))
 
 
 def _host_classes(t_in, t_out, near, far):
@@ -263,12 +264,14 @@ def test_the_config_refuses_a_split_without_a_capacity_or_with_another_count_of_
       "give one fraction per class (or --config.model.region_split_capacity='()': model.region_capacity for "
       "every class)."]
   schema.validate(_config(**{"model.region_capacity": "auto"}))  # (measured: no capacities needed)
-  for bad in ({"model.region_split": 0}, {"render.proposal_samples": ()}):
-    with pytest.raises(schema.ConfigError) as refused:
-      schema.validate(_config(**{"model.region_split_by": "weights", "model.region_capacity": 0.5} | bad))
-    assert refused.value.messages[-1].startswith(
-        "model.region_split_by=weights splits the NeRF field's samples by the proposal rounds' weights, which needs "
-        "model.region_split > 1 and proposal sampling")
+  with pytest.raises(schema.ConfigError) as refused:
+    schema.validate(_config(**{"model.region_split_by": "weights", "render.proposal_samples": ()}))
+  assert refused.value.messages == [
+      "model.region_split=3 splits the NeRF field's samples by the proposal rounds' weights "
+      "(model.region_split_by=weights), and render.proposal_samples=() has no proposal rounds; use "
+      "--config.model.region_split_by=length (or give proposal rounds, e.g. --config.render.proposal_samples='(32,)')."]
+  schema.validate(_config(**{"model.region_split_by": "length", "render.proposal_samples": ()}))
+  schema.validate(_config(**{"model.region_split_by": "weights", "model.region_split": 0}))  # (no split: no effect)
 
 
 def test_the_pod_tools_figures_count_each_class_at_its_samples():
