@@ -253,6 +253,8 @@ EXTENDED = (
     "test_region_step.py::test_each_device_share_of_the_regions_composites_to_the_whole_model",
     "test_region_step.py::test_sharded_regions_step_matches_the_whole_model_on_one_device",  # (its 2 x 4 is quick)
     # (test_region_step's gradient clip over every region's gradients stays in the gate, 12 s.)
+    # The split by weights on 2 x 4 (the gate keeps its rendering against dense models and the length split's step).
+    "test_region_split.py::test_the_weighted_split_step_on_a_region_mesh_is_the_one_devices",
     # pycolmap on the cup's photos, the horns' photos twice and the horns' video (prepare's quick tests run it on
     # synthetic photos), the fox through the command line (test_real_configs trains the cup and the horns).
     "test_prepare.py",
