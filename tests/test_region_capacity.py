@@ -478,6 +478,41 @@ def test_a_run_with_auto_records_its_fraction_and_its_resume_compiles_the_same_c
   assert capacity == {1: measured.capacity, 2: measured.capacity, 3: measured.capacity, 4: measured.capacity}
 
 
+@pytest.mark.slow  # (a region run through the loop, ~8 s; the quick loop checks the fit's counts and fractions,
+# test_a_fitted_micro_batch_gets_the_margin_of_its_own_rays, with the compiler standing in)
+def test_a_run_fitted_to_two_micro_batches_trains_with_and_records_their_margin(tmp_path, monkeypatch, capsys):
+  """train.microbatches=0 with auto, a budget only two micro-batches fit (XLA's analysis of each compiled step
+  stands in: the one-micro-batch step over it): the run says and records F for 64 rays a micro-batch, and its
+  step renders C = capacity_rows(F, 64) rows (the step's own regions/capacity scalar)."""
+  import json
+  from nerfpod import monitor
+  from nerfpod.run import compilation
+  from tensorboard.backend.event_processing import event_accumulator
+  monkeypatch.setattr(compilation, "memory_budget_bytes", lambda config: 150)
+  monkeypatch.setattr(compilation, "step_memory_bytes", lambda compiled: 200 if "1 micro" in seen[-1] else 100)
+  seen = []
+  fitted = step.fitted_capacity
+  monkeypatch.setattr(step, "fitted_capacity", lambda comps, count: seen.append(f"{count} micro") or fitted(comps, count))
+  config = _config(**{"model.region_capacity": "auto", "train.microbatches": 0, "train.num_steps": 2,
+                      "train.log_every": 1, "train.image_every": 0, "orbit.render_after_training": False})
+  comps = components.build(config, _one())
+  watch = monitor.Monitor(str(tmp_path), 2, BATCH, config)
+  try:
+    train.train(comps, str(tmp_path), watch)
+  finally:
+    watch.close(0)
+  measured = step.measure_capacity(comps.config, comps.scene, _one(), comps.model.partition, 2.0, 6.0)
+  wide = measured.at_rows(BATCH // 2)
+  assert wide.fraction > measured.fraction
+  lines = [l for l in capsys.readouterr().out.splitlines() if "model.region_capacity=auto" in l]
+  assert lines == [f"nerfpod: {measured.line()}",
+                   f"nerfpod: {wide.line()} (its margin for one of the 2 micro-batches)"]
+  assert json.loads((tmp_path / "config.json").read_text())["model"]["region_capacity"] == wide.fraction
+  events = event_accumulator.EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})
+  events.Reload()
+  assert {e.value for e in events.Scalars("train/regions/capacity")} == {regions.capacity_rows(wide.fraction, 64)}
+
+
 @pytest.mark.parametrize("cut", ["grid", "cameras", "balanced"])
 def test_the_tools_region_cut_is_the_run_models(cut):
   """components.region_cut (what nerfpod aot's auto measures on) is the partition of the model that
