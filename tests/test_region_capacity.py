@@ -528,19 +528,20 @@ def test_the_tools_region_cut_is_the_run_models(cut):
 
 
 def test_a_tool_without_a_run_measures_auto_on_a_built_in_scene_and_asks_for_a_number_otherwise(capsys):
-  """step.resolve_capacity (nerfpod aot's): the built-in scene made and measured, its line on stderr; a scene
-  it would have to read (data.kind=blender) refused in one sentence asking for a fraction; a number kept."""
+  """step.measure_for_tool (nerfpod aot's): the built-in scene made and measured, its line on stderr; a scene
+  it would have to read (data.kind=blender) refused in one sentence asking for a fraction; a number kept (none
+  measured)."""
   config = _config(**{"model.region_capacity": "auto"})
-  resolved = step.resolve_capacity(config, _one())
+  resolved = step.measure_for_tool(config, _one())
   scene, _ = _batches(config, 0)
   model = components.make_model(config)
   measured = step.measure_capacity(config, scene, _one(), model.partition, 2.0, 6.0)
-  assert resolved.model.region_capacity == measured.fraction and config.model.region_capacity == "auto"
+  assert resolved == measured and config.model.region_capacity == "auto"
   assert capsys.readouterr().err.splitlines()[-1] == f"nerfpod: {measured.line()} (on data.kind=procedural)"
   numbered = _config(**{"model.region_capacity": 0.5})
-  assert step.resolve_capacity(numbered, _one()) is numbered
+  assert step.measure_for_tool(numbered, _one()) is None
   with pytest.raises(UserError) as refused:
-    step.resolve_capacity(_config(**{"model.region_capacity": "auto", "data.kind": "blender", "data.path": "/x"}),
+    step.measure_for_tool(_config(**{"model.region_capacity": "auto", "data.kind": "blender", "data.path": "/x"}),
                           _one())
   assert str(refused.value) == (
       "model.region_capacity=auto is measured on the scene's training rays, and this tool loads only the built-in "

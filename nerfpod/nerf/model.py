@@ -283,13 +283,16 @@ is the model above, unchanged.
     else:
       masks = [present]
     dispatches = [nerf_regions.dispatch_present(m, c) for m, c in zip(masks, capacities)]
-    class_rows = [_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
-                  for d in dispatches]
+
+    def rows_of(dispatched):  # RegionRenderer's rows of each Dispatch
+      return tuple(_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
+                   for d in dispatched)
+
     split_by = self.model_config.region_split_by if classes > 1 else "length"
     renderer = nn.vmap(RegionRenderer, variable_axes={"params": 0}, split_rngs={"params": True},
                        in_axes=(0, 0, None, 0), out_axes=0)(fractions=nerf_regions.class_fractions(classes),
                                                             split_by=split_by, **settings)
-    rendered = renderer(boxes, tuple(class_rows), anneal, None)
+    rendered = renderer(boxes, rows_of(dispatches), anneal, None)
     dropped = functools.reduce(jnp.logical_or, [d.dropped_LxR for d in dispatches])
     local = {"present": present, "dropped": dropped, "dispatches": dispatches}
     finals = dispatches
@@ -300,13 +303,9 @@ is the model above, unchanged.
       opacity = jax.lax.stop_gradient(nerf_regions.scatter_classes([p["opacity"] for p in rendered], dispatches, 0.0))
       everyone = (gather or (lambda x: x))({"opacity": opacity, "t_in": t_in})
       shares = nerf_regions.weight_shares(everyone["opacity"], everyone["t_in"])[region_ids_L]
-      kept = functools.reduce(jnp.logical_or, [d.present_LxR & ~d.dropped_LxR for d in dispatches])
-      finals = nerf_regions.downgrade_dispatch(nerf_regions.sample_classes(shares, classes), kept,
+      finals = nerf_regions.downgrade_dispatch(nerf_regions.sample_classes(shares, classes), present & ~dropped,
                                                nerf_regions.final_capacities(capacities))
-      carried = _carried(rendered, dispatches, finals)
-      rows = [_class_rows(d, uniforms, origins_Rx3, directions_Rx3, viewdirs, codes, near, far, t_in, t_out)
-              for d in finals]
-      rendered = renderer(boxes, tuple(rows), anneal, tuple(carried))
+      rendered = renderer(boxes, rows_of(finals), anneal, tuple(_carried(rendered, dispatches, finals)))
       local["downgraded"] = functools.reduce(jnp.logical_or, [d.dropped_LxR for d in finals[:-1]])
     far_R = far[..., 0]
     partials = {k: nerf_regions.scatter_classes([p[k] for p, _ in rendered], finals,

@@ -292,7 +292,7 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
   from its shapes: a chip holds its region group's rays, `batch` / `batch_devices` (the chips of the batch's
   axes: data, and slice), and renders L = `regions` / `region_axis` regions; each micro-batch (of
   `microbatches`) gives each region R rows, or C = regions.capacity_rows(`capacity`, R) with
-  model.region_capacity (a fraction: 'auto' is measured before, step.resolve_capacity); a row costs
+  model.region_capacity (a fraction: 'auto' is measured before, step.measure_for_tool); a row costs
   `field_samples` field evaluations (sum of NeRF.sample_counts(): the proposal rounds' and the NeRF's). The
   same figures as the step's regions/field_evals_per_chip (dense: L x R x field_samples x microbatches).
   `field_evals_per_chip` is the step's as configured (compacted where a capacity is set, dense otherwise);

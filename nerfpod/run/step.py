@@ -4,7 +4,7 @@
     field_loss, local_step, accumulate   its pieces: the one-field loss (_region_loss_fn: a region model's), one
                        device's share of the step, the micro-batches' gradient accumulation
     Options            the loss's settings, micro-batches and the backend's policy; Options.of(config, ...)
-    measure_capacity, with_capacity, resolve_capacity   model.region_capacity=auto: the fraction measured on the
+    measure_capacity, with_capacity, measure_for_tool   model.region_capacity=auto: the fraction measured on the
                        training rays (a run's, nerfpod train.train; a tool's, on a built-in scene)
     for_program        the step of a config's Components (runs and the pod tool)
     compile_fitted     compiled for Components' shapes, with train.microbatches=0 fitted to a memory budget
@@ -123,10 +123,12 @@ AUTO_WITHOUT_SCENE = ("model.region_capacity=auto is measured on the scene's tra
                       "workdir's config.json records it), or --config.model.region_capacity=0.75.")
 
 
-def region_rows(config, mesh) -> int:
+def region_rows(config, mesh, microbatches: int | None = None) -> int:
   """R, the rays each region of a chip renders in one micro-batch: train.batch_size over the chips of the
-  batch's axes, over train.microbatches (0, fitted at start-up: taken as 1, the most rows there can be)."""
-  return config.train.batch_size // distributed.batch_devices(mesh) // max(1, config.train.microbatches)
+  batch's axes, over `microbatches` (default train.microbatches; 0, fitted at start-up: taken as 1, the most rows
+  there can be)."""
+  count = config.train.microbatches if microbatches is None else microbatches
+  return config.train.batch_size // distributed.batch_devices(mesh) // max(1, count)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,9 +149,11 @@ class MeasuredCapacity:
     return regions.capacity_rows(self.fraction, self.rows)
 
   def at_rows(self, rows: int) -> "MeasuredCapacity":
-    """The same shares with the margin for a chip's `rows` rays (a fitted micro-batch's): F (and F_j) anew."""
-    fractions = tuple(regions.auto_fraction(float(np.max(np.asarray(self.class_counts)[:, j])) / self.rays, rows)
-                      for j in range(len(self.split_fractions)))
+    """The same shares with the margin for a chip's `rows` rays (a fitted micro-batch's): F, and with classes
+    F_j of each class's fullest share, F their largest (regions.auto_fraction)."""
+    by_class = np.asarray(self.class_counts).reshape(len(self.counts), -1)  # (K, J), or (K, 0) without classes
+    fractions = tuple(regions.auto_fraction(float(np.max(by_class[:, j])) / self.rays, rows)
+                      for j in range(by_class.shape[1]))
     fraction = (max(fractions) if fractions else
                 regions.auto_fraction(float(np.max(self.counts)) / self.rays, rows))
     return dataclasses.replace(self, rows=rows, fraction=fraction, split_fractions=fractions)
@@ -186,13 +190,11 @@ def measure_capacity(config, scene, mesh, partition: regions.Partition, near: fl
   rows = region_rows(config, mesh)
   if classes <= 1:
     counts = regions.segment_counts(origins, directions, near, far, partition, bound)
-    return MeasuredCapacity(tuple(int(c) for c in counts), AUTO_RAYS, rows,
-                            regions.auto_fraction(float(np.max(counts)) / AUTO_RAYS, rows))
+    return MeasuredCapacity(tuple(int(c) for c in counts), AUTO_RAYS, 0, 0.0).at_rows(rows)
   by_class = regions.segment_counts(origins, directions, near, far, partition, bound, classes=classes,
                                     spacing=config.render.spacing)
-  fractions = tuple(regions.auto_fraction(float(np.max(by_class[:, j])) / AUTO_RAYS, rows) for j in range(classes))
-  return MeasuredCapacity(tuple(int(c) for c in by_class.sum(axis=1)), AUTO_RAYS, rows, max(fractions),
-                          tuple(tuple(int(c) for c in row) for row in by_class), fractions)
+  return MeasuredCapacity(tuple(int(c) for c in by_class.sum(axis=1)), AUTO_RAYS, 0, 0.0,
+                          tuple(tuple(int(c) for c in row) for row in by_class)).at_rows(rows)
 
 
 def with_capacity(config, fraction: float, split_fractions: tuple = ()):
@@ -203,13 +205,6 @@ def with_capacity(config, fraction: float, split_fractions: tuple = ()):
   if split_fractions:
     out.model.region_split_capacity = tuple(float(f) for f in split_fractions)
   return out
-
-
-def resolve_capacity(config, mesh):
-  """`config` with model.region_capacity=auto measured (measure_for_tool), for a tool that has no run's scene.
-  Any other config comes back as it is."""
-  measured = measure_for_tool(config, mesh)
-  return config if measured is None else with_capacity(config, measured.fraction, measured.split_fractions)
 
 
 def measure_for_tool(config, mesh) -> MeasuredCapacity | None:
@@ -473,8 +468,6 @@ def _region_loss_fn(model, mesh, near: float, far: float, background, options: O
   shares = options.microbatches * distributed.batch_devices(mesh)
   field_samples = sum(model.sample_counts())  # a ray's field evaluations in one region: proposals' and NeRF's
   split_by = model.model_config.region_split_by
-  if options.region_split > 1 and options.region_capacity:  # per sample class
-    field_samples = regions.class_samples(model.sample_counts(), options.region_split)
 
   def gather(x):  # (L, R, ...) on each device -> (K, R, ...), the same on every device of the region axis
     return x if axis_size == 1 else distributed.gather_regions(x)
@@ -564,15 +557,13 @@ def region_metrics(counts_K, rays: int, dropped_KxR, capacity, local: int, field
   regions/dropped               the rays dropped in the step (each reported x shares, so the mean is the sum)
   regions/field_evals_per_chip  the rows a chip renders in the step x field samples per ray (`field_samples`)
   regions/capacity              C, rows per region (compacted only)
-  With model.region_split, `capacity` and `field_samples` are per sample class (C_j, and a class's samples per
-  row), and `class_counts_KxJ` each region's rays per class: fill is the fullest (region, class)'s count over its
-  C_j, field evaluations sum C_j x samples over the classes (or `evals`, a region's rows' evaluations:
-  regions.split_evals), and capacity is the rows of every class.
+  With model.region_split, `capacity` is per sample class (C_j), `class_counts_KxJ` each region's rays per class
+  and `evals` a region's rows' field evaluations (regions.split_evals; `field_samples` unused): fill is the
+  fullest (region, class)'s count over its C_j, and capacity is the rows of every class.
   regions/downgraded (model.region_split_by=weights, added by the step) the share of the segments that a full
   class of the NeRF round handed down to fewer samples"""
   if isinstance(capacity, tuple):  # model.region_split: per sample class, its rows C_j and samples per row
     fill = jnp.max(class_counts_KxJ / jnp.asarray(capacity, jnp.float32))
-    evals = sum(c * n for c, n in zip(capacity, field_samples)) if evals is None else evals
     capacity = sum(capacity)
   else:
     rows = capacity or rays
@@ -651,7 +642,7 @@ def fitted_capacity(comps: Components, microbatches: int) -> Components:
   measured = comps.capacity_measured
   if measured is None or microbatches <= 1:
     return comps
-  rows = comps.config.train.batch_size // distributed.batch_devices(comps.mesh) // microbatches
+  rows = region_rows(comps.config, comps.mesh, microbatches)
   if rows == measured.rows:
     return comps
   refit = measured.at_rows(rows)
