@@ -28,21 +28,30 @@ def _mlp_field(**sizes):
   return fields.MLPField(**attributes)
 
 
+def _hierarchical_model(field="mlp", dtype="float32", importance=24):
+  return components.make_model(smoke_config(**{
+      "model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32, "model.mlp.skips": (1,),
+      "model.use_viewdirs": True, "render.num_samples": 16, "render.num_importance": importance,
+      "model.compute_dtype": dtype, "render.proposal_samples": ()}))
+
+
+@functools.cache  # (read only, as _proposal_model)
 def _hierarchical(field="mlp", dtype="float32", importance=24):
-  config = smoke_config(**{"model.field": field, "model.mlp.depth": 3, "model.mlp.width": 32,
-                           "model.mlp.skips": (1,), "model.use_viewdirs": True, "render.num_samples": 16,
-                           "render.num_importance": importance, "model.compute_dtype": dtype,
-                           "render.proposal_samples": ()})
-  model = components.make_model(config)
+  model = _hierarchical_model(field, dtype, importance)
   origins, directions = _rays()
   params = jax.jit(model.init, static_argnums=(3, 4))(jax.random.key(0), origins, directions, 2.0, 6.0,
                                                       jnp.ones(3))
   return model, params, origins, directions
 
 
+_JITTED = {}  # id(model) -> (model, its jitted apply): one trace and program per model and shapes in a worker
+
+
 def _apply(model, *args):
   """model.apply, jitted (the near/far bounds are static floats)."""
-  return jax.jit(model.apply, static_argnums=(3, 4))(*args)
+  if id(model) not in _JITTED:
+    _JITTED[id(model)] = model, jax.jit(model.apply, static_argnums=(3, 4))
+  return _JITTED[id(model)][1](*args)
 
 
 def test_hierarchical_sampling_renders_coarse_and_fine_with_union_of_samples():
@@ -105,17 +114,21 @@ def test_tutorial_mlp_has_the_tutorial_shapes():
 @pytest.mark.parametrize("field", ["mlp", "hashgrid"])
 def test_bfloat16_matmuls_keep_float32_parameters_and_close_outputs(field):
   model32, params, origins, directions = _hierarchical(field, "float32", importance=0)
-  model16, _, _, _ = _hierarchical(field, "bfloat16", importance=0)
+  model16 = _hierarchical_model(field, "bfloat16", importance=0)  # (model32's parameters: no init of its own)
   assert all(p.dtype == jnp.float32 for p in jax.tree.leaves(params))
   out32 = _apply(model32, params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
-  out16 = _apply(model16, params, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]
-  assert out16["rgb"].dtype == jnp.float32
-  np.testing.assert_allclose(out16["rgb"], out32["rgb"], atol=0.05)
-  grads = jax.jit(jax.grad(
-      lambda p: jnp.sum(model16.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]["rgb"])))(params)
+
+  @jax.jit  # the bfloat16 model's output and gradients: one program
+  def run16(p):
+    rgb = lambda p: model16.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3))[-1]["rgb"]  # noqa: E731
+    return rgb(p), jax.grad(lambda p: jnp.sum(rgb(p)))(p)
+  rgb16, grads = run16(params)
+  assert rgb16.dtype == jnp.float32
+  np.testing.assert_allclose(rgb16, out32["rgb"], atol=0.05)
   assert all(g.dtype == jnp.float32 for g in jax.tree.leaves(grads))
 
 
+@functools.cache  # (read only: the tests share the model, its parameters and its programs)
 def _proposal_model(field="hashgrid", proposal_samples=(12, 8), num_samples=6):
   config = smoke_config(**{"model.field": field, "model.mlp.depth": 2, "model.mlp.width": 16,
                            "model.mlp.skips": (), "model.use_viewdirs": True,
@@ -169,10 +182,11 @@ def test_photometric_loss_reaches_only_the_nerf_and_interlevel_loss_only_the_pro
                for q in out["proposals"])
 
   nonzero = lambda tree: any(np.any(np.asarray(g) != 0) for g in jax.tree.leaves(tree))
-  grads = jax.jit(jax.grad(photometric))(params)["params"]
+  both = jax.jit(lambda p: (jax.grad(photometric)(p)["params"], jax.grad(interlevel)(p)["params"]))  # one program
+  grads, grads_interlevel = both(params)
   assert nonzero(grads["coarse"])
   assert not nonzero(grads["proposal_0"]) and not nonzero(grads["proposal_1"])  # positions carry none
-  grads = jax.jit(jax.grad(interlevel))(params)["params"]
+  grads = grads_interlevel
   assert not nonzero(grads["coarse"])
   assert nonzero(grads["proposal_0"]) and nonzero(grads["proposal_1"])
 
@@ -204,11 +218,15 @@ def test_near_gradient_scaling_renders_the_same_and_only_the_nerf_fields_gradien
   model, params, origins, directions = _proposal_model()
   scaled = model.clone(near_gradient_distance=8.0)  # every sample (2 to 6 from its origin) is scaled
   uniforms = _uniforms(model)
-  outs = [_apply(m, params, origins, directions, 2.0, 6.0, jnp.ones(3), *uniforms)[-1] for m in (model, scaled)]
+
+  def rendered_and_grads(m):  # one program per model: its rendering and the gradients of its colours' sum
+    def rgb_sum(p):
+      out = m.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3), *uniforms)[-1]
+      return jnp.sum(out["rgb"]), out
+    (_, out), grads = jax.jit(jax.value_and_grad(rgb_sum, has_aux=True))(params)
+    return out, grads["params"]
+  (out_plain, grads_plain), (out_near, grads_near) = rendered_and_grads(model), rendered_and_grads(scaled)
   for key in ("rgb", "depth", "acc", "weights"):
-    np.testing.assert_array_equal(outs[0][key], outs[1][key])
-  grads = [jax.jit(jax.grad(lambda p, m=m: jnp.sum(m.apply(p, origins, directions, 2.0, 6.0, jnp.ones(3),
-                                                           *uniforms)[-1]["rgb"])))(params)["params"]
-           for m in (model, scaled)]
-  plain, near = (np.concatenate([np.ravel(g) for g in jax.tree.leaves(g["coarse"])]) for g in grads)
+    np.testing.assert_array_equal(out_plain[key], out_near[key])
+  plain, near = (np.concatenate([np.ravel(g) for g in jax.tree.leaves(g["coarse"])]) for g in (grads_plain, grads_near))
   assert np.abs(near).sum() < 0.6 * np.abs(plain).sum()  # scaled by (t / 8)^2 <= 0.56
