@@ -8,12 +8,11 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 from jax.sharding import Mesh
 
 import procs
-from test_region_step import _batches, _region_mesh
+from test_region_step import SGD, _batches, _model, _region_mesh
 from test_region_step import _config as _region_step_config
 from nerfpod import distributed
 from nerfpod.errors import UserError
@@ -40,9 +39,9 @@ def _run(mesh, capacity, steps=2, batches=None, optimizer=None, microbatches=1, 
   """(state, metrics of each step) of `steps` steps (plain SGD: the parameters move exactly as the gradients)."""
   config = _config(**overrides)
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
-  model = components.make_model(config, num_frames=100 if per_frame else 0)
+  model = _model(config, num_frames=100 if per_frame else 0)
   scene, own = _batches(config, steps, per_frame)
-  optimizer = optimizer or optax.sgd(1.0)
+  optimizer = optimizer or SGD
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
                                  step.Options(random_background=True, distortion_weight=0.01,
@@ -246,7 +245,7 @@ def test_an_overflow_drops_whole_rays_counts_them_and_trains_on_the_rest(segment
   share = (~dropped).sum() / BATCH
   for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
     np.testing.assert_allclose(metrics[key], share * kept_metrics[key], rtol=2e-5, err_msg=key)
-  initial = jax.device_get(train_state.initial_state(components.make_model(_config()), optax.sgd(1.0), 0,
+  initial = jax.device_get(train_state.initial_state(_model(_config()), SGD, 0,
                                                      _one()).params)
   jax.tree.map(lambda got, kept, start: np.testing.assert_allclose(got - start, share * (kept - start), rtol=1e-4,
                                                                    atol=1e-6),

@@ -9,11 +9,10 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
 from test_region_capacity import _one, _step_scalars
-from test_region_step import _batches, _region_mesh
+from test_region_step import SGD, _batches, _model, _region_mesh
 from test_region_step import _config as _region_step_config
 from nerfpod import distributed, schema
 from nerfpod.errors import UserError
@@ -117,9 +116,9 @@ def test_the_split_rendering_is_each_segment_rendered_dense_at_its_class_counts(
 def _run(mesh, steps=2, **overrides):
   """(state, metrics of each step) of `steps` SGD steps of the split step."""
   config = _config(**overrides)
-  model = components.make_model(config)
+  model = _model(config)
   scene, batches = _batches(config, steps)
-  optimizer = optax.sgd(1.0)
+  optimizer = SGD
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   options = step.Options(random_background=True, distortion_weight=0.01, region_capacity=1.0,
                          region_split=CLASSES, region_split_capacity=tuple(config.model.region_split_capacity))

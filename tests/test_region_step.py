@@ -27,6 +27,21 @@ def _config(**overrides):
   return smoke_config(**(tiny | overrides))
 
 
+# One optimiser object and one model object per config in a worker: train_state.initial_state traces and
+# compiles its init once per (model, optimiser) pair, so the tests of these files that start from the same
+# config share that program rather than tracing it again (models and optimisers are immutable).
+SGD = optax.sgd(1.0)
+_MODELS = {}
+
+
+def _model(config, num_frames=0):
+  """components.make_model(config, num_frames=num_frames), the same object for the same config."""
+  key = (config.to_json(), num_frames)
+  if key not in _MODELS:
+    _MODELS[key] = components.make_model(config, num_frames=num_frames)
+  return _MODELS[key]
+
+
 def _rays(count=64, seed=0):
   rng = np.random.default_rng(seed)
   origins = rng.normal(size=(count, 3)) * 0.3 + np.array([0.0, 0.0, 4.0])
@@ -88,7 +103,7 @@ def _batches(config, steps, with_frames=False):
 
 def _run(mesh, config, steps, optimizer, grad_clip=0.0):
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
-  model = components.make_model(config, num_frames=100 if per_frame else 0)
+  model = _model(config, num_frames=100 if per_frame else 0)
   scene, batches = _batches(config, steps, per_frame)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
@@ -123,7 +138,7 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   (the gather's transpose summing every region device's cotangent) would show at once. (2, 1, 4): two
   simulated slices, (slice, data, region)."""
   config = _config(**{"model.regions": 4})
-  sgd = optax.sgd(1.0)
+  sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   if len(shape) == 3:
     mesh = distributed.make_mesh(num_slices=shape[0], regions=shape[2])
@@ -137,7 +152,7 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
       np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
   assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
   params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
-  initial = jax.device_get(train_state.initial_state(components.make_model(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(_model(config), sgd, 0, one).params)
   moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
   assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
@@ -152,7 +167,7 @@ def _whole_model_two_sgd_steps():
   """The reference of the sharded steps above: the whole 4-region model's two SGD steps on one device (one
   program, whichever mesh it is compared with, so computed once a session)."""
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  state, metrics = _run(one, _config(**{"model.regions": 4}), 2, optax.sgd(1.0))
+  state, metrics = _run(one, _config(**{"model.regions": 4}), 2, SGD)
   return jax.device_get(state), metrics
 
 
@@ -186,7 +201,7 @@ def test_each_device_holds_one_kth_of_the_region_fields():
 
 def test_the_region_renderer_renders_each_devices_regions_as_the_whole_model():
   config = _config(**{"model.regions": 4})
-  model, sgd = components.make_model(config), optax.sgd(1.0)
+  model, sgd = _model(config), SGD
   origins, directions = _rays(count=64, seed=2)
   from nerfpod.render import renderer
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
@@ -226,7 +241,7 @@ def test_per_frame_tables_and_stratified_regions_step_as_the_whole_model():
   config = _config(**{"model.regions": 4, "model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
                       "model.mlp.skips": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
                       "train.pose_refine": True, "render.proposal_samples": (), "render.num_samples": 8})
-  sgd = optax.sgd(1.0)
+  sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   state_1, metrics_1 = _run(one, config, 2, sgd)
   state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, sgd)
@@ -279,7 +294,7 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   device's optimiser sees alone), as optax.clip_by_global_norm clips the whole model's on one device."""
   config = _config(**{"model.regions": 4, "train.grad_clip": 0.005})
   assert train_state.make_optimizer(config.train, clip=False) is not None
-  sgd = optax.sgd(1.0)
+  sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   whole_model = optax.chain(optax.clip_by_global_norm(0.005), sgd)  # no region axis: optax's own clip
   state_1, metrics_1 = _run(one, config, 1, whole_model)
@@ -289,7 +304,7 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
                jax.device_get(state_8.params), jax.device_get(state_1.params))
   # SGD at a learning rate of 1 moves the parameters by the clipped gradient: its global norm is the limit.
-  initial = jax.device_get(train_state.initial_state(components.make_model(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(_model(config), sgd, 0, one).params)
   moved = jax.tree.map(lambda a, b: np.sum((np.asarray(a, np.float64) - b) ** 2), jax.device_get(state_8.params),
                        initial)
   np.testing.assert_allclose(np.sqrt(sum(jax.tree.leaves(moved))), 0.005, rtol=1e-3)
