@@ -274,23 +274,33 @@ def test_the_config_refuses_a_split_without_a_capacity_or_with_another_count_of_
 
 
 def test_the_pod_tools_figures_count_each_class_at_its_samples():
-  """aot.region_figures with the classes: rows C_j of each class's fraction, evaluations sum C_j x its samples."""
-  figures = aot.region_figures(1024, 1, 8, 8, 48, 1, 0.5, split_capacity=(0.2, 0.25, 0.3),
-                               class_samples=(48, 24, 12))
+  """aot.region_figures with the classes: rows C_j of each class's fraction, evaluations sum C_j x its samples
+  (the model's counts (32, 16) at the classes' 1, 1/2 and 1/4: 48, 24 and 12 samples a row)."""
+  figures = aot.region_figures(1024, 1, 8, 8, 48, 1, 0.5, split_capacity=(0.2, 0.25, 0.3), sample_counts=(32, 16))
   rows = [regions.capacity_rows(f, 1024) for f in (0.2, 0.25, 0.3)]
   assert figures["class_rows"] == rows == [208, 256, 312]
+  assert figures["class_samples"] == [48, 24, 12]
   assert figures["capacity_rows"] == sum(rows)
   assert figures["field_evals_per_chip"] == 208 * 48 + 256 * 24 + 312 * 12
   assert figures["field_evals_per_chip_dense"] == 1024 * 48
   config = _config()
   assert aot._split_figures(config, components.make_model(config)) == dict(
-      split_capacity=(1.0, 1.0, 1.0), class_samples=(14, 7, 4), split_by="length", sample_counts=(8, 6))
+      split_capacity=(1.0, 1.0, 1.0), split_by="length", sample_counts=(8, 6))
   assert aot._split_figures(_config(**{"model.region_split": 0}), None) == {}
   # By weights: the proposal rounds over the length classes' rows, the NeRF round over final_capacities'.
-  weighted = aot.region_figures(1024, 1, 8, 8, 48, 1, 0.5, split_capacity=(0.2, 0.25, 0.3),
-                                class_samples=(48, 24, 12), split_by="weights", sample_counts=(32, 16))
+  weighted = aot.region_figures(1024, 1, 8, 8, 48, 1, 0.5, split_capacity=(0.2, 0.25, 0.3), split_by="weights",
+                                sample_counts=(32, 16))
   assert weighted["final_rows"] == [208, 256, 208 + 256 + 312]
   assert weighted["field_evals_per_chip"] == (208 * 32 + 256 * 16 + 312 * 8) + (208 * 16 + 256 * 8 + 776 * 4)
+  # What `nerfpod aot` prints of each.
+  report = {"pod": "v5e-8", "topology": "2x4", "chips": 8, "hosts": 1, "chip": {"kind": "TPU v5e", "hbm_bytes": 2**34,
+            "source": "test"}, "batch": 1024, "rays_per_chip": 1024, "microbatches": 1, "compute_dtype": "float32",
+            "hashgrid_matmul_max_rows": 0, "host_rows_contiguous": True}
+  assert ("1 region(s) x (208 rows x 48 samples + 256 rows x 24 samples + 312 rows x 12 samples) x 1 "
+          "micro-batch(es) = 19,872 with model.region_split's 3 sample classes") in aot.format_report(
+              report | {"regions": figures})
+  assert ("the proposal rounds on 208 + 256 + 312 rows of the length classes and the NeRF round on 208 + 256 + 776 "
+          "rows of the weight classes x 1 micro-batch(es) = 21,728") in aot.format_report(report | {"regions": weighted})
 
 
 def test_a_segments_weight_share_and_the_nerf_rounds_rows_with_classes_handed_down():

@@ -287,7 +287,7 @@ def region_traffic(step: dict) -> dict:
 
 def region_figures(batch: int, batch_devices: int, regions: int, region_axis: int, field_samples: int,
                    microbatches: int, capacity: float = 0.0, split_capacity: tuple = (),
-                   class_samples: tuple = (), split_by: str = "length", sample_counts: tuple = ()) -> dict:
+                   split_by: str = "length", sample_counts: tuple = ()) -> dict:
   """A region model's rays and field evaluations per chip and step (docs/scale.md, "Dispatch and capacity"),
   from its shapes: a chip holds its region group's rays, `batch` / `batch_devices` (the chips of the batch's
   axes: data, and slice), and renders L = `regions` / `region_axis` regions; each micro-batch (of
@@ -296,11 +296,11 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
   `field_samples` field evaluations (sum of NeRF.sample_counts(): the proposal rounds' and the NeRF's). The
   same figures as the step's regions/field_evals_per_chip (dense: L x R x field_samples x microbatches).
   `field_evals_per_chip` is the step's as configured (compacted where a capacity is set, dense otherwise);
-  `field_evals_per_chip_dense` the dense step's beside it. With model.region_split, `split_capacity` and
-  `class_samples` are each sample class's fraction and field samples per row: `class_rows` its C_j, and a chip's
+  `field_evals_per_chip_dense` the dense step's beside it. With model.region_split, `split_capacity` is each
+  sample class's fraction: `class_rows` its C_j, `class_samples` its field samples per row, and by length a chip's
   evaluations sum C_j x samples over the classes (`capacity_rows` their sum). With `split_by` 'weights' the NeRF
-  round's rows are the weight classes' (`final_rows`: regions.final_capacities) and the evaluations
-  regions.split_evals of the model's `sample_counts`."""
+  round's rows are the weight classes' (`final_rows`: regions.final_capacities). Either way the evaluations are
+  regions.split_evals of the model's `sample_counts` (NeRF.sample_counts()), as the step's."""
   from nerfpod.nerf import regions as regions_lib
   microbatches = max(1, microbatches)
   rays_per_chip = batch // batch_devices
@@ -316,13 +316,12 @@ def region_figures(batch: int, batch_devices: int, regions: int, region_axis: in
                                   else dense)}
   if capacity and split_capacity:
     class_rows = [regions_lib.capacity_rows(f, rows) for f in split_capacity]
-    out.update(split_capacity=list(split_capacity), class_rows=class_rows, class_samples=list(class_samples),
-               capacity_rows=sum(class_rows),
-               field_evals_per_chip=local * sum(c * n for c, n in zip(class_rows, class_samples)) * microbatches)
+    out.update(split_capacity=list(split_capacity), class_rows=class_rows, capacity_rows=sum(class_rows),
+               class_samples=list(regions_lib.class_samples(tuple(sample_counts), len(class_rows))),
+               field_evals_per_chip=local * regions_lib.split_evals(tuple(sample_counts), tuple(class_rows),
+                                                                    split_by) * microbatches)
     if split_by == "weights":
-      out.update(split_by=split_by, final_rows=list(regions_lib.final_capacities(tuple(class_rows))),
-                 field_evals_per_chip=local * regions_lib.split_evals(tuple(sample_counts), tuple(class_rows),
-                                                                      split_by) * microbatches)
+      out.update(split_by=split_by, final_rows=list(regions_lib.final_capacities(tuple(class_rows))))
   return out
 
 
@@ -411,16 +410,16 @@ def compile_pod(config, pod: chips.Pod, what=("step", "eval", "orbit"), slices: 
 
 
 def _split_figures(config, model) -> dict:
-  """region_figures' keywords for model.region_split > 1 (each class's fraction and field samples per row, what
-  picks the NeRF round's classes, the model's sample counts), else none."""
+  """region_figures' keywords for model.region_split > 1 (each class's fraction, what picks the NeRF round's
+  classes, the model's sample counts), else none."""
   from nerfpod.nerf import regions as regions_lib
   classes = int(config.model.region_split)
   fractions = regions_lib.class_capacities(config.model.region_capacity, classes,
                                            tuple(config.model.region_split_capacity))
   if not fractions:
     return {}
-  return dict(split_capacity=fractions, class_samples=regions_lib.class_samples(model.sample_counts(), classes),
-              split_by=config.model.region_split_by, sample_counts=tuple(model.sample_counts()))
+  return dict(split_capacity=fractions, split_by=config.model.region_split_by,
+              sample_counts=tuple(model.sample_counts()))
 
 
 def _compile_programs(report: dict, config, program, pod: chips.Pod, what, key, num_chips: int, hosts: list,
