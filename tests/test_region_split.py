@@ -300,7 +300,8 @@ def test_the_pod_tools_figures_count_each_class_at_its_samples():
           "micro-batch(es) = 19,872 with model.region_split's 3 sample classes") in aot.format_report(
               report | {"regions": figures})
   assert ("the proposal rounds on 208 + 256 + 312 rows of the length classes and the NeRF round on 208 + 256 + 776 "
-          "rows of the weight classes x 1 micro-batch(es) = 21,728") in aot.format_report(report | {"regions": weighted})
+          "rows of the weight classes x 1 micro-batch(es) = 21,728") in aot.format_report(
+              report | {"regions": weighted})
 
 
 def test_a_segments_weight_share_and_the_nerf_rounds_rows_with_classes_handed_down():
