@@ -1,7 +1,8 @@
 """model.region_capacity: each chip renders, per region, only the rays whose segment meets it, up to C rows
 (nerf/regions.py's dispatch, NeRF.render_partials' capacity, run/step.py's _region_loss_fn): the same step as the
 dense one where nothing is dropped, whole rays dropped where a region overflows, counted, and the training loop's
-refusal; the step's regions/* scalars; and model.region_capacity=auto, measured on the training rays before the
+refusal; the step's regions/* scalars (per-frame tables and stratified samples at a capacity:
+tests/test_region_step.py); and model.region_capacity=auto, measured on the training rays before the
 first step, recorded in config.json and kept by a resume."""
 import functools
 
@@ -114,6 +115,9 @@ def test_capacity_zero_is_the_dense_region_step_of_before(dense):
   assert "regions/capacity" not in metrics[0]  # dense: no C
 
 
+@pytest.mark.slow  # (another compile of the one-device step; the quick loop checks the one-device compaction in
+# test_an_overflow_drops_whole_rays_counts_them_and_trains_on_the_rest[None-1], against the dense step on the rays
+# kept, and a roomy capacity on 2 x 4 against the dense one-device step in the next test)
 def test_roomy_capacity_steps_as_the_dense_one_on_one_device(dense, segments):
   """C = 96 of 128 rays (fewer rows than rays: a real compaction), nothing dropped: the loss, metrics and the
   parameters after two SGD steps are the dense step's, to float tolerance (not bit for bit: XLA rounds the
@@ -140,25 +144,6 @@ def test_roomy_capacity_steps_as_the_dense_one_on_a_region_mesh(dense, segments,
     present = _present(t_in, t_out)  # the fill: the mean over the data axis of each device's fullest region
     fills = [present[:, i:i + rays].sum(axis=1).max() / capacity for i in range(0, BATCH, rays)]
     assert metrics["regions/fill"] == pytest.approx(np.mean(fills), rel=1e-6)
-
-
-PER_FRAME = {"model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16, "model.mlp.skips": (),
-             "model.use_viewdirs": True, "model.appearance_dim": 4, "train.pose_refine": True,
-             "render.proposal_samples": (), "render.num_samples": 8}
-
-
-def test_roomy_capacity_with_per_frame_tables_and_stratified_samples_steps_as_the_dense_one():
-  """The MLP field with stratified samples per segment (no proposals), per-frame appearance codes and pose
-  corrections (each row takes its ray's code and moved ray) on 2 x 4: the dense step's loss and parameters."""
-  compact = _run(_region_mesh((2, 4)), ROOMY, **PER_FRAME)
-  want = _run(_one(), 0.0, **PER_FRAME)
-  for m_got, m_want in zip(compact[1], want[1]):
-    for key in ("loss", "grad_norm", "regions/segments_per_ray"):
-      np.testing.assert_allclose(m_got[key], m_want[key], rtol=2e-5, err_msg=key)
-    assert m_got["regions/dropped"] == 0
-  assert np.abs(want[0].params["params"]["pose_correction"]).max() > 0
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), compact[0].params,
-               want[0].params)
 
 
 def test_dispatch_compacts_the_present_segments_in_ray_order():

@@ -101,13 +101,14 @@ def _batches(config, steps, with_frames=False):
   return scene, out
 
 
-def _run(mesh, config, steps, optimizer, grad_clip=0.0):
+def _run(mesh, config, steps, optimizer, grad_clip=0.0, capacity=0.0):
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
   model = _model(config, num_frames=100 if per_frame else 0)
   scene, batches = _batches(config, steps, per_frame)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
-                                 step.Options(random_background=True, distortion_weight=0.01, grad_clip=grad_clip))
+                                 step.Options(random_background=True, distortion_weight=0.01, grad_clip=grad_clip,
+                                              region_capacity=capacity))
   metrics_all = []
   for batch in batches:
     state, metrics = step_fn(state, jax.device_put(batch, distributed.batch_sharding(mesh)), jax.random.key(7))
@@ -237,22 +238,28 @@ def test_checkpoints_restore_the_region_fields_split_over_any_region_mesh(tmp_pa
 def test_per_frame_tables_and_stratified_regions_step_as_the_whole_model():
   """The MLP field with stratified samples per segment (no proposals), per-frame appearance codes and pose
   corrections, replicated over the region axis: their gradients, summed over the region devices (each holds
-  the part through its own region), then averaged over the data axis, equal the whole model's on one device."""
+  the part through its own region), then averaged over the data axis, equal the whole model's on one device;
+  dense, and at a capacity with nothing dropped (model.region_capacity 0.75: 24 rows of each device's 32 rays,
+  each row taking its ray's code and moved ray; tests/test_region_capacity.py holds the capacity's other
+  claims)."""
   config = _config(**{"model.regions": 4, "model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
                       "model.mlp.skips": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
                       "train.pose_refine": True, "render.proposal_samples": (), "render.num_samples": 8})
   sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   state_1, metrics_1 = _run(one, config, 2, sgd)
-  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, sgd)
-  for m1, m8 in zip(metrics_1, metrics_8):
-    for key in ("loss", "grad_norm"):
-      np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
-  params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
+  params_1 = jax.device_get(state_1.params)
   assert np.abs(params_1["params"]["appearance"]).max() > 0  # the per-frame tables did move
   assert np.abs(params_1["params"]["pose_correction"]).max() > 0
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
-  assert state_8.params["params"]["appearance"].sharding.spec == jax.sharding.PartitionSpec()
+  for capacity in (0.0, 0.75):
+    state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, sgd, capacity=capacity)
+    for m1, m8 in zip(metrics_1, metrics_8):
+      for key in ("loss", "grad_norm", "regions/segments_per_ray"):
+        np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=(key, capacity))
+      assert m8.get("regions/capacity", 0) == (24 if capacity else 0) and m8["regions/dropped"] == 0
+    params_8 = jax.device_get(state_8.params)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
+    assert state_8.params["params"]["appearance"].sharding.spec == jax.sharding.PartitionSpec()
 
 
 def test_regions_cut_around_the_cameras():
