@@ -80,6 +80,21 @@ def smoke_config(**overrides):
   return override(load_config("default", "smoke"), **overrides)
 
 
+_SHARED_MODELS: dict = {}
+
+
+def shared_model(config, num_frames: int = 0):
+  """components.make_model(config, num_frames=num_frames), one object per config in a test process:
+  train_state.initial_state traces and compiles its init once per (model, optimiser) pair, so the tests that
+  start from the same config (and the same optimiser object) share that program rather than tracing it again.
+  Models are immutable: the object may be shared."""
+  from nerfpod.run import components
+  key = (config.to_json(), num_frames)
+  if key not in _SHARED_MODELS:
+    _SHARED_MODELS[key] = components.make_model(config, num_frames=num_frames)
+  return _SHARED_MODELS[key]
+
+
 def load_config(name: str, arg: str | None = None):
   """The config that --config=configs/<name>.py:<arg> gives, e.g. load_config("llff", "scene=horns")."""
   from nerfpod.config_util import sibling_module

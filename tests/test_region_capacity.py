@@ -13,7 +13,8 @@ import pytest
 from jax.sharding import Mesh
 
 import procs
-from test_region_step import SGD, _batches, _model, _region_mesh
+from conftest import shared_model
+from test_region_step import SGD, _batches, _region_mesh
 from test_region_step import _config as _region_step_config
 from nerfpod import distributed
 from nerfpod.errors import UserError
@@ -40,7 +41,7 @@ def _run(mesh, capacity, steps=2, batches=None, optimizer=None, microbatches=1, 
   """(state, metrics of each step) of `steps` steps (plain SGD: the parameters move exactly as the gradients)."""
   config = _config(**overrides)
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
-  model = _model(config, num_frames=100 if per_frame else 0)
+  model = shared_model(config, num_frames=100 if per_frame else 0)
   scene, own = _batches(config, steps, per_frame)
   optimizer = optimizer or SGD
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
@@ -230,8 +231,7 @@ def test_an_overflow_drops_whole_rays_counts_them_and_trains_on_the_rest(segment
   share = (~dropped).sum() / BATCH
   for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
     np.testing.assert_allclose(metrics[key], share * kept_metrics[key], rtol=2e-5, err_msg=key)
-  initial = jax.device_get(train_state.initial_state(_model(_config()), SGD, 0,
-                                                     _one()).params)
+  initial = jax.device_get(train_state.initial_state(shared_model(_config()), SGD, 0, _one()).params)
   jax.tree.map(lambda got, kept, start: np.testing.assert_allclose(got - start, share * (kept - start), rtol=1e-4,
                                                                    atol=1e-6),
                state.params, kept_state.params, initial)

@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import shared_model
 from test_region_capacity import _one, _step_scalars
-from test_region_step import SGD, _batches, _model, _region_mesh
+from test_region_step import SGD, _batches, _region_mesh
 from test_region_step import _config as _region_step_config
 from nerfpod import distributed, schema
 from nerfpod.errors import UserError
@@ -28,7 +29,7 @@ CLASS_COUNTS = [(8, 6), (4, 3), (2, 2)]
 def _config(**overrides):
   """tests/test_region_step.py's tiny 4-region config (a 2 x 2 grid, 8 proposal intervals then 6 samples) with
   BATCH rays a step and CLASSES sample classes, split by the segments' lengths (the tests of the weights' split
-say so)."""
+  say so)."""
   return _region_step_config(**({"train.batch_size": BATCH, "model.region_split": CLASSES,
                                  "model.region_capacity": 1.0, "model.region_split_by": "length"} | overrides))
 
@@ -116,7 +117,7 @@ def test_the_split_rendering_is_each_segment_rendered_dense_at_its_class_counts(
 def _run(mesh, steps=2, **overrides):
   """(state, metrics of each step) of `steps` SGD steps of the split step."""
   config = _config(**overrides)
-  model = _model(config)
+  model = shared_model(config)
   scene, batches = _batches(config, steps)
   optimizer = SGD
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)

@@ -10,7 +10,7 @@ import optax
 import pytest
 from jax.sharding import Mesh
 
-from conftest import smoke_config
+from conftest import shared_model, smoke_config
 from nerfpod import data, distributed, scenes
 from nerfpod.errors import UserError
 from nerfpod.nerf import model as nerf_model
@@ -27,19 +27,9 @@ def _config(**overrides):
   return smoke_config(**(tiny | overrides))
 
 
-# One optimiser object and one model object per config in a worker: train_state.initial_state traces and
-# compiles its init once per (model, optimiser) pair, so the tests of these files that start from the same
-# config share that program rather than tracing it again (models and optimisers are immutable).
+# One optimiser object for the region files' SGD runs, with conftest.shared_model's one model per config: the
+# tests that start from the same config share its init program (train_state.initial_state's, per pair).
 SGD = optax.sgd(1.0)
-_MODELS = {}
-
-
-def _model(config, num_frames=0):
-  """components.make_model(config, num_frames=num_frames), the same object for the same config."""
-  key = (config.to_json(), num_frames)
-  if key not in _MODELS:
-    _MODELS[key] = components.make_model(config, num_frames=num_frames)
-  return _MODELS[key]
 
 
 def _rays(count=64, seed=0):
@@ -103,7 +93,7 @@ def _batches(config, steps, with_frames=False):
 
 def _run(mesh, config, steps, optimizer, grad_clip=0.0, capacity=0.0):
   per_frame = bool(config.model.appearance_dim or config.train.pose_refine)
-  model = _model(config, num_frames=100 if per_frame else 0)
+  model = shared_model(config, num_frames=100 if per_frame else 0)
   scene, batches = _batches(config, steps, per_frame)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
@@ -153,7 +143,7 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
       np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
   assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
   params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
-  initial = jax.device_get(train_state.initial_state(_model(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(shared_model(config), sgd, 0, one).params)
   moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
   assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
@@ -202,7 +192,7 @@ def test_each_device_holds_one_kth_of_the_region_fields():
 
 def test_the_region_renderer_renders_each_devices_regions_as_the_whole_model():
   config = _config(**{"model.regions": 4})
-  model, sgd = _model(config), SGD
+  model, sgd = shared_model(config), SGD
   origins, directions = _rays(count=64, seed=2)
   from nerfpod.render import renderer
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
@@ -311,7 +301,7 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
                jax.device_get(state_8.params), jax.device_get(state_1.params))
   # SGD at a learning rate of 1 moves the parameters by the clipped gradient: its global norm is the limit.
-  initial = jax.device_get(train_state.initial_state(_model(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(shared_model(config), sgd, 0, one).params)
   moved = jax.tree.map(lambda a, b: np.sum((np.asarray(a, np.float64) - b) ** 2), jax.device_get(state_8.params),
                        initial)
   np.testing.assert_allclose(np.sqrt(sum(jax.tree.leaves(moved))), 0.005, rtol=1e-3)

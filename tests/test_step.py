@@ -10,17 +10,14 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import procs
-from conftest import smoke_config
+from conftest import shared_model, smoke_config
 from nerfpod import data, distributed, scenes
 from nerfpod.run import compilation, components, step, train_state
 
 
-_MODELS = {}  # config -> its model: one object per config, so that runs of one config share their init program
-
-
 def _run_steps(mesh, config, num_steps, optimizer, microbatches=1, compiler_options=None, hlo=None):
   scene = scenes.load(config.data)
-  model = _MODELS.setdefault(config.to_json(), components.make_model(config))
+  model = shared_model(config)  # (one object per config: runs of one config share their init program)
   state = train_state.initial_state(model, optimizer, config.train.seed, mesh)
   step_fn = step.make_train_step(model, optimizer, mesh, 2.0, 6.0, scene.background,
                                   step.Options(microbatches=microbatches, compiler_options=compiler_options))

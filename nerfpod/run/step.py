@@ -562,7 +562,7 @@ def region_metrics(counts_K, rays: int, dropped_KxR, capacity, local: int, field
   fullest (region, class)'s count over its C_j, and capacity is the rows of every class.
   regions/downgraded (model.region_split_by=weights, added by the step) the share of the segments that a full
   class of the NeRF round handed down to fewer samples"""
-  if isinstance(capacity, tuple):  # model.region_split: per sample class, its rows C_j and samples per row
+  if isinstance(capacity, tuple):  # model.region_split: per sample class, its rows C_j
     fill = jnp.max(class_counts_KxJ / jnp.asarray(capacity, jnp.float32))
     capacity = sum(capacity)
   else:
