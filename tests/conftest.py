@@ -30,9 +30,9 @@ if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # every program (most take < 1 s)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-# No source locations in the programs the tests lower (JAX's default keeps each operation's last 10 frames):
-# they are what XLA's error messages and profiles point at, which no test reads; building them was about 3% of
-# the tracing, lowering and compiling of the region and model tests. Users' runs keep JAX's default.
+# No source locations in the programs the tests lower (JAX 0.10 keeps up to 100 frames of each operation's
+# traceback): they are what XLA's error messages and profiles point at, which no test reads; building them was
+# about 3% of the tracing, lowering and compiling of the region and model tests. Users' runs keep JAX's default.
 jax.config.update("jax_traceback_in_locations_limit", 0)
 
 import pytest  # noqa: E402
