@@ -32,7 +32,9 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # every prog
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 # No source locations in the programs the tests lower (JAX 0.10 keeps up to 100 frames of each operation's
 # traceback): they are what XLA's error messages and profiles point at, which no test reads; building them was
-# about 3% of the tracing, lowering and compiling of the region and model tests. Users' runs keep JAX's default.
+# about 3% of the tracing, lowering and compiling of the region and model tests. Here and, through the
+# environment, in every process a test starts; users' runs keep JAX's default.
+os.environ["JAX_TRACEBACK_IN_LOCATIONS_LIMIT"] = "0"
 jax.config.update("jax_traceback_in_locations_limit", 0)
 
 import pytest  # noqa: E402

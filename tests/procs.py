@@ -88,8 +88,7 @@ def environment(devices_per_process: int, **extra: str) -> dict:
   env = dict(os.environ, JAX_NUM_CPU_DEVICES=str(devices_per_process), JAX_PLATFORMS="cpu",
              PYTHONUNBUFFERED="1", PYTHONPATH=os.pathsep.join([str(REPO), str(REPO / "tests")]),
              JAX_COMPILATION_CACHE_DIR=os.environ.get("JAX_COMPILATION_CACHE_DIR") or str(DEFAULT_COMPILATION_CACHE),
-             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
-             JAX_TRACEBACK_IN_LOCATIONS_LIMIT="0")  # (as conftest.py: no source locations)
+             JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
   env["XLA_FLAGS"] = TEST_XLA_FLAGS  # none of the caller's (a host device count of its own, ...)
   for name in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID",
                "NERFPOD_TEST_RECORD", "NERFPOD_TEST_STAND_IN", "NERFPOD_TEST_COMPILES", "NERFPOD_TEST_STALL_AT_STEP",

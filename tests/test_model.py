@@ -186,9 +186,8 @@ def test_photometric_loss_reaches_only_the_nerf_and_interlevel_loss_only_the_pro
   grads, grads_interlevel = both(params)
   assert nonzero(grads["coarse"])
   assert not nonzero(grads["proposal_0"]) and not nonzero(grads["proposal_1"])  # positions carry none
-  grads = grads_interlevel
-  assert not nonzero(grads["coarse"])
-  assert nonzero(grads["proposal_0"]) and nonzero(grads["proposal_1"])
+  assert not nonzero(grads_interlevel["coarse"])
+  assert nonzero(grads_interlevel["proposal_0"]) and nonzero(grads_interlevel["proposal_1"])
 
 
 def test_near_gradient_scaling_leaves_outputs_and_scales_their_gradients_by_squared_distance():

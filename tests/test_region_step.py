@@ -129,7 +129,6 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   (the gather's transpose summing every region device's cotangent) would show at once. (2, 1, 4): two
   simulated slices, (slice, data, region)."""
   config = _config(**{"model.regions": 4})
-  sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
   if len(shape) == 3:
     mesh = distributed.make_mesh(num_slices=shape[0], regions=shape[2])
@@ -137,13 +136,13 @@ def test_sharded_regions_step_matches_the_whole_model_on_one_device(shape):
   else:
     mesh = _region_mesh(shape)
   state_1, metrics_1 = _whole_model_two_sgd_steps()
-  state_8, metrics_8 = _run(mesh, config, 2, sgd)
+  state_8, metrics_8 = _run(mesh, config, 2, SGD)
   for m1, m8 in zip(metrics_1, metrics_8):
     for key in ("loss", "mse", "interlevel", "distortion", "grad_norm"):
       np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=key)
   assert metrics_1[0]["interlevel"] > 0 and metrics_1[0]["distortion"] > 0
   params_1, params_8 = jax.device_get(state_1.params), jax.device_get(state_8.params)
-  initial = jax.device_get(train_state.initial_state(shared_model(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(shared_model(config), SGD, 0, one).params)
   moved = jax.tree.map(lambda a, b: float(np.max(np.abs(a - b))), params_1, initial)
   assert max(jax.tree.leaves(moved)) > 1e-4  # the parameters did move
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), params_8, params_1)
@@ -192,15 +191,15 @@ def test_each_device_holds_one_kth_of_the_region_fields():
 
 def test_the_region_renderer_renders_each_devices_regions_as_the_whole_model():
   config = _config(**{"model.regions": 4})
-  model, sgd = shared_model(config), SGD
+  model = shared_model(config)
   origins, directions = _rays(count=64, seed=2)
   from nerfpod.render import renderer
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  params_1 = train_state.initial_state(model, sgd, 0, one).params
+  params_1 = train_state.initial_state(model, SGD, 0, one).params
   want = renderer.render_rays(renderer.make_renderer(model, one, 2.0, 6.0, (1.0, 1.0, 1.0)), params_1, one,
                               np.asarray(origins), np.asarray(directions), 64)
   mesh = _region_mesh((2, 4))
-  params_8 = train_state.initial_state(model, sgd, 0, mesh).params
+  params_8 = train_state.initial_state(model, SGD, 0, mesh).params
   got = renderer.render_rays(renderer.make_renderer(model, mesh, 2.0, 6.0, (1.0, 1.0, 1.0)), params_8, mesh,
                              np.asarray(origins), np.asarray(directions), 64)
   for key in got:
@@ -235,14 +234,13 @@ def test_per_frame_tables_and_stratified_regions_step_as_the_whole_model():
   config = _config(**{"model.regions": 4, "model.field": "mlp", "model.mlp.depth": 2, "model.mlp.width": 16,
                       "model.mlp.skips": (), "model.use_viewdirs": True, "model.appearance_dim": 4,
                       "train.pose_refine": True, "render.proposal_samples": (), "render.num_samples": 8})
-  sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  state_1, metrics_1 = _run(one, config, 2, sgd)
+  state_1, metrics_1 = _run(one, config, 2, SGD)
   params_1 = jax.device_get(state_1.params)
   assert np.abs(params_1["params"]["appearance"]).max() > 0  # the per-frame tables did move
   assert np.abs(params_1["params"]["pose_correction"]).max() > 0
   for capacity in (0.0, 0.75):
-    state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, sgd, capacity=capacity)
+    state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 2, SGD, capacity=capacity)
     for m1, m8 in zip(metrics_1, metrics_8):
       for key in ("loss", "grad_norm", "regions/segments_per_ray"):
         np.testing.assert_allclose(m8[key], m1[key], rtol=2e-5, err_msg=(key, capacity))
@@ -291,17 +289,16 @@ def test_the_step_clips_the_norm_of_every_regions_gradients():
   device's optimiser sees alone), as optax.clip_by_global_norm clips the whole model's on one device."""
   config = _config(**{"model.regions": 4, "train.grad_clip": 0.005})
   assert train_state.make_optimizer(config.train, clip=False) is not None
-  sgd = SGD
   one = Mesh(np.array(jax.devices()[:1]), (distributed.DATA_AXIS,))
-  whole_model = optax.chain(optax.clip_by_global_norm(0.005), sgd)  # no region axis: optax's own clip
+  whole_model = optax.chain(optax.clip_by_global_norm(0.005), SGD)  # no region axis: optax's own clip
   state_1, metrics_1 = _run(one, config, 1, whole_model)
-  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 1, sgd, grad_clip=0.005)
+  state_8, metrics_8 = _run(_region_mesh((2, 4)), config, 1, SGD, grad_clip=0.005)
   assert metrics_1[0]["grad_norm"] > 0.005  # the clip was at work
   np.testing.assert_allclose(metrics_8[0]["grad_norm"], metrics_1[0]["grad_norm"], rtol=2e-5)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6),
                jax.device_get(state_8.params), jax.device_get(state_1.params))
   # SGD at a learning rate of 1 moves the parameters by the clipped gradient: its global norm is the limit.
-  initial = jax.device_get(train_state.initial_state(shared_model(config), sgd, 0, one).params)
+  initial = jax.device_get(train_state.initial_state(shared_model(config), SGD, 0, one).params)
   moved = jax.tree.map(lambda a, b: np.sum((np.asarray(a, np.float64) - b) ** 2), jax.device_get(state_8.params),
                        initial)
   np.testing.assert_allclose(np.sqrt(sum(jax.tree.leaves(moved))), 0.005, rtol=1e-3)
